@@ -1,0 +1,149 @@
+"""The ROS contract shared by every node: topic names, QoS, message conversions, stamp joins.
+
+Pairing without custom messages: every message of one simulator step carries the same
+`header.stamp` (the sim time of the frame). The policy's `action` (TwistStamped) carries the
+stamp of the frame it answered. `step_outcome` (sensor_msgs/Range) carries, with the frame's
+stamp, beta (the centre-window minimum depth, m) or -Inf when the step that produced this
+frame ended in a collision (REP 117 "too close"), which also means the frame is the first
+of a new episode.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image, Range
+
+DEPTH_TOPIC = "depth/image_raw"
+CAMERA_INFO_TOPIC = "depth/camera_info"
+ODOM_TOPIC = "odom"
+OUTCOME_TOPIC = "step_outcome"
+CMD_VEL_TOPIC = "cmd_vel"
+ACTION_TOPIC = "action"
+Q_VALUES_TOPIC = "q_values"
+ATTENTION_TOPIC = "attention"
+ATTENTION_OVERLAY_TOPIC = "attention/overlay"
+ATTENTION_WEIGHTS_TOPIC = "attention/weights"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
+WEIGHTS_PARAMETER = "weights"
+
+# Lockstep needs every message: reliable, with room for bursts.
+STREAM_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100
+)
+# Latched-style: late joiners get the last value.
+LATCHED_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+
+def stamp_from_seconds(t_s: float) -> Time:
+    ns = int(round(t_s * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def stamp_ns(stamp: Time) -> int:
+    """A header stamp as one integer (ns): the join key."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def depth_to_image(depth_m: np.ndarray, stamp: Time, frame_id: str) -> Image:
+    """REP 118 depth image: 32FC1, metres along the optical axis."""
+    h, w = depth_m.shape
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = h, w
+    msg.encoding = "32FC1"
+    msg.is_bigendian = 0
+    msg.step = 4 * w
+    msg.data = np.ascontiguousarray(depth_m, dtype="<f4").tobytes()
+    return msg
+
+
+def image_to_depth(msg: Image) -> np.ndarray:
+    """A (H, W) float32 depth array from a 32FC1 Image; ValueError says what is malformed."""
+    if msg.encoding != "32FC1":
+        raise ValueError(f"depth image encoding must be 32FC1, got '{msg.encoding}'")
+    h, w = int(msg.height), int(msg.width)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"depth image has an empty size {w}x{h}")
+    if msg.step < 4 * w:
+        raise ValueError(f"depth image step {msg.step} is smaller than 4*width={4 * w}")
+    if len(msg.data) < msg.step * h:
+        raise ValueError(f"depth image data has {len(msg.data)} bytes, expected {msg.step * h}")
+    dtype = ">f4" if msg.is_bigendian else "<f4"
+    rows = np.frombuffer(bytes(msg.data[: msg.step * h]), dtype=np.uint8).reshape(h, msg.step)
+    return rows[:, : 4 * w].copy().view(dtype).reshape(h, w).astype(np.float32)
+
+
+def make_outcome(beta_m: float, collided: bool, stamp: Time, frame_id: str, min_range_m: float,
+                 max_range_m: float, fov_rad: float) -> Range:
+    msg = Range()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.radiation_type = Range.INFRARED
+    msg.field_of_view = float(fov_rad)
+    msg.min_range = float(min_range_m)
+    msg.max_range = float(max_range_m)
+    msg.range = -math.inf if collided else float(beta_m)
+    return msg
+
+
+def outcome_collided(msg: Range) -> bool:
+    return math.isinf(msg.range) and msg.range < 0
+
+
+class StampJoiner:
+    """Joins messages from several streams by exact stamp (a small TimeSynchronizer).
+
+    `add(stream, stamp_ns, item)` returns {stream: item} once every stream has an item with
+    that stamp, else None. Incomplete stamps older than `max_pending` newer ones are
+    dropped and counted per missing stream in `dropped` - never guessed.
+    """
+
+    def __init__(self, streams: tuple[str, ...], max_pending: int = 200):
+        self.streams = tuple(streams)
+        self.max_pending = max_pending
+        self.pending: OrderedDict[int, dict] = OrderedDict()
+        self.dropped = {s: 0 for s in self.streams}
+        self.duplicates = 0
+        self.late = 0
+        self._last_done = None
+
+    def add(self, stream: str, stamp: int, item) -> dict | None:
+        if stream not in self.dropped:
+            raise KeyError(f"unknown stream '{stream}'")
+        if self._last_done is not None and stamp <= self._last_done and stamp not in self.pending:
+            self.late += 1  # arrived after its stamp was completed or given up
+            return None
+        slot = self.pending.setdefault(stamp, {})
+        if stream in slot:
+            self.duplicates += 1
+            return None
+        slot[stream] = item
+        if len(slot) == len(self.streams):
+            del self.pending[stamp]
+            # Everything older than a completed stamp can no longer complete in order.
+            for old in [s for s in self.pending if s < stamp]:
+                self._drop(old)
+            self._last_done = stamp if self._last_done is None else max(self._last_done, stamp)
+            return slot
+        while len(self.pending) > self.max_pending:
+            self._drop(next(iter(self.pending)))
+        return None
+
+    def _drop(self, stamp: int) -> None:
+        slot = self.pending.pop(stamp)
+        for s in self.streams:
+            if s not in slot:
+                self.dropped[s] += 1
+        self._last_done = stamp if self._last_done is None else max(self._last_done, stamp)

@@ -1,0 +1,66 @@
+"""The paper's reward, in one place: every package imports it from here.
+
+R = 3 + beta/5          if beta > delta
+R = -delta/(beta + 0.5) if beta <= delta
+R = -10                 on collision (the episode ends)
+
+beta is the minimum depth (m) in the central window (20% of width and height) of the
+new depth frame; delta = 3 m.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+DELTA_M = 3.0
+COLLISION_REWARD = -10.0
+CENTER_WINDOW_FRACTION = 0.2
+
+
+def center_window_slices(height: int, width: int, fraction: float = CENTER_WINDOW_FRACTION):
+    """Row and column slices of the central window covering `fraction` of each side.
+
+    The window is at least one pixel and is centred (for odd leftovers the extra pixel
+    goes to the bottom/right margin).
+    """
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    wh = max(1, int(round(height * fraction)))
+    ww = max(1, int(round(width * fraction)))
+    r0 = (height - wh) // 2
+    c0 = (width - ww) // 2
+    return slice(r0, r0 + wh), slice(c0, c0 + ww)
+
+
+def center_window_min_depth(
+    depth_m: np.ndarray, max_range_m: float, fraction: float = CENTER_WINDOW_FRACTION
+) -> float:
+    """beta: the minimum metric depth (m) in the central window of a depth image.
+
+    REP 117 values are honoured: +Inf (nothing within range) counts as `max_range_m`,
+    -Inf (too close to measure) counts as 0, NaN (invalid) is ignored. A window with no
+    valid pixel at all reads as `max_range_m`.
+    """
+    if depth_m.ndim != 2:
+        raise ValueError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")
+    rows, cols = center_window_slices(depth_m.shape[0], depth_m.shape[1], fraction)
+    window = np.asarray(depth_m[rows, cols], dtype=np.float64)
+    window = np.where(np.isposinf(window), max_range_m, window)
+    window = np.where(np.isneginf(window), 0.0, window)
+    valid = window[~np.isnan(window)]
+    if valid.size == 0:
+        return float(max_range_m)
+    return float(min(max(valid.min(), 0.0), max_range_m))
+
+
+def step_reward(beta_m: float, collided: bool, delta_m: float = DELTA_M) -> float:
+    """Reward of one step: -10 on collision, else the paper's distance-shaped term."""
+    if collided:
+        return COLLISION_REWARD
+    if math.isnan(beta_m) or beta_m < 0.0:
+        raise ValueError(f"beta must be a non-negative depth in metres, got {beta_m}")
+    if beta_m > delta_m:
+        return 3.0 + beta_m / 5.0
+    return -delta_m / (beta_m + 0.5)

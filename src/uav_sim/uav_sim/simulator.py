@@ -1,0 +1,216 @@
+"""The simulator core: world, vehicle, camera, weather, collisions and the reward. No ROS.
+
+One `step(cmd)` applies a body-frame velocity command for `step_duration_s`, integrated at
+`physics_rate_hz`, checks collisions after every sub-step, renders the new depth frame and
+returns everything a trainer needs. A collision ends the episode: the vehicle returns to
+its start pose and the returned frame is the first of the next episode.
+
+Collisions: after each sub-step pybullet's contact points between the vehicle's box and the
+world are read; a contact whose penetration depth exceeds `collision_penetration_m` is a
+collision. Shallower contacts are *brushes* (the paper ignores minor brushes): they are
+counted in `StepResult.brushes` and do not end the episode.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pybullet as p
+
+from .camera import CameraIntrinsics, DepthCamera
+from .reward import center_window_min_depth, step_reward
+from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
+from .weather import Particles
+from .world import World
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    image_width: int = 64
+    image_height: int = 64
+    hfov_deg: float = 90.0
+    min_range_m: float = 0.1
+    max_range_m: float = 10.0
+    step_duration_s: float = 0.5
+    physics_rate_hz: float = 40.0
+    collision_penetration_m: float = 0.03
+    body_half_extents_m: tuple[float, float, float] = (0.2, 0.2, 0.06)
+    camera_forward_offset_m: float = 0.22
+    start_yaw_jitter_deg: float = 0.0
+    limits: TwistLimits = TwistLimits()
+    seed: int = 0
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that cannot be used."""
+        checks = [
+            ("image_width", 8 <= self.image_width <= 1024, "an integer in [8, 1024]"),
+            ("image_height", 8 <= self.image_height <= 1024, "an integer in [8, 1024]"),
+            ("hfov_deg", 10.0 <= self.hfov_deg <= 170.0, "in [10, 170] degrees"),
+            ("min_range_m", 0.01 <= self.min_range_m < self.max_range_m, "in [0.01, max_range_m)"),
+            ("max_range_m", 0.5 <= self.max_range_m <= 100.0, "in [0.5, 100] m"),
+            ("step_duration_s", 0.01 <= self.step_duration_s <= 5.0, "in [0.01, 5] s"),
+            ("physics_rate_hz", 1.0 <= self.physics_rate_hz <= 1000.0, "in [1, 1000] Hz"),
+            ("collision_penetration_m", 0.0 <= self.collision_penetration_m <= 0.2, "in [0, 0.2] m"),
+            ("start_yaw_jitter_deg", 0.0 <= self.start_yaw_jitter_deg <= 180.0, "in [0, 180] degrees"),
+        ]
+        for name, ok, valid in checks:
+            if not ok:
+                raise ValueError(f"{name}={getattr(self, name)!r} is invalid: expected {valid}")
+
+
+@dataclasses.dataclass
+class StepResult:
+    depth_m: np.ndarray  # (H, W) float32, REP 117 (+Inf beyond range)
+    beta_m: float  # centre-window minimum depth of depth_m (capped at max range)
+    collided: bool  # the step ended in a collision; depth_m is then the new episode's first frame
+    reward: float
+    brushes: int  # sub-steps with a contact shallower than the collision threshold
+    episode: int
+    step_in_episode: int
+    sim_time_s: float
+    pose: Pose
+
+
+class Simulator:
+    """A quadrotor with a depth camera in a world; several can share one process."""
+
+    def __init__(self, world: World, config: SimConfig = SimConfig()):
+        config.validate()
+        self.world = world
+        self.config = config
+        self.rng = np.random.default_rng(config.seed)
+        self.client = p.connect(p.DIRECT)
+        p.setGravity(0, 0, 0, physicsClientId=self.client)
+        self._build_world()
+        hx, hy, hz = config.body_half_extents_m
+        shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=(hx, hy, hz), physicsClientId=self.client)
+        # Mass > 0 so that contacts with the static world are generated; it is moved kinematically.
+        self.body = p.createMultiBody(1.0, shape, -1, (0, 0, 1), physicsClientId=self.client)
+        self.camera = DepthCamera(
+            self.client,
+            CameraIntrinsics(config.image_width, config.image_height, config.hfov_deg),
+            config.min_range_m,
+            config.max_range_m,
+        )
+        self.particles = Particles(self.client, world.weather, config.seed + 1)
+        self.sim_time_s = 0.0
+        self.episode = 0
+        self.step_in_episode = 0
+        self.total_steps = 0
+        self.collisions = 0
+        self.pose = self._start_pose()
+        self._place()
+        self.particles.update(0.0, self.camera_xyz(), self.pose.yaw_rad)
+
+    # -- world ------------------------------------------------------------------------
+    def _static_box(self, center, half, yaw_rad=0.0) -> None:
+        c = self.client
+        col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
+        vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
+        orn = p.getQuaternionFromEuler((0, 0, yaw_rad))
+        p.createMultiBody(0, col, vis, center, orn, physicsClientId=c)
+
+    def _build_world(self) -> None:
+        w, c, t = self.world, self.client, 0.1
+        L, W, H = w.length_m, w.width_m, w.wall_height_m
+        self._static_box((0, 0, -t), (L / 2 + t, W / 2 + t, t))  # floor
+        self._static_box((L / 2 + t, 0, H / 2), (t, W / 2 + 2 * t, H / 2))
+        self._static_box((-L / 2 - t, 0, H / 2), (t, W / 2 + 2 * t, H / 2))
+        self._static_box((0, W / 2 + t, H / 2), (L / 2 + 2 * t, t, H / 2))
+        self._static_box((0, -W / 2 - t, H / 2), (L / 2 + 2 * t, t, H / 2))
+        for o in w.obstacles:
+            if o.shape == "box":
+                half = (o.size_x_m / 2, o.size_y_m / 2, o.height_m / 2)
+                self._static_box((o.x_m, o.y_m, o.height_m / 2), half, math.radians(o.yaw_deg))
+            else:
+                col = p.createCollisionShape(p.GEOM_CYLINDER, radius=o.radius_m, height=o.height_m, physicsClientId=c)
+                vis = p.createVisualShape(p.GEOM_CYLINDER, radius=o.radius_m, length=o.height_m, physicsClientId=c)
+                p.createMultiBody(0, col, vis, (o.x_m, o.y_m, o.height_m / 2), physicsClientId=c)
+
+    def _start_pose(self) -> Pose:
+        x, y, z = self.world.start_xyz_m
+        yaw = math.radians(self.world.start_yaw_deg)
+        if self.config.start_yaw_jitter_deg > 0:
+            yaw += math.radians(self.rng.uniform(-1, 1) * self.config.start_yaw_jitter_deg)
+        return Pose(x, y, z, yaw)
+
+    def _place(self) -> None:
+        orn = p.getQuaternionFromEuler((0, 0, self.pose.yaw_rad))
+        pos = (self.pose.x_m, self.pose.y_m, self.pose.z_m)
+        p.resetBasePositionAndOrientation(self.body, pos, orn, physicsClientId=self.client)
+
+    def _max_penetration_m(self) -> float:
+        p.performCollisionDetection(physicsClientId=self.client)
+        contacts = p.getContactPoints(bodyA=self.body, physicsClientId=self.client)
+        return max((-cp[8] for cp in contacts), default=0.0)
+
+    def camera_xyz(self) -> tuple[float, float, float]:
+        off = self.config.camera_forward_offset_m
+        return (
+            self.pose.x_m + off * math.cos(self.pose.yaw_rad),
+            self.pose.y_m + off * math.sin(self.pose.yaw_rad),
+            self.pose.z_m,
+        )
+
+    # -- public API -----------------------------------------------------------------------
+    def render(self) -> np.ndarray:
+        """The current depth frame (m)."""
+        return self.camera.render(self.camera_xyz(), self.pose.yaw_rad)
+
+    def observe(self) -> StepResult:
+        """The current frame as a StepResult without moving (the first frame of a run)."""
+        depth = self.render()
+        beta = center_window_min_depth(depth, self.config.max_range_m)
+        return StepResult(depth, beta, False, step_reward(beta, False), 0, self.episode,
+                          self.step_in_episode, self.sim_time_s, dataclasses.replace(self.pose))
+
+    def reset(self) -> StepResult:
+        """End the episode without a collision and return to the start pose."""
+        self.episode += 1
+        self.step_in_episode = 0
+        self.pose = self._start_pose()
+        self._place()
+        return self.observe()
+
+    def step(self, cmd: BodyTwist = HOVER) -> StepResult:
+        """Fly `cmd` for one step; raises ValueError for a command outside the limits."""
+        err = twist_error(cmd, self.config.limits)
+        if err:
+            raise ValueError(err)
+        cfg = self.config
+        n_sub = max(1, int(math.ceil(cfg.step_duration_s * cfg.physics_rate_hz)))
+        dt = cfg.step_duration_s / n_sub
+        collided, brushes = False, 0
+        z_max = self.world.wall_height_m - 0.3
+        for _ in range(n_sub):
+            self.pose = integrate(self.pose, cmd, dt)
+            self.pose.z_m = min(self.pose.z_m, z_max)  # geofence: no escaping over the walls
+            self._place()
+            pen = self._max_penetration_m()
+            if pen > cfg.collision_penetration_m:
+                collided = True
+                break
+            if pen > 0.0:
+                brushes += 1
+        self.sim_time_s += cfg.step_duration_s
+        self.total_steps += 1
+        if collided:
+            self.collisions += 1
+            self.episode += 1
+            self.step_in_episode = 0
+            self.pose = self._start_pose()
+            self._place()
+        else:
+            self.step_in_episode += 1
+        self.particles.update(cfg.step_duration_s, self.camera_xyz(), self.pose.yaw_rad)
+        depth = self.render()
+        beta = center_window_min_depth(depth, cfg.max_range_m)
+        return StepResult(depth, beta, collided, step_reward(beta, collided), brushes, self.episode,
+                          self.step_in_episode, self.sim_time_s, dataclasses.replace(self.pose))
+
+    def close(self) -> None:
+        if self.client is not None and p.isConnected(self.client):
+            p.disconnect(self.client)
+        self.client = None

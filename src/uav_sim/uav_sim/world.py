@@ -1,0 +1,238 @@
+"""World descriptions: small YAML scene files, validated into plain dataclasses.
+
+Format (`format: uav_sim_world/1`), all lengths in metres, angles in degrees:
+
+    format: uav_sim_world/1
+    name: basic
+    base: basic            # optional: start from another world (built-in name or path)
+    room: {length_m: 16, width_m: 12, wall_height_m: 3}   # walls enclose |x|<=L/2, |y|<=W/2
+    start: {x_m: -6, y_m: 0, z_m: 1, yaw_deg: 0}
+    obstacles:             # replaces the base's list when given
+      - {shape: box, x_m: 0, y_m: 2, size_x_m: 1, size_y_m: 1, height_m: 3, yaw_deg: 0}
+      - {shape: cylinder, x_m: 3, y_m: -2, radius_m: 0.3, height_m: 3}
+    weather: {rain: 0, snow: 0, leaves: 0}   # particle counts around the vehicle
+
+Built-in worlds live in the package's `worlds/` folder (installed to share/uav_sim/worlds);
+`random` (or `random:SEED`) makes a seeded procedural layout for held-out testing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+FORMAT = "uav_sim_world/1"
+BUILTIN_WORLDS = ("basic", "complex", "turbulent")
+
+
+class WorldError(ValueError):
+    """A world name, file or field that cannot be used; the message says which and why."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Obstacle:
+    shape: str  # "box" or "cylinder"
+    x_m: float
+    y_m: float
+    height_m: float
+    size_x_m: float = 0.0
+    size_y_m: float = 0.0
+    radius_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Weather:
+    rain: int = 0
+    snow: int = 0
+    leaves: int = 0
+
+    @property
+    def any(self) -> bool:
+        return self.rain + self.snow + self.leaves > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class World:
+    name: str
+    length_m: float
+    width_m: float
+    wall_height_m: float
+    start_xyz_m: tuple[float, float, float]
+    start_yaw_deg: float
+    obstacles: tuple[Obstacle, ...]
+    weather: Weather
+
+
+def worlds_dir() -> Path:
+    """Folder of the built-in world files (installed share/ first, source tree second)."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        share = Path(get_package_share_directory("uav_sim")) / "worlds"
+        if share.is_dir():
+            return share
+    except Exception:  # not installed with colcon: fall back to the source tree
+        pass
+    return Path(__file__).resolve().parent.parent / "worlds"
+
+
+def _num(d: dict, key: str, where: str, default=None, minimum=None) -> float:
+    if key not in d:
+        if default is None:
+            raise WorldError(f"{where}: missing required field '{key}'")
+        return float(default)
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise WorldError(f"{where}: field '{key}' must be a finite number, got {v!r}")
+    if minimum is not None and v < minimum:
+        raise WorldError(f"{where}: field '{key}' must be >= {minimum}, got {v}")
+    return float(v)
+
+
+def _int(d: dict, key: str, where: str) -> int:
+    v = d.get(key, 0)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0 or v > 2000:
+        raise WorldError(f"{where}: field '{key}' must be an integer in [0, 2000], got {v!r}")
+    return v
+
+
+def _dict(d, key: str, where: str) -> dict:
+    v = d.get(key, {})
+    if not isinstance(v, dict):
+        raise WorldError(f"{where}: field '{key}' must be a mapping, got {type(v).__name__}")
+    return v
+
+
+def _obstacle(o, where: str) -> Obstacle:
+    if not isinstance(o, dict):
+        raise WorldError(f"{where}: each obstacle must be a mapping, got {o!r}")
+    shape = o.get("shape")
+    if shape == "box":
+        return Obstacle(
+            "box",
+            _num(o, "x_m", where),
+            _num(o, "y_m", where),
+            _num(o, "height_m", where, minimum=0.01),
+            size_x_m=_num(o, "size_x_m", where, minimum=0.01),
+            size_y_m=_num(o, "size_y_m", where, minimum=0.01),
+            yaw_deg=_num(o, "yaw_deg", where, default=0.0),
+        )
+    if shape == "cylinder":
+        return Obstacle(
+            "cylinder",
+            _num(o, "x_m", where),
+            _num(o, "y_m", where),
+            _num(o, "height_m", where, minimum=0.01),
+            radius_m=_num(o, "radius_m", where, minimum=0.01),
+        )
+    raise WorldError(f"{where}: obstacle shape must be 'box' or 'cylinder', got {shape!r}")
+
+
+def _parse(doc, source: str, depth: int = 0) -> World:
+    if not isinstance(doc, dict):
+        raise WorldError(f"{source}: a world file must be a YAML mapping")
+    if doc.get("format") != FORMAT:
+        raise WorldError(f"{source}: 'format' must be '{FORMAT}', got {doc.get('format')!r}")
+    base = None
+    if "base" in doc:
+        if depth > 4:
+            raise WorldError(f"{source}: 'base' chain is too deep (a cycle?)")
+        base = load_world(str(doc["base"]), _depth=depth + 1)
+    room = _dict(doc, "room", source)
+    start = _dict(doc, "start", source)
+    weather = _dict(doc, "weather", source)
+    b = base
+    length = _num(room, "length_m", f"{source} room", b and b.length_m, minimum=2.0)
+    width = _num(room, "width_m", f"{source} room", b and b.width_m, minimum=2.0)
+    wall_h = _num(room, "wall_height_m", f"{source} room", b and b.wall_height_m, minimum=0.5)
+    sx = _num(start, "x_m", f"{source} start", b.start_xyz_m[0] if b else None)
+    sy = _num(start, "y_m", f"{source} start", b.start_xyz_m[1] if b else None)
+    sz = _num(start, "z_m", f"{source} start", b.start_xyz_m[2] if b else 1.0, minimum=0.2)
+    syaw = _num(start, "yaw_deg", f"{source} start", b.start_yaw_deg if b else 0.0)
+    if abs(sx) > length / 2 - 0.3 or abs(sy) > width / 2 - 0.3 or sz > wall_h:
+        raise WorldError(f"{source}: start ({sx}, {sy}, {sz}) is not inside the room")
+    if "obstacles" in doc:
+        raw = doc["obstacles"] or []
+        if not isinstance(raw, list):
+            raise WorldError(f"{source}: 'obstacles' must be a list")
+        obstacles = tuple(_obstacle(o, f"{source} obstacle {i}") for i, o in enumerate(raw))
+    else:
+        obstacles = b.obstacles if b else ()
+    if weather or not b:
+        w = Weather(
+            rain=_int(weather, "rain", f"{source} weather"),
+            snow=_int(weather, "snow", f"{source} weather"),
+            leaves=_int(weather, "leaves", f"{source} weather"),
+        )
+    else:
+        w = b.weather
+    name = str(doc.get("name", Path(source).stem))
+    return World(name, length, width, wall_h, (sx, sy, sz), syaw, obstacles, w)
+
+
+def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
+    """A world by built-in name (basic, complex, turbulent), `random[:SEED]`, or file path."""
+    if not isinstance(name_or_path, str) or not name_or_path:
+        raise WorldError("world must be a non-empty string: a built-in name or a file path")
+    if name_or_path == "random" or name_or_path.startswith("random:"):
+        if ":" in name_or_path:
+            try:
+                seed = int(name_or_path.split(":", 1)[1])
+            except ValueError:
+                raise WorldError(f"world '{name_or_path}': the seed after 'random:' must be an integer")
+        return procedural_world(seed)
+    if name_or_path in BUILTIN_WORLDS:
+        path = worlds_dir() / f"{name_or_path}.yaml"
+    else:
+        path = Path(os.path.expanduser(name_or_path))
+        if not path.suffix and os.sep not in name_or_path:
+            raise WorldError(
+                f"unknown world '{name_or_path}': expected one of {', '.join(BUILTIN_WORLDS)}, "
+                "'random[:SEED]', or a path to a .yaml world file"
+            )
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise WorldError(f"cannot read world file '{path}': {e.strerror}") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise WorldError(f"world file '{path}' is not valid YAML: {e}") from None
+    return _parse(doc, str(path), _depth)
+
+
+def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
+    """A seeded random room with boxes and cylinders, keeping the start area clear."""
+    rng = np.random.default_rng(seed)
+    length = float(rng.uniform(12.0, 20.0))
+    width = float(rng.uniform(10.0, 16.0))
+    start = (-length / 2 + 2.0, float(rng.uniform(-width / 4, width / 4)), 1.0)
+    count = int(rng.integers(6, 14)) if n_obstacles is None else n_obstacles
+    obstacles = []
+    tries = 0
+    while len(obstacles) < count and tries < 500:
+        tries += 1
+        x = float(rng.uniform(-length / 2 + 1.0, length / 2 - 1.0))
+        y = float(rng.uniform(-width / 2 + 1.0, width / 2 - 1.0))
+        if math.hypot(x - start[0], y - start[1]) < 2.5:
+            continue
+        if any(math.hypot(x - o.x_m, y - o.y_m) < 2.0 for o in obstacles):
+            continue
+        if rng.random() < 0.5:
+            obstacles.append(Obstacle("cylinder", x, y, 3.0, radius_m=float(rng.uniform(0.15, 0.5))))
+        else:
+            obstacles.append(
+                Obstacle(
+                    "box", x, y, 3.0,
+                    size_x_m=float(rng.uniform(0.3, 1.5)),
+                    size_y_m=float(rng.uniform(0.3, 1.5)),
+                    yaw_deg=float(rng.uniform(0, 90)),
+                )
+            )
+    return World(f"random:{seed}", length, width, 3.0, start, 0.0, tuple(obstacles), Weather())

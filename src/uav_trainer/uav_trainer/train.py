@@ -1,0 +1,2 @@
+def main(args=None):
+    raise SystemExit("not implemented yet")
