@@ -9,9 +9,9 @@ setup(
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
     data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/uav_policy']),
-        ('share/uav_policy', ['package.xml']),
-        ('share/uav_policy/weights', glob('weights/*.safetensors') + glob('weights/*.md')),
+        ("share/ament_index/resource_index/packages", ["resource/uav_policy"]),
+        ("share/uav_policy", ["package.xml"]),
+        ("share/uav_policy/weights", glob("weights/*.safetensors") + glob("weights/*.md")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'policy_node = uav_policy.policy_node:main',
+            "policy_node = uav_policy.policy_node:main",
         ],
     },
 )

@@ -9,9 +9,9 @@ setup(
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
     data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/uav_sim']),
-        ('share/uav_sim', ['package.xml']),
-        ('share/uav_sim/worlds', glob('worlds/*.yaml')),
+        ("share/ament_index/resource_index/packages", ["resource/uav_sim"]),
+        ("share/uav_sim", ["package.xml"]),
+        ("share/uav_sim/worlds", glob("worlds/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'sim_node = uav_sim.sim_node:main',
+            "sim_node = uav_sim.sim_node:main",
         ],
     },
 )

@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = "uav_trainer"
@@ -9,8 +7,8 @@ setup(
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
     data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/uav_trainer']),
-        ('share/uav_trainer', ['package.xml']),
+        ("share/ament_index/resource_index/packages", ["resource/uav_trainer"]),
+        ("share/uav_trainer", ["package.xml"]),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -20,8 +18,8 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'trainer_node = uav_trainer.trainer_node:main',
-            'train = uav_trainer.train:main',
+            "trainer_node = uav_trainer.trainer_node:main",
+            "train = uav_trainer.train:main",
         ],
     },
 )

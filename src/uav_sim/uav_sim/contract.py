@@ -33,9 +33,7 @@ PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
 WEIGHTS_PARAMETER = "weights"
 
 # Lockstep needs every message: reliable, with room for bursts.
-STREAM_QOS = QoSProfile(
-    reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100
-)
+STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
 # Latched-style: late joiners get the last value.
 LATCHED_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
@@ -85,8 +83,9 @@ def image_to_depth(msg: Image) -> np.ndarray:
     return rows[:, : 4 * w].copy().view(dtype).reshape(h, w).astype(np.float32)
 
 
-def make_outcome(beta_m: float, collided: bool, stamp: Time, frame_id: str, min_range_m: float,
-                 max_range_m: float, fov_rad: float) -> Range:
+def make_outcome(
+    beta_m: float, collided: bool, stamp: Time, frame_id: str, min_range_m: float, max_range_m: float, fov_rad: float
+) -> Range:
     msg = Range()
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id

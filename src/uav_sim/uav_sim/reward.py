@@ -34,9 +34,7 @@ def center_window_slices(height: int, width: int, fraction: float = CENTER_WINDO
     return slice(r0, r0 + wh), slice(c0, c0 + ww)
 
 
-def center_window_min_depth(
-    depth_m: np.ndarray, max_range_m: float, fraction: float = CENTER_WINDOW_FRACTION
-) -> float:
+def center_window_min_depth(depth_m: np.ndarray, max_range_m: float, fraction: float = CENTER_WINDOW_FRACTION) -> float:
     """beta: the minimum metric depth (m) in the central window of a depth image.
 
     REP 117 values are honoured: +Inf (nothing within range) counts as `max_range_m`,

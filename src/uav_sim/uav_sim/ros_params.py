@@ -9,8 +9,7 @@ class ParameterError(ValueError):
     """A parameter value the node cannot start with; the message names it."""
 
 
-def declare(node, name: str, default, description: str, lo=None, hi=None, choices=None,
-            read_only: bool = True):
+def declare(node, name: str, default, description: str, lo=None, hi=None, choices=None, read_only: bool = True):
     """Declare one parameter with a descriptor and return its validated value."""
     desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
     if lo is not None and hi is not None:
@@ -29,9 +28,7 @@ def declare(node, name: str, default, description: str, lo=None, hi=None, choice
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if type(value) is not type(default):
-        raise ParameterError(
-            f"parameter '{name}' must be of type {type(default).__name__}, got {value!r}"
-        )
+        raise ParameterError(f"parameter '{name}' must be of type {type(default).__name__}, got {value!r}")
     if lo is not None and hi is not None and not isinstance(value, (str, bool)) and not lo <= value <= hi:
         raise ParameterError(f"parameter '{name}'={value!r} is outside [{lo}, {hi}]")
     if choices and value not in choices:

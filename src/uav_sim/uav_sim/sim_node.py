@@ -31,8 +31,12 @@ class SimNode(Node):
         super().__init__("sim_node")
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         world_name = d("world", "basic", "World: basic, complex, turbulent, random[:SEED] or a path to a world .yaml file")
-        self.mode = d("mode", "lockstep", "lockstep: one step per cmd_vel; realtime: fixed rate with watchdog",
-                      choices=("lockstep", "realtime"))
+        self.mode = d(
+            "mode",
+            "lockstep",
+            "lockstep: one step per cmd_vel; realtime: fixed rate with watchdog",
+            choices=("lockstep", "realtime"),
+        )
         seed = d("seed", 0, "Seed for weather, start jitter and 'random' worlds", 0, 2**31 - 1)
         cfg = SimConfig(
             image_width=d("image_width", 64, "Depth image width (px)", 8, 1024),
@@ -42,8 +46,13 @@ class SimNode(Node):
             max_range_m=d("max_range_m", 10.0, "Farthest measurable depth (m); beyond it pixels are +Inf", 0.5, 100.0),
             step_duration_s=d("step_duration_s", 0.5, "Sim time one step (one command) lasts (s)", 0.01, 5.0),
             physics_rate_hz=d("physics_rate_hz", 40.0, "Sub-step rate for motion and collision checks (Hz)", 1.0, 1000.0),
-            collision_penetration_m=d("collision_penetration_m", 0.03,
-                                      "Contacts deeper than this are collisions; shallower ones are brushes (m)", 0.0, 0.2),
+            collision_penetration_m=d(
+                "collision_penetration_m",
+                0.03,
+                "Contacts deeper than this are collisions; shallower ones are brushes (m)",
+                0.0,
+                0.2,
+            ),
             start_yaw_jitter_deg=d("start_yaw_jitter_deg", 0.0, "Uniform random yaw added to the start pose (deg)", 0.0, 180.0),
             limits=TwistLimits(
                 max_speed_mps=d("max_speed_mps", 3.0, "Largest |linear.x| and |linear.y| accepted (m/s)", 0.1, 20.0),
@@ -53,8 +62,13 @@ class SimNode(Node):
             seed=seed,
         )
         self.watchdog_s = d("watchdog_timeout_s", 1.0, "realtime: hover when no cmd_vel came for this long (s)", 0.05, 60.0)
-        self.republish_s = d("lockstep_republish_s", 1.0,
-                             "lockstep: publish the current frame again when no command came for this long (s)", 0.05, 60.0)
+        self.republish_s = d(
+            "lockstep_republish_s",
+            1.0,
+            "lockstep: publish the current frame again when no command came for this long (s)",
+            0.05,
+            60.0,
+        )
         self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
         self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
         self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
@@ -154,8 +168,15 @@ class SimNode(Node):
         self.pub_clock.publish(Clock(clock=stamp))
         cfg = self.cfg
         self.pub_outcome.publish(
-            contract.make_outcome(r.beta_m, r.collided, stamp, self.frame_id, cfg.min_range_m,
-                                  cfg.max_range_m, math.radians(cfg.hfov_deg) * 0.2)
+            contract.make_outcome(
+                r.beta_m,
+                r.collided,
+                stamp,
+                self.frame_id,
+                cfg.min_range_m,
+                cfg.max_range_m,
+                math.radians(cfg.hfov_deg) * 0.2,
+            )
         )
         self.pub_odom.publish(self.odometry(r, stamp))
         info = CameraInfo()
@@ -194,8 +215,14 @@ class SimNode(Node):
         st.message = "watchdog: hovering" if self.watchdog_active else "running"
         if self.watchdog_active:
             st.level = DiagnosticStatus.WARN
-        vals = {"episodes": self.sim.episode, "steps": self.sim.total_steps, "collisions": self.sim.collisions,
-                "brushes": self.brushes, "rejected_commands": self.rejected, "steps_per_s": f"{rate:.1f}"}
+        vals = {
+            "episodes": self.sim.episode,
+            "steps": self.sim.total_steps,
+            "collisions": self.sim.collisions,
+            "brushes": self.brushes,
+            "rejected_commands": self.rejected,
+            "steps_per_s": f"{rate:.1f}",
+        }
         st.values = [KeyValue(key=k, value=str(v)) for k, v in vals.items()]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()

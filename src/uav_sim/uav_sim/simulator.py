@@ -163,8 +163,17 @@ class Simulator:
         """The current frame as a StepResult without moving (the first frame of a run)."""
         depth = self.render()
         beta = center_window_min_depth(depth, self.config.max_range_m)
-        return StepResult(depth, beta, False, step_reward(beta, False), 0, self.episode,
-                          self.step_in_episode, self.sim_time_s, dataclasses.replace(self.pose))
+        return StepResult(
+            depth,
+            beta,
+            False,
+            step_reward(beta, False),
+            0,
+            self.episode,
+            self.step_in_episode,
+            self.sim_time_s,
+            dataclasses.replace(self.pose),
+        )
 
     def reset(self) -> StepResult:
         """End the episode without a collision and return to the start pose."""
@@ -207,8 +216,17 @@ class Simulator:
         self.particles.update(cfg.step_duration_s, self.camera_xyz(), self.pose.yaw_rad)
         depth = self.render()
         beta = center_window_min_depth(depth, cfg.max_range_m)
-        return StepResult(depth, beta, collided, step_reward(beta, collided), brushes, self.episode,
-                          self.step_in_episode, self.sim_time_s, dataclasses.replace(self.pose))
+        return StepResult(
+            depth,
+            beta,
+            collided,
+            step_reward(beta, collided),
+            brushes,
+            self.episode,
+            self.step_in_episode,
+            self.sim_time_s,
+            dataclasses.replace(self.pose),
+        )
 
     def close(self) -> None:
         if self.client is not None and p.isConnected(self.client):

@@ -42,10 +42,7 @@ class Particles:
         self.flutter = np.array([KINDS[k][2] for k in kinds], dtype=np.float64)
         self.phase = self.rng.uniform(0, 2 * math.pi, n)
         self.bodies = []
-        shapes = {
-            k: p.createVisualShape(p.GEOM_BOX, halfExtents=KINDS[k][0], physicsClientId=client)
-            for k in set(kinds)
-        }
+        shapes = {k: p.createVisualShape(p.GEOM_BOX, halfExtents=KINDS[k][0], physicsClientId=client) for k in set(kinds)}
         for k in kinds:
             self.bodies.append(
                 p.createMultiBody(

@@ -185,7 +185,7 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
             try:
                 seed = int(name_or_path.split(":", 1)[1])
             except ValueError:
-                raise WorldError(f"world '{name_or_path}': the seed after 'random:' must be an integer")
+                raise WorldError(f"world '{name_or_path}': the seed after 'random:' must be an integer") from None
         return procedural_world(seed)
     if name_or_path in BUILTIN_WORLDS:
         path = worlds_dir() / f"{name_or_path}.yaml"
@@ -229,7 +229,10 @@ def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
         else:
             obstacles.append(
                 Obstacle(
-                    "box", x, y, 3.0,
+                    "box",
+                    x,
+                    y,
+                    3.0,
                     size_x_m=float(rng.uniform(0.3, 1.5)),
                     size_y_m=float(rng.uniform(0.3, 1.5)),
                     yaw_deg=float(rng.uniform(0, 90)),

@@ -1,0 +1,112 @@
+"""Shared fixtures: installed node processes in a private ROS domain, and an rclpy node to talk to them."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+INSTALL = ROOT / "install"
+sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_sim", "uav_policy", "uav_trainer")]
+
+# A private domain per test: tests never hear each other or anything else on the machine.
+_domains = itertools.count(1 + (os.getpid() * 7) % 60)
+
+
+def executable(pkg: str, exe: str) -> Path:
+    """What `ros2 run pkg exe` runs."""
+    path = INSTALL / pkg / "lib" / pkg / exe
+    if not path.exists():
+        pytest.fail(f"{path} is missing: run scripts/setup.sh (colcon build) first")
+    return path
+
+
+class RosHarness:
+    def __init__(self, tmp_path: Path):
+        import rclpy
+
+        self.domain_id = 1 + next(_domains) % 100
+        self.env = dict(
+            os.environ,
+            ROS_DOMAIN_ID=str(self.domain_id),
+            ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+            PYTHONUNBUFFERED="1",
+        )
+        self.tmp = tmp_path
+        self.procs: list[tuple[subprocess.Popen, Path]] = []
+        self.context = rclpy.Context()
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        self.node = rclpy.create_node(f"test_client_{os.getpid()}", context=self.context)
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def start(self, pkg: str, exe: str, *ros_args: str, name: str | None = None) -> subprocess.Popen:
+        log = self.tmp / f"{name or exe}.log"
+        cmd = [str(executable(pkg, exe))]
+        if ros_args:
+            cmd += ["--ros-args", *ros_args]
+        proc = subprocess.Popen(cmd, env=self.env, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
+        self.procs.append((proc, log))
+        return proc
+
+    def log_of(self, proc: subprocess.Popen) -> str:
+        for p, log in self.procs:
+            if p is proc:
+                return log.read_text()
+        raise KeyError(proc)
+
+    def spin_until(self, predicate, timeout_s: float = 20.0) -> bool:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.02)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def stop(self, proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        return proc.returncode
+
+    def close(self) -> None:
+        for proc, _ in self.procs:
+            self.stop(proc)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+@pytest.fixture
+def ros(tmp_path):
+    h = RosHarness(tmp_path)
+    try:
+        yield h
+    finally:
+        h.close()
+
+
+def run_to_exit(pkg: str, exe: str, *ros_args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess:
+    """Run an installed node expected to exit by itself (e.g. on a bad parameter)."""
+    env = dict(os.environ, ROS_DOMAIN_ID="99", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    cmd = [str(executable(pkg, exe))] + (["--ros-args", *ros_args] if ros_args else [])
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout_s)

@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+from sensor_msgs.msg import Image
+
+from uav_sim import contract
+
+
+def test_depth_image_round_trip_keeps_rep117_values():
+    d = np.array([[1.5, np.inf], [-np.inf, np.nan]], dtype=np.float32)
+    msg = contract.depth_to_image(d, contract.stamp_from_seconds(12.5), "cam")
+    assert msg.encoding == "32FC1" and msg.step == 8 and msg.header.stamp.sec == 12
+    back = contract.image_to_depth(msg)
+    np.testing.assert_array_equal(back, d)
+
+
+def test_big_endian_and_padded_rows_are_read():
+    d = np.arange(6, dtype=np.float32).reshape(2, 3)
+    msg = Image(height=2, width=3, encoding="32FC1", is_bigendian=1, step=16)
+    rows = np.zeros((2, 16), dtype=np.uint8)
+    rows[:, :12] = np.frombuffer(d.astype(">f4").tobytes(), dtype=np.uint8).reshape(2, 12)
+    msg.data = rows.tobytes()
+    np.testing.assert_array_equal(contract.image_to_depth(msg), d)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(height=2, width=2, encoding="16UC1", step=4, data=bytes(8)), "32FC1"),
+        (dict(height=2, width=2, encoding="32FC1", step=8, data=bytes(10)), "bytes"),
+        (dict(height=2, width=2, encoding="32FC1", step=4, data=bytes(16)), "step"),
+        (dict(height=0, width=2, encoding="32FC1", step=8, data=b""), "empty"),
+    ],
+)
+def test_malformed_images_raise_clear_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        contract.image_to_depth(Image(**kwargs))
+
+
+def test_stamp_joiner_pairs_exactly_and_counts_what_it_drops():
+    j = contract.StampJoiner(("frame", "action"), max_pending=3)
+    assert j.add("frame", 1, "f1") is None
+    assert j.add("action", 1, "a1") == {"frame": "f1", "action": "a1"}
+    # Out-of-order arrival between streams still joins.
+    assert j.add("action", 2, "a2") is None
+    assert j.add("frame", 2, "f2") == {"frame": "f2", "action": "a2"}
+    # A frame that never gets an action is dropped once a newer stamp completes.
+    j.add("frame", 3, "f3")
+    j.add("frame", 4, "f4")
+    assert j.add("action", 4, "a4") == {"frame": "f4", "action": "a4"}
+    assert j.dropped == {"frame": 0, "action": 1}
+    # A straggler for a finished stamp is counted as late, never joined with something else.
+    assert j.add("action", 3, "a3") is None and j.late == 1
+    # A duplicate in one stream is counted and ignored.
+    j.add("frame", 5, "f5")
+    assert j.add("frame", 5, "again") is None and j.duplicates == 1
+    assert j.add("action", 5, "a5") == {"frame": "f5", "action": "a5"}
+    # Bounded memory: pending incomplete stamps beyond max_pending are dropped.
+    for s in range(10, 20):
+        j.add("frame", s, s)
+    assert len(j.pending) <= 3 and j.dropped["action"] == 1 + 7

@@ -1,0 +1,157 @@
+"""Integration: the installed sim_node, driven over Fast DDS with rclpy."""
+
+import math
+import time
+
+from conftest import run_to_exit
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image, Range
+
+from uav_sim import contract
+
+
+class Recorder:
+    """Records every message of the sim's per-step topics by stamp."""
+
+    def __init__(self, ros):
+        self.by_topic = {"depth": [], "info": [], "odom": [], "outcome": [], "clock": []}
+        n, q = ros.node, contract.STREAM_QOS
+        for key, typ, topic in (
+            ("depth", Image, contract.DEPTH_TOPIC),
+            ("info", CameraInfo, contract.CAMERA_INFO_TOPIC),
+            ("odom", Odometry, contract.ODOM_TOPIC),
+            ("outcome", Range, contract.OUTCOME_TOPIC),
+        ):
+            n.create_subscription(typ, topic, lambda m, k=key: self.by_topic[k].append(m), q)
+        n.create_subscription(Clock, "/clock", lambda m: self.by_topic["clock"].append(m), q)
+        self.cmd = n.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
+
+    def stamps(self, key):
+        if key == "clock":
+            return [contract.stamp_ns(m.clock) for m in self.by_topic[key]]
+        return [contract.stamp_ns(m.header.stamp) for m in self.by_topic[key]]
+
+    def distinct_frames(self):
+        return sorted(set(self.stamps("depth")))
+
+
+def twist(vx=0.0, wz=0.0, vy=0.0):
+    t = Twist()
+    t.linear.x, t.linear.y, t.angular.z = vx, vy, wz
+    return t
+
+
+def test_lockstep_topics_encodings_and_shared_stamps(ros):
+    rec = Recorder(ros)
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
+    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), "no depth frame from sim_node"
+    ros.spin_for(1.0)
+    assert len(rec.distinct_frames()) == 1, "lockstep must not advance without commands"
+    for k in range(10):
+        rec.cmd.publish(twist(vx=1.0))
+        assert ros.spin_until(lambda k=k: len(rec.distinct_frames()) == k + 2, 10), f"step {k + 1} missing"
+    ros.spin_for(0.5)
+    frames = rec.distinct_frames()
+    assert len(frames) == 11, "exactly one step per command"
+    steps = [b - a for a, b in zip(frames, frames[1:], strict=False)]
+    assert all(s == 500_000_000 for s in steps), "stamps advance by step_duration_s (0.5 s of sim time)"
+    for key in ("info", "odom", "outcome", "clock"):
+        assert set(rec.stamps(key)) == set(frames), f"{key} stamps differ from the depth stamps"
+    img = rec.by_topic["depth"][-1]
+    assert (img.encoding, img.width, img.height, img.step) == ("32FC1", 64, 64, 256)
+    assert img.header.frame_id == "camera_depth_optical_frame"
+    depth = contract.image_to_depth(img)
+    assert depth.shape == (64, 64) and float(depth[32, 32]) > 0.0
+    info = rec.by_topic["info"][-1]
+    assert abs(info.k[0] - 32.0) < 1e-9 and info.k[0] == info.k[4] and info.header.frame_id == img.header.frame_id
+    odom = rec.by_topic["odom"][-1]
+    assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_link"
+    assert abs(odom.pose.pose.position.x - (-6.0 + 5.0)) < 1e-3, "10 steps at 1 m/s x 0.5 s from x=-6"
+    outcome = rec.by_topic["outcome"][-1]
+    assert math.isfinite(outcome.range) and 0.0 < outcome.range <= outcome.max_range
+
+
+def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
+    rec = Recorder(ros)
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
+    assert ros.spin_until(lambda: rec.by_topic["depth"], 20)
+    for _ in range(40):  # basic: 14 m of open room ahead of the start; 1 m per step
+        n = len(rec.distinct_frames())
+        rec.cmd.publish(twist(vx=2.0))
+        assert ros.spin_until(lambda n=n: len(rec.distinct_frames()) > n, 10)
+        if any(contract.outcome_collided(m) for m in rec.by_topic["outcome"]):
+            break
+    assert ros.spin_until(lambda: any(contract.outcome_collided(m) for m in rec.by_topic["outcome"]), 5)
+    crash = next(m for m in rec.by_topic["outcome"] if contract.outcome_collided(m))
+    stamp = contract.stamp_ns(crash.header.stamp)
+    assert ros.spin_until(lambda: stamp in rec.stamps("odom"), 5), "odom of the crash step missing"
+    odom = next(m for m in rec.by_topic["odom"] if contract.stamp_ns(m.header.stamp) == stamp)
+    assert abs(odom.pose.pose.position.x - (-6.0)) < 1e-6 and abs(odom.pose.pose.position.y) < 1e-6
+
+
+def test_bad_commands_are_rejected_and_the_node_survives(ros):
+    rec = Recorder(ros)
+    diags = []
+    ros.node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    proc = ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
+    assert ros.spin_until(lambda: rec.by_topic["depth"], 20)
+    for bad in (twist(vx=float("nan")), twist(vx=100.0), twist(wz=float("inf")), twist(vy=-7.0)):
+        rec.cmd.publish(bad)
+    ros.spin_for(1.0)
+    assert len(rec.distinct_frames()) == 1, "an invalid command must not move the vehicle"
+    assert proc.poll() is None, "sim_node died on bad input"
+    rec.cmd.publish(twist(vx=1.0))
+    assert ros.spin_until(lambda: len(rec.distinct_frames()) == 2, 10), "a valid command after bad ones works"
+    assert ros.spin_until(
+        lambda: any(kv.key == "rejected_commands" and kv.value == "4" for d in diags for s in d.status for kv in s.values),
+        5,
+    )
+    assert "rejected cmd_vel" in ros.log_of(proc)
+
+
+def test_realtime_watchdog_stops_the_vehicle(ros):
+    rec = Recorder(ros)
+    proc = ros.start(
+        "uav_sim", "sim_node", "-p", "mode:=realtime", "-p", "step_duration_s:=0.05", "-p", "watchdog_timeout_s:=0.5"
+    )
+    assert ros.spin_until(lambda: rec.by_topic["odom"], 20)
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:  # fly forward at 1 m/s for a second
+        rec.cmd.publish(twist(vx=1.0))
+        ros.spin_for(0.05)
+    x_moving = rec.by_topic["odom"][-1].pose.pose.position.x
+    assert x_moving > -6.0 + 0.3, "realtime mode did not follow cmd_vel"
+    ros.spin_for(1.5)  # commands stopped: the watchdog must hover the vehicle
+    x_a = rec.by_topic["odom"][-1].pose.pose.position.x
+    n = len(rec.by_topic["odom"])
+    ros.spin_for(1.0)
+    assert len(rec.by_topic["odom"]) > n + 5, "realtime keeps stepping at a fixed rate without commands"
+    x_b = rec.by_topic["odom"][-1].pose.pose.position.x
+    assert abs(x_b - x_a) < 1e-9, "vehicle still moving after the watchdog timeout"
+    assert x_a - x_moving < 0.5 + 0.2, "vehicle kept flying far beyond the watchdog timeout"
+    assert "watchdog" in ros.log_of(proc)
+
+
+def test_bad_parameters_fail_at_start_with_a_clear_message(tmp_path):
+    r = run_to_exit("uav_sim", "sim_node", "-p", "world:=atlantis")
+    assert r.returncode == 2 and "parameter 'world'" in r.stderr and "atlantis" in r.stderr
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: uav_sim_world/1\nroom: {length_m: -3}\n")
+    r = run_to_exit("uav_sim", "sim_node", "-p", f"world:={bad}")
+    assert r.returncode == 2 and "length_m" in r.stderr
+    r = run_to_exit("uav_sim", "sim_node", "-p", "mode:=warp")
+    assert r.returncode == 2 and "parameter 'mode'" in r.stderr
+    r = run_to_exit("uav_sim", "sim_node", "-p", "max_range_m:=1000.0")
+    assert r.returncode == 2 and "max_range_m" in r.stderr
+
+
+def test_params_file_is_accepted(ros):
+    from conftest import ROOT
+
+    rec = Recorder(ros)
+    proc = ros.start("uav_sim", "sim_node", "--params-file", str(ROOT / "params" / "sim.yaml"), "-p", "world:=complex")
+    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
+    assert "world 'complex'" in ros.log_of(proc)
