@@ -20,6 +20,13 @@ sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_sim", "uav_policy", "uav_tr
 _domains = itertools.count(1 + (os.getpid() * 7) % 60)
 
 
+def deep_qos():
+    """Reliable with a deep reader history: a slow Python reader loses nothing to the 250 Hz loop."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10000)
+
+
 def executable(pkg: str, exe: str) -> Path:
     """What `ros2 run pkg exe` runs."""
     path = INSTALL / pkg / "lib" / pkg / exe

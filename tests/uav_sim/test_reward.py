@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+
 from uav_sim.reward import center_window_min_depth, center_window_slices, step_reward
 
 

@@ -3,13 +3,13 @@
 import math
 import time
 
-from conftest import run_to_exit
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Range
 
+from conftest import deep_qos, run_to_exit
 from uav_sim import contract
 
 
@@ -18,7 +18,7 @@ class Recorder:
 
     def __init__(self, ros):
         self.by_topic = {"depth": [], "info": [], "odom": [], "outcome": [], "clock": []}
-        n, q = ros.node, contract.STREAM_QOS
+        n, q = ros.node, deep_qos()
         for key, typ, topic in (
             ("depth", Image, contract.DEPTH_TOPIC),
             ("info", CameraInfo, contract.CAMERA_INFO_TOPIC),

@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+
 from uav_sim.camera import CameraIntrinsics
 from uav_sim.reward import center_window_min_depth
 from uav_sim.simulator import SimConfig, Simulator

@@ -1,4 +1,5 @@
 import pytest
+
 from uav_sim.world import WorldError, load_world
 
 

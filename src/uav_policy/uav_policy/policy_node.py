@@ -1,2 +1,245 @@
-def main(args=None):
-    raise SystemExit("not implemented yet")
+"""policy_node: flies the quadrotor with D3QN-SAM or D3QN-CNN and publishes what it attends to.
+
+Subscribes depth/image_raw and step_outcome (joined by stamp: an outcome of -Inf marks the
+first frame of a new episode, which restarts the frame stack). For every frame it publishes
+cmd_vel, action (TwistStamped carrying the frame's stamp), q_values, and for SAM the attention
+topics. New weights arrive on the ~/push_weights service (rcl_interfaces/srv/SetParameters with
+one BYTE_ARRAY parameter named 'weights' holding a safetensors blob).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import cv2
+import numpy as np
+import torch
+from geometry_msgs.msg import Twist, TwistStamped
+from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParameters
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.task import Future
+from sensor_msgs.msg import Image, Range
+from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+
+from uav_sim import contract
+from uav_sim.node_runner import run
+from uav_sim.ros_params import ParameterError, declare
+
+from . import weights as wio
+from .actions import PAPER_ACTIONS, make_actions
+from .agent import Agent
+from .attention import attention_map, overlay
+from .frame_stack import FrameStack
+from .networks import NetConfig, build_network, parameter_count
+
+
+def resolve_device(name: str) -> str:
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ParameterError("parameter 'device'='cuda' but no CUDA device is available (use 'auto' or 'cpu')")
+    return name
+
+
+class PolicyNode(Node):
+    def __init__(self):
+        super().__init__("policy_node")
+        d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+        model = d("model", "sam", "Q-network: sam (D3QN-SAM, attention) or cnn (D3QN-CNN)", choices=("sam", "cnn"))
+        weights_path = d("weights", "", "safetensors weights file; empty: the packaged weights, else a seeded random init")
+        self.epsilon = d(
+            "epsilon", 0.0, "Probability of a random action (exploration); the trainer decays it", 0.0, 1.0, read_only=False
+        )
+        seed = d("seed", 0, "Seed for the random initialisation and for exploration", 0, 2**31 - 1)
+        device = d(
+            "device", "auto", "Torch device: auto (cuda when present, else cpu), cpu or cuda", choices=("auto", "cpu", "cuda")
+        )
+        self.step_duration_s = d("step_duration_s", 0.5, "Duration of one sim step (s); must equal sim_node's", 0.01, 5.0)
+        names = d("action_names", [a.name for a in PAPER_ACTIONS], "Action names (q_values layout labels)")
+        lin = d("action_linear_x_mps", [a.linear_x_mps for a in PAPER_ACTIONS], "Forward speed of each action (m/s)")
+        yaw = d("action_yaw_deg", [a.yaw_deg_per_step for a in PAPER_ACTIONS], "Yaw turned during one step (deg, left +)")
+        frames = d("frame_stack", 5, "Depth frames in the state", 1, 16)
+        height = d("input_height", 64, "Network input height (px); frames of another size are resized", 8, 512)
+        width = d("input_width", 64, "Network input width (px)", 8, 512)
+        max_range = d("max_range_m", 10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
+        self.publish_overlay = d("publish_overlay", True, "Publish attention/overlay (rgb8)")
+        try:
+            self.actions = make_actions(names, lin, yaw)
+        except ValueError as e:
+            raise ParameterError(f"parameters 'action_*': {e}") from None
+        self.cfg = NetConfig(
+            model=model, frames=frames, height=height, width=width, actions=len(self.actions), max_range_m=max_range
+        )
+        device = resolve_device(device)
+        net, source = self._initial_network(weights_path, seed)
+        self.agent = Agent(net, self.cfg, device, seed)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        q = contract.STREAM_QOS
+        self.pub_cmd = self.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
+        self.pub_action = self.create_publisher(TwistStamped, contract.ACTION_TOPIC, q)
+        self.pub_q = self.create_publisher(Float32MultiArray, contract.Q_VALUES_TOPIC, 10)
+        self.pub_att = self.create_publisher(Image, contract.ATTENTION_TOPIC, 10)
+        self.pub_overlay = self.create_publisher(Image, contract.ATTENTION_OVERLAY_TOPIC, 10)
+        self.pub_weights = self.create_publisher(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, 10)
+        self.joiner = contract.StampJoiner(("frame", "outcome"))
+        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), q)
+        self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), q)
+        # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
+        # service needs its own callback group: a suspended async callback holds its group.
+        self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
+        self.stack = FrameStack(frames)
+        self.last_stamp = None
+        self.last_cmd = None
+        self.frames_answered = 0
+        self.bad_frames = 0
+        self.pushes_rejected = 0
+        self.get_logger().info(
+            f"model {model} ({parameter_count(net)} parameters, {source}) on {device}; epsilon {self.epsilon}; "
+            + (
+                "attention on attention, attention/overlay, attention/weights"
+                if model == "sam"
+                else "cnn has no attention module: the attention topics are not published"
+            )
+        )
+
+    def _initial_network(self, path: str, seed: int):
+        if path:
+            try:
+                return wio.load_file(path, self.cfg), f"weights from {path}"
+            except wio.WeightsError as e:
+                raise ParameterError(f"parameter 'weights': {e}") from None
+        packaged = wio.packaged_weights(self.cfg.model)
+        if packaged is not None:
+            try:
+                return wio.load_file(packaged, self.cfg), f"packaged pretrained weights {packaged}"
+            except wio.WeightsError as e:
+                self.get_logger().warning(f"packaged weights unusable ({e}); using a random initialisation")
+        return build_network(self.cfg, seed=seed), f"no weights given or packaged: seeded random initialisation (seed {seed})"
+
+    def _on_set_parameters(self, params):
+        for p in params:
+            if p.name == "epsilon":
+                v = p.value
+                if not isinstance(v, float) or not 0.0 <= v <= 1.0:
+                    return SetParametersResult(successful=False, reason="epsilon must be a float in [0, 1]")
+                self.epsilon = v
+        return SetParametersResult(successful=True)
+
+    # -- frames -------------------------------------------------------------------------
+    def _on(self, stream: str, msg) -> None:
+        joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
+        if joined is not None:
+            self._act(joined["frame"], joined["outcome"])
+        elif stream == "frame" and contract.stamp_ns(msg.header.stamp) == self.last_stamp and self.last_cmd is not None:
+            # The simulator said this frame again: our command was lost. Answer it again.
+            self.pub_cmd.publish(self.last_cmd)
+
+    def _act(self, img: Image, outcome: Range) -> None:
+        stamp = contract.stamp_ns(img.header.stamp)
+        try:
+            depth = contract.image_to_depth(img)
+        except ValueError as e:
+            self.bad_frames += 1
+            self.get_logger().warning(f"ignoring malformed depth frame: {e}", throttle_duration_sec=2.0)
+            return
+        net_in = depth
+        if depth.shape != (self.cfg.height, self.cfg.width):
+            net_in = cv2.resize(depth, (self.cfg.width, self.cfg.height), interpolation=cv2.INTER_NEAREST)
+        if contract.outcome_collided(outcome) or self.stack.empty:
+            state = self.stack.reset(net_in)
+        else:
+            state = self.stack.push(net_in)
+        action, q, w, _ = self.agent.act(state, self.epsilon)
+        a = self.actions[action]
+        cmd = Twist()
+        cmd.linear.x = a.linear_x_mps
+        cmd.angular.z = a.yaw_rate_radps(self.step_duration_s)
+        self.pub_cmd.publish(cmd)
+        stamped = TwistStamped(twist=cmd)
+        stamped.header.stamp = img.header.stamp
+        stamped.header.frame_id = "base_link"
+        self.pub_action.publish(stamped)
+        self.last_stamp, self.last_cmd = stamp, cmd
+        self.frames_answered += 1
+        self._publish_insight(img, depth, q, w)
+
+    def _publish_insight(self, img: Image, depth: np.ndarray, q: np.ndarray, w) -> None:
+        qmsg = Float32MultiArray(data=q.astype(np.float32).tolist())
+        label = "action:" + ",".join(a.name for a in self.actions)
+        qmsg.layout.dim = [MultiArrayDimension(label=label, size=len(q), stride=len(q))]
+        self.pub_q.publish(qmsg)
+        if w is None:
+            return
+        grid = self.agent.net.grid_hw
+        amap = attention_map(w, grid, depth.shape)
+        self.pub_att.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
+        if self.publish_overlay and self.pub_overlay.get_subscription_count() > 0:
+            rgb = overlay(depth, amap, self.cfg.max_range_m)
+            om = Image(
+                header=img.header,
+                height=rgb.shape[0],
+                width=rgb.shape[1],
+                encoding="rgb8",
+                is_bigendian=0,
+                step=3 * rgb.shape[1],
+                data=rgb.tobytes(),
+            )
+            self.pub_overlay.publish(om)
+        if self.pub_weights.get_subscription_count() > 0:
+            h, n, _ = w.shape
+            wm = Float32MultiArray()
+            wm.layout.dim = [
+                MultiArrayDimension(label="heads", size=h, stride=h * n * n),
+                MultiArrayDimension(label=f"query_nodes(grid {grid[0]}x{grid[1]} row-major)", size=n, stride=n * n),
+                MultiArrayDimension(label="key_nodes", size=n, stride=n),
+            ]
+            wm.data = w.astype(np.float32).ravel().tolist()
+            self.pub_weights.publish(wm)
+
+    # -- weight pushes ------------------------------------------------------------------
+    def _in_thread(self, fn) -> Future:
+        """Run fn on a worker thread; the returned future can be awaited in a callback."""
+        fut = Future(executor=self.executor)
+
+        def work():
+            try:
+                fut.set_result(fn())
+            except Exception as e:  # handed to the awaiting callback
+                fut.set_exception(e)
+
+        threading.Thread(target=work, daemon=True).start()
+        return fut
+
+    async def _on_push(self, request, response):
+        t0 = time.perf_counter()
+        result = SetParametersResult(successful=False)
+        params = [p for p in request.parameters if p.name == contract.WEIGHTS_PARAMETER]
+        if len(params) != 1 or params[0].value.type != 5:  # PARAMETER_BYTE_ARRAY
+            result.reason = f"expected exactly one BYTE_ARRAY parameter named '{contract.WEIGHTS_PARAMETER}'"
+        else:
+            raw = params[0].value.byte_array_value
+            blob = raw if isinstance(raw, (bytes, bytearray)) else b"".join(raw)
+            try:
+                net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg))
+                self.agent.swap(net)
+                result.successful = True
+                result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms"
+            except wio.WeightsError as e:
+                result.reason = str(e)
+        if not result.successful:
+            self.pushes_rejected += 1
+            self.get_logger().warning(f"weights push rejected: {result.reason}")
+        response.results = [result]
+        return response
+
+
+def main(args=None) -> int:
+    return run(PolicyNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

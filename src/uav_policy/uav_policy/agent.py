@@ -1,0 +1,47 @@
+"""Acting: epsilon-greedy action selection with a Q-network, thread-safe weight swaps."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import torch
+
+from .networks import NetConfig
+
+
+class Agent:
+    def __init__(self, net: torch.nn.Module, cfg: NetConfig, device: str = "cpu", seed: int = 0):
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self._net = net.to(self.device).eval()
+        self._lock = threading.Lock()
+        self.rng = np.random.default_rng(seed)
+        self.swaps = 0
+
+    @property
+    def net(self) -> torch.nn.Module:
+        return self._net
+
+    def swap(self, net: torch.nn.Module) -> None:
+        """Replace the network atomically: an act() in flight finishes with the old one."""
+        net = net.to(self.device).eval()
+        with self._lock:
+            self._net = net
+            self.swaps += 1
+
+    @torch.no_grad()
+    def q_values(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Q (actions,) and attention weights (heads, nodes, nodes) or None, for one state."""
+        with self._lock:
+            net = self._net
+        x = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)).unsqueeze(0).to(self.device)
+        q, w = net(x)
+        return q[0].float().cpu().numpy(), None if w is None else w[0].float().cpu().numpy()
+
+    def act(self, state: np.ndarray, epsilon: float) -> tuple[int, np.ndarray, np.ndarray | None, bool]:
+        """(action, q, attention, explored): random with probability epsilon, else argmax Q."""
+        q, w = self.q_values(state)
+        if self.rng.random() < epsilon:
+            return int(self.rng.integers(len(q))), q, w, True
+        return int(np.argmax(q)), q, w, False

@@ -1,0 +1,38 @@
+"""The state: the last N depth frames, restarted at every episode start."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+
+class FrameStack:
+    def __init__(self, frames: int = 5):
+        if frames < 1:
+            raise ValueError(f"frames must be >= 1, got {frames}")
+        self.frames = frames
+        self._buf: deque[np.ndarray] = deque(maxlen=frames)
+
+    def reset(self, first: np.ndarray) -> np.ndarray:
+        """Start an episode: the stack is the first frame repeated (as DQN does at reset)."""
+        self._buf.clear()
+        for _ in range(self.frames):
+            self._buf.append(first)
+        return self.state()
+
+    def push(self, frame: np.ndarray) -> np.ndarray:
+        if not self._buf:
+            return self.reset(frame)
+        if frame.shape != self._buf[-1].shape:
+            raise ValueError(f"frame shape {frame.shape} differs from the stack's {self._buf[-1].shape}")
+        self._buf.append(frame)
+        return self.state()
+
+    def state(self) -> np.ndarray:
+        """(frames, H, W) float32, oldest first."""
+        return np.stack(self._buf, axis=0).astype(np.float32, copy=False)
+
+    @property
+    def empty(self) -> bool:
+        return not self._buf

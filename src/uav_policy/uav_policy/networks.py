@@ -1,0 +1,212 @@
+"""D3QN-SAM and D3QN-CNN Q-networks (PyTorch, no ROS).
+
+Both take the last `frames` depth images in metres, (B, frames, H, W), and normalise them
+inside the network: +Inf/NaN -> max range, -Inf -> 0, then divide by the max range.
+
+D3QN-SAM: conv trunk -> feature map sliced into one node per spatial cell, with the cell's
+(x, y) in [-1, 1] appended (Zambaldi et al. 2018) -> linear projection -> relational block(s)
+(multi-head scaled dot-product self-attention with residual + LayerNorm, then an MLP with
+residual + LayerNorm) -> feature-wise max over nodes -> dueling head. The forward pass also
+returns the attention weights (B, heads, nodes, nodes); each row sums to 1.
+
+D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
+
+Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import torch
+from torch import nn
+
+MODELS = ("sam", "cnn")
+
+
+@dataclasses.dataclass(frozen=True)
+class NetConfig:
+    """Architecture; stored in every weights file so that a mismatch is caught on load."""
+
+    model: str = "sam"
+    frames: int = 5
+    height: int = 64
+    width: int = 64
+    actions: int = 4
+    max_range_m: float = 10.0
+    conv_channels: tuple[int, ...] = (16, 32, 32)
+    d_model: int = 48  # node feature size, split over the heads
+    heads: int = 3
+    relational_blocks: int = 1
+    mlp_hidden: int = 96
+    cnn_hidden: int = 128
+    head_hidden: int = 64
+
+    def validate(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+        if self.d_model % self.heads:
+            raise ValueError(f"d_model ({self.d_model}) must be divisible by heads ({self.heads})")
+        if self.frames < 1 or self.actions < 2:
+            raise ValueError("need frames >= 1 and actions >= 2")
+        if self.height < 8 or self.width < 8:
+            raise ValueError(f"input {self.width}x{self.height} is too small (>= 8x8)")
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @staticmethod
+    def from_json(text: str) -> NetConfig:
+        d = json.loads(text)
+        if not isinstance(d, dict):
+            raise ValueError("network config must be a JSON object")
+        fields = {f.name for f in dataclasses.fields(NetConfig)}
+        unknown = set(d) - fields
+        if unknown:
+            raise ValueError(f"unknown network config fields: {sorted(unknown)}")
+        if "conv_channels" in d:
+            d["conv_channels"] = tuple(d["conv_channels"])
+        return NetConfig(**d)
+
+
+def normalise_depth(depth_m: torch.Tensor, max_range_m: float) -> torch.Tensor:
+    """REP 117 depth in metres -> [0, 1]; far/invalid = 1, too close = 0."""
+    x = torch.nan_to_num(depth_m.float(), nan=max_range_m, posinf=max_range_m, neginf=0.0)
+    return x.clamp_(0.0, max_range_m) / max_range_m
+
+
+class ConvTrunk(nn.Module):
+    """Stride-2 4x4 convolutions: 64x64 -> 8x8 feature map with the default three layers."""
+
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        layers, c_in = [], cfg.frames
+        for c_out in cfg.conv_channels:
+            layers += [nn.Conv2d(c_in, c_out, kernel_size=4, stride=2, padding=1), nn.ReLU(inplace=True)]
+            c_in = c_out
+        self.net = nn.Sequential(*layers)
+        self.max_range_m = cfg.max_range_m
+        with torch.no_grad():
+            out = self.net(torch.zeros(1, cfg.frames, cfg.height, cfg.width))
+        self.out_channels, self.grid_h, self.grid_w = out.shape[1:]
+
+    def forward(self, depth_m: torch.Tensor) -> torch.Tensor:
+        return self.net(normalise_depth(depth_m, self.max_range_m))
+
+
+class MultiHeadSelfAttention(nn.Module):
+    """Scaled dot-product self-attention that also returns its per-head weights."""
+
+    def __init__(self, d_model: int, heads: int):
+        super().__init__()
+        self.heads, self.d_head = heads, d_model // heads
+        self.qkv = nn.Linear(d_model, 3 * d_model)
+        self.out = nn.Linear(d_model, d_model)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        b, n, d = x.shape
+        q, k, v = self.qkv(x).view(b, n, 3, self.heads, self.d_head).permute(2, 0, 3, 1, 4)
+        weights = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.d_head), dim=-1)  # (b, h, n, n)
+        mixed = (weights @ v).transpose(1, 2).reshape(b, n, d)
+        return self.out(mixed), weights
+
+
+class RelationalBlock(nn.Module):
+    """Self-attention and an MLP, each with a residual connection and LayerNorm."""
+
+    def __init__(self, d_model: int, heads: int, mlp_hidden: int):
+        super().__init__()
+        self.attention = MultiHeadSelfAttention(d_model, heads)
+        self.norm1 = nn.LayerNorm(d_model)
+        self.mlp = nn.Sequential(nn.Linear(d_model, mlp_hidden), nn.ReLU(inplace=True), nn.Linear(mlp_hidden, d_model))
+        self.norm2 = nn.LayerNorm(d_model)
+
+    def forward(self, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        attended, weights = self.attention(nodes)
+        nodes = self.norm1(nodes + attended)
+        nodes = self.norm2(nodes + self.mlp(nodes))
+        return nodes, weights
+
+
+class DuelingHead(nn.Module):
+    """Q = V + A - mean(A)."""
+
+    def __init__(self, d_in: int, hidden: int, actions: int):
+        super().__init__()
+        self.value = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1))
+        self.advantage = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, actions))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        a = self.advantage(features)
+        return self.value(features) + a - a.mean(dim=-1, keepdim=True)
+
+
+def grid_coordinates(h: int, w: int) -> torch.Tensor:
+    """(h*w, 2) node coordinates in [-1, 1], row-major (x = column, y = row)."""
+    ys = torch.linspace(-1.0, 1.0, h) if h > 1 else torch.zeros(1)
+    xs = torch.linspace(-1.0, 1.0, w) if w > 1 else torch.zeros(1)
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=-1)
+
+
+class D3QNSam(nn.Module):
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.trunk = ConvTrunk(cfg)
+        self.register_buffer("coords", grid_coordinates(self.trunk.grid_h, self.trunk.grid_w), persistent=False)
+        self.node_projection = nn.Linear(self.trunk.out_channels + 2, cfg.d_model)
+        self.relational_blocks = nn.ModuleList(
+            RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
+        )
+        self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
+
+    @property
+    def grid_hw(self) -> tuple[int, int]:
+        return self.trunk.grid_h, self.trunk.grid_w
+
+    def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Q-values (B, actions) and the last block's attention weights (B, heads, nodes, nodes)."""
+        fmap = self.trunk(depth_m)  # (B, C, h, w)
+        nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
+        coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
+        nodes = self.node_projection(torch.cat([nodes, coords], dim=-1))
+        weights = None
+        for block in self.relational_blocks:
+            nodes, weights = block(nodes)
+        pooled = nodes.max(dim=1).values  # feature-wise max pooling over nodes
+        return self.dueling_head(pooled), weights
+
+
+class D3QNCnn(nn.Module):
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.trunk = ConvTrunk(cfg)
+        flat = self.trunk.out_channels * self.trunk.grid_h * self.trunk.grid_w
+        self.hidden = nn.Sequential(nn.Linear(flat, cfg.cnn_hidden), nn.ReLU(inplace=True))
+        self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
+
+    def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return self.dueling_head(self.hidden(self.trunk(depth_m).flatten(1))), None
+
+
+def build_network(cfg: NetConfig, seed: int | None = None) -> nn.Module:
+    """A freshly initialised network; with a seed, the same seed gives the same weights."""
+    cfg.validate()
+    if seed is not None:
+        gen_state = torch.random.get_rng_state()
+        torch.manual_seed(seed)
+    try:
+        return D3QNSam(cfg) if cfg.model == "sam" else D3QNCnn(cfg)
+    finally:
+        if seed is not None:
+            torch.random.set_rng_state(gen_state)
+
+
+def parameter_count(net: nn.Module) -> int:
+    return sum(p.numel() for p in net.parameters())

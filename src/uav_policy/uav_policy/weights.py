@@ -1,0 +1,129 @@
+"""Weights files and pushes: safetensors only (no pickle), validated before anything is swapped.
+
+A weights blob is a safetensors file whose metadata holds `format` = uav_policy/1 and
+`config` = the NetConfig JSON, so a file made for the other architecture is recognised.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+
+from .networks import NetConfig, build_network
+
+FORMAT = "uav_policy/1"
+MAX_BYTES = 64 * 1024 * 1024
+
+
+class WeightsError(ValueError):
+    """Weights that cannot be used; the message says what was expected."""
+
+
+def to_bytes(net: torch.nn.Module, cfg: NetConfig) -> bytes:
+    tensors = {k: v.detach().to("cpu").contiguous() for k, v in net.state_dict().items()}
+    return st_save(tensors, metadata={"format": FORMAT, "config": cfg.to_json()})
+
+
+def save_file(net: torch.nn.Module, cfg: NetConfig, path: str | os.PathLike) -> None:
+    """Write atomically: a reader never sees a half-written file."""
+    write_atomic(Path(path), to_bytes(net, cfg))
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_header_config(blob: bytes) -> NetConfig:
+    """The network config stored in a blob's metadata (without loading the tensors)."""
+    import json
+    import struct
+
+    if len(blob) < 8:
+        raise WeightsError(f"weights are truncated: {len(blob)} bytes is not a safetensors file")
+    (n,) = struct.unpack("<Q", blob[:8])
+    if n > len(blob) - 8 or n > 16 * 1024 * 1024:
+        raise WeightsError("weights are truncated or corrupt: safetensors header length is out of bounds")
+    try:
+        header = json.loads(blob[8 : 8 + n])
+        meta = header.get("__metadata__") or {}
+    except (ValueError, AttributeError):
+        raise WeightsError("weights are corrupt: the safetensors header is not valid JSON") from None
+    if meta.get("format") != FORMAT:
+        raise WeightsError(f"weights metadata 'format' must be '{FORMAT}', got {meta.get('format')!r}")
+    try:
+        return NetConfig.from_json(meta.get("config", ""))
+    except (ValueError, TypeError) as e:
+        raise WeightsError(f"weights metadata 'config' is invalid: {e}") from None
+
+
+def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
+    """A new network with the blob's weights, after checking everything; never touches a live net."""
+    if not isinstance(blob, (bytes, bytearray)) or len(blob) == 0:
+        raise WeightsError("weights are empty")
+    if len(blob) > MAX_BYTES:
+        raise WeightsError(f"weights are {len(blob)} bytes, more than the {MAX_BYTES} allowed")
+    cfg = read_header_config(bytes(blob))
+    if cfg.model != expected.model:
+        raise WeightsError(f"weights are for model '{cfg.model}', but this policy runs model '{expected.model}'")
+    if cfg != expected:
+        raise WeightsError(f"weights were made for architecture {cfg.to_json()}, expected {expected.to_json()}")
+    try:
+        tensors = st_load(bytes(blob))
+    except (SafetensorError, Exception) as e:  # safetensors raises several types on corrupt input
+        raise WeightsError(f"weights are corrupt or truncated: {e}") from None
+    net = build_network(expected)
+    want = net.state_dict()
+    missing, extra = set(want) - set(tensors), set(tensors) - set(want)
+    if missing or extra:
+        raise WeightsError(f"weights tensor names differ: missing {sorted(missing)[:5]}, unexpected {sorted(extra)[:5]}")
+    for name, t in tensors.items():
+        if t.shape != want[name].shape:
+            raise WeightsError(f"tensor '{name}' has shape {tuple(t.shape)}, expected {tuple(want[name].shape)}")
+        if t.dtype != want[name].dtype:
+            raise WeightsError(f"tensor '{name}' has dtype {t.dtype}, expected {want[name].dtype}")
+        if t.is_floating_point() and not torch.isfinite(t).all():
+            raise WeightsError(f"tensor '{name}' has non-finite values (NaN or Inf)")
+    net.load_state_dict(tensors)
+    return net
+
+
+def load_file(path: str | os.PathLike, expected: NetConfig) -> torch.nn.Module:
+    p = Path(path).expanduser()
+    try:
+        blob = p.read_bytes()
+    except OSError as e:
+        raise WeightsError(f"cannot read weights file '{p}': {e.strerror}") from None
+    try:
+        return load_bytes(blob, expected)
+    except WeightsError as e:
+        raise WeightsError(f"{p}: {e}") from None
+
+
+def packaged_weights(model: str) -> Path | None:
+    """The pretrained weights shipped with uav_policy for `model`, if any."""
+    candidates = []
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory("uav_policy")) / "weights" / f"{model}.safetensors")
+    except Exception:
+        pass
+    candidates.append(Path(__file__).resolve().parent.parent / "weights" / f"{model}.safetensors")
+    return next((c for c in candidates if c.is_file()), None)

@@ -1,0 +1,113 @@
+import numpy as np
+import pytest
+import torch
+
+from uav_policy.actions import PAPER_ACTIONS, match_action
+from uav_policy.agent import Agent
+from uav_policy.attention import attention_map, overlay
+from uav_policy.frame_stack import FrameStack
+from uav_policy.networks import NetConfig, build_network, normalise_depth
+
+
+def depth_batch(b=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(b, 5, 64, 64, generator=g) * 12.0
+    x[0, 0, 0, 0] = float("inf")
+    x[0, 0, 0, 1] = float("nan")
+    return x
+
+
+def test_sam_shapes_and_attention_rows_sum_to_one():
+    net = build_network(NetConfig(model="sam"), seed=1)
+    q, w = net(depth_batch())
+    assert q.shape == (3, 4)
+    assert w.shape == (3, 3, 64, 64)  # (batch, heads, nodes, nodes): 8x8 grid, 3 heads
+    torch.testing.assert_close(w.sum(-1), torch.ones(3, 3, 64))
+    assert torch.isfinite(q).all()
+
+
+def test_cnn_shapes_and_no_attention():
+    net = build_network(NetConfig(model="cnn"), seed=1)
+    q, w = net(depth_batch())
+    assert q.shape == (3, 4) and w is None
+
+
+@pytest.mark.parametrize("model", ["sam", "cnn"])
+def test_dueling_identity_advantages_have_zero_mean(model):
+    net = build_network(NetConfig(model=model), seed=2)
+    x = depth_batch()
+    q, _ = net(x)
+    trunk_out = net.trunk(x)
+    if model == "sam":
+        nodes = trunk_out.flatten(2).transpose(1, 2)
+        coords = net.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
+        feats = net.node_projection(torch.cat([nodes, coords], -1))
+        for block in net.relational_blocks:
+            feats, _ = block(feats)
+        feats = feats.max(1).values
+    else:
+        feats = net.hidden(trunk_out.flatten(1))
+    v = net.dueling_head.value(feats)
+    # Q - V are the centred advantages: they average to zero for every state.
+    torch.testing.assert_close((q - v).mean(-1), torch.zeros(3), atol=1e-5, rtol=0)
+
+
+def test_q_values_can_go_below_minus_one():
+    # No ELU on the output: a linear head can represent a crash's -10.
+    net = build_network(NetConfig(model="sam"), seed=0)
+    with torch.no_grad():
+        net.dueling_head.value[-1].bias.fill_(-10.0)
+    q, _ = net(depth_batch())
+    assert (q < -5).all()
+
+
+@pytest.mark.parametrize("model", ["sam", "cnn"])
+def test_seeded_network_is_deterministic(model):
+    a, b = build_network(NetConfig(model=model), seed=7), build_network(NetConfig(model=model), seed=7)
+    c = build_network(NetConfig(model=model), seed=8)
+    x = depth_batch()
+    torch.testing.assert_close(a(x)[0], b(x)[0], rtol=0, atol=0)
+    assert not torch.allclose(a(x)[0], c(x)[0])
+
+
+def test_normalisation_of_rep117_values():
+    x = torch.tensor([float("inf"), float("-inf"), float("nan"), 5.0, 20.0])
+    assert normalise_depth(x, 10.0).tolist() == [1.0, 0.0, 1.0, 0.5, 1.0]
+
+
+def test_attention_map_and_overlay():
+    w = np.zeros((3, 4, 4), dtype=np.float32)
+    w[:, :, 2] = 1.0  # every query attends to node 2 = grid cell (row 1, col 0) of a 2x2 grid
+    amap = attention_map(w, (2, 2), (8, 8))
+    assert amap.shape == (8, 8) and amap.max() == 1.0
+    assert (amap[4:, :4] == 1.0).all() and amap[:4].sum() == 0 and amap[4:, 4:].sum() == 0
+    rgb = overlay(np.full((8, 8), 2.0, np.float32), amap, 10.0)
+    assert rgb.dtype == np.uint8 and rgb.shape == (8, 8, 3)
+    assert rgb[6, 1, 1] > rgb[6, 1, 0] and rgb[1, 6, 1] == rgb[1, 6, 0]  # green only where attended
+
+
+def test_frame_stack_resets_per_episode():
+    fs = FrameStack(5)
+    s = fs.reset(np.full((2, 2), 1.0))
+    assert s.shape == (5, 2, 2) and (s == 1.0).all()
+    for k in range(2, 8):
+        s = fs.push(np.full((2, 2), float(k)))
+    assert s[:, 0, 0].tolist() == [3.0, 4.0, 5.0, 6.0, 7.0]  # oldest first
+    s = fs.reset(np.full((2, 2), 9.0))
+    assert (s == 9.0).all()
+
+
+def test_epsilon_greedy_agent():
+    cfg = NetConfig(model="sam")
+    agent = Agent(build_network(cfg, seed=0), cfg, seed=0)
+    state = depth_batch(1)[0].numpy()
+    a, q, w, explored = agent.act(state, 0.0)
+    assert a == int(np.argmax(q)) and not explored and w.shape == (3, 64, 64)
+    picks = {agent.act(state, 1.0)[0] for _ in range(100)}
+    assert picks == {0, 1, 2, 3}
+
+
+def test_actions_round_trip_from_twist():
+    for i, a in enumerate(PAPER_ACTIONS):
+        assert match_action(PAPER_ACTIONS, a.linear_x_mps, a.yaw_rate_radps(0.5), 0.5) == i
+    assert match_action(PAPER_ACTIONS, 1.5, 0.0, 0.5) is None

@@ -1,0 +1,135 @@
+"""Integration: installed sim_node + policy_node in lockstep, observed and pushed to with rclpy."""
+
+import torch
+from geometry_msgs.msg import TwistStamped
+from rcl_interfaces.srv import SetParameters
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float32MultiArray
+
+from conftest import deep_qos, run_to_exit
+from uav_policy import weights as wio
+from uav_policy.networks import NetConfig, build_network
+from uav_policy.push import push_request
+from uav_sim import contract
+
+SAM = NetConfig(model="sam")
+
+
+class Watch:
+    def __init__(self, ros, actions_only=False):
+        # rclpy's spin_once takes one callback at a time: subscribe only to what a test reads.
+        self.frames, self.actions, self.att, self.q = [], [], [], []
+        n, qos = ros.node, deep_qos()
+        n.create_subscription(TwistStamped, contract.ACTION_TOPIC, self.actions.append, qos)
+        if actions_only:
+            return
+        n.create_subscription(Image, contract.DEPTH_TOPIC, self.frames.append, qos)
+        n.create_subscription(Image, contract.ATTENTION_TOPIC, self.att.append, 10)
+        n.create_subscription(Float32MultiArray, contract.Q_VALUES_TOPIC, self.q.append, 10)
+
+    def frame_stamps(self):
+        return [contract.stamp_ns(m.header.stamp) for m in self.frames]
+
+    def action_stamps(self):
+        return [contract.stamp_ns(m.header.stamp) for m in self.actions]
+
+
+def start_pair(ros, *policy_args, sim_args=()):
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5", *sim_args)
+    return ros.start("uav_policy", "policy_node", *policy_args)
+
+
+def test_policy_answers_each_frame_once_and_explains_it(ros):
+    w = Watch(ros)
+    proc = start_pair(ros, "-p", "model:=sam")
+    assert ros.spin_until(lambda: len(w.actions) >= 300, 60), ros.log_of(proc)
+    ros.spin_for(0.3)
+    acts = w.action_stamps()
+    assert len(acts) == len(set(acts)), "a frame was answered more than once"
+    frames = sorted(set(w.frame_stamps()))
+    # Every action answers a published frame, and every frame but the newest got an answer.
+    assert set(acts) <= set(frames)
+    answered = set(acts)
+    # Frames newer than the newest action read here may have their answer still in flight.
+    missing = [f for f in frames[5:] if f <= max(acts) and f not in answered]
+    assert not missing, f"unanswered frames {missing[:5]} (of {len(frames)}; newest action {max(acts)})"
+    att = {contract.stamp_ns(m.header.stamp): m for m in w.att}
+    frame_msgs = {contract.stamp_ns(m.header.stamp): m for m in w.frames}
+    common = set(att) & set(frame_msgs)
+    assert len(common) > 100
+    for s in list(common)[:20]:
+        a, f = att[s], frame_msgs[s]
+        assert (a.width, a.height, a.encoding, a.header.frame_id) == (f.width, f.height, "32FC1", f.header.frame_id)
+        amap = contract.image_to_depth(a)
+        assert 0.0 <= amap.min() and amap.max() <= 1.0
+    q = w.q[-1]
+    assert len(q.data) == 4 and "a3_forward_2mps" in q.layout.dim[0].label
+
+
+def call_push(ros, blob: bytes, timeout_s=30.0):
+    client = ros.node.create_client(SetParameters, contract.PUSH_WEIGHTS_SERVICE)
+    assert client.wait_for_service(timeout_sec=20)
+    fut = client.call_async(push_request(blob))
+    assert ros.spin_until(fut.done, timeout_s)
+    return fut.result().results[0]
+
+
+def forcing_action(index: int) -> bytes:
+    """Weights whose advantage stream always prefers `index`."""
+    net = build_network(SAM, seed=0)
+    with torch.no_grad():
+        last = net.dueling_head.advantage[-1]
+        last.weight.zero_()
+        last.bias.zero_()
+        last.bias[index] = 5.0
+    return wio.to_bytes(net, SAM)
+
+
+def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes_actions(ros):
+    w = Watch(ros, actions_only=True)
+    proc = start_pair(ros, "-p", "model:=sam")
+    assert ros.spin_until(lambda: len(w.actions) >= 20, 60), ros.log_of(proc)
+    good = forcing_action(3)
+    tensors = st_load(good)
+    name = "dueling_head.value.2.weight"
+    meta = {"format": wio.FORMAT, "config": SAM.to_json()}
+    bad_pushes = {
+        "corrupt": b"\x13" * 5000,
+        "truncated": good[: len(good) // 3],
+        "wrong shape": st_save(dict(tensors, **{name: torch.zeros(2, 2)}), metadata=meta),
+        "non-finite": st_save(dict(tensors, **{name: torch.full_like(tensors[name], float("inf"))}), metadata=meta),
+        "other architecture": forcing_action_cnn(),
+    }
+    for label, blob in bad_pushes.items():
+        before = len(w.actions)
+        r = call_push(ros, blob)
+        assert not r.successful and r.reason, f"{label} push was accepted"
+        assert ros.spin_until(lambda b=before: len(w.actions) > b + 5, 10), f"control stalled after the {label} push"
+    assert proc.poll() is None
+    assert any(m.twist.linear.x != 2.0 for m in w.actions[-20:]), "the random net should not always pick a3"
+    r = call_push(ros, good)
+    assert r.successful, r.reason
+    # The reader lags the 250 Hz loop: wait until what arrives is post-push.
+    all_a3 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 2.0 for m in w.actions[-20:])  # noqa: E731
+    assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
+    assert "weights push rejected" in ros.log_of(proc)
+
+
+def forcing_action_cnn() -> bytes:
+    cfg = NetConfig(model="cnn")
+    return wio.to_bytes(build_network(cfg, seed=0), cfg)
+
+
+def test_policy_start_up_errors(tmp_path):
+    r = run_to_exit("uav_policy", "policy_node", "-p", "model:=transformer")
+    assert r.returncode == 2 and "parameter 'model'" in r.stderr
+    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={tmp_path / 'missing.safetensors'}")
+    assert r.returncode == 2 and "parameter 'weights'" in r.stderr and "cannot read" in r.stderr
+    cnn = tmp_path / "cnn.safetensors"
+    cnn.write_bytes(forcing_action_cnn())
+    r = run_to_exit("uav_policy", "policy_node", "-p", "model:=sam", "-p", f"weights:={cnn}")
+    assert r.returncode == 2 and "model 'cnn'" in r.stderr and "runs model 'sam'" in r.stderr
+    r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")
+    assert r.returncode == 2 and "epsilon" in r.stderr

@@ -1,0 +1,90 @@
+import struct
+
+import pytest
+import torch
+from safetensors.torch import save as st_save
+
+from uav_policy import weights as wio
+from uav_policy.networks import NetConfig, build_network
+
+SAM = NetConfig(model="sam")
+
+
+def blob(model="sam", seed=0):
+    cfg = NetConfig(model=model)
+    return wio.to_bytes(build_network(cfg, seed=seed), cfg)
+
+
+def test_round_trip_file(tmp_path):
+    net = build_network(SAM, seed=3)
+    wio.save_file(net, SAM, tmp_path / "w.safetensors")
+    back = wio.load_file(tmp_path / "w.safetensors", SAM)
+    x = torch.rand(1, 5, 64, 64) * 10
+    torch.testing.assert_close(net(x)[0], back(x)[0])
+    assert not list(tmp_path.glob(".*tmp")), "atomic write leaves no temp files"
+
+
+def test_rejects_the_other_architecture():
+    with pytest.raises(wio.WeightsError, match="model 'cnn'.*runs model 'sam'"):
+        wio.load_bytes(blob("cnn"), SAM)
+
+
+def test_rejects_truncated_and_corrupt():
+    good = blob()
+    with pytest.raises(wio.WeightsError, match="truncated|corrupt"):
+        wio.load_bytes(good[: len(good) // 2], SAM)
+    with pytest.raises(wio.WeightsError):
+        wio.load_bytes(b"\x00" * 3, SAM)
+    with pytest.raises(wio.WeightsError, match="header"):
+        wio.load_bytes(struct.pack("<Q", 10**12) + b"{}", SAM)
+    with pytest.raises(wio.WeightsError, match="empty"):
+        wio.load_bytes(b"", SAM)
+
+
+def test_rejects_pickle_files():
+    import io
+
+    buf = io.BytesIO()
+    torch.save(build_network(SAM).state_dict(), buf)  # a pickle-based .pt is never unpickled
+    with pytest.raises(wio.WeightsError):
+        wio.load_bytes(buf.getvalue(), SAM)
+
+
+def tensors_of(b):
+    from safetensors.torch import load
+
+    return load(b)
+
+
+def rewrap(tensors, cfg=SAM):
+    return st_save(tensors, metadata={"format": wio.FORMAT, "config": cfg.to_json()})
+
+
+def test_rejects_wrong_shape_dtype_names_and_non_finite():
+    t = tensors_of(blob())
+    name = "dueling_head.value.2.weight"
+    bad = dict(t, **{name: torch.zeros(1, 7)})
+    with pytest.raises(wio.WeightsError, match="shape"):
+        wio.load_bytes(rewrap(bad), SAM)
+    bad = dict(t, **{name: t[name].double()})
+    with pytest.raises(wio.WeightsError, match="dtype"):
+        wio.load_bytes(rewrap(bad), SAM)
+    bad = dict(t)
+    del bad[name]
+    with pytest.raises(wio.WeightsError, match="names differ"):
+        wio.load_bytes(rewrap(bad), SAM)
+    bad = dict(t, **{name: torch.full_like(t[name], float("nan"))})
+    with pytest.raises(wio.WeightsError, match="non-finite"):
+        wio.load_bytes(rewrap(bad), SAM)
+
+
+def test_rejects_a_different_sam_architecture():
+    other = NetConfig(model="sam", d_model=60)
+    b = wio.to_bytes(build_network(other), other)
+    with pytest.raises(wio.WeightsError, match="architecture"):
+        wio.load_bytes(b, SAM)
+
+
+def test_missing_file_message(tmp_path):
+    with pytest.raises(wio.WeightsError, match="cannot read weights file"):
+        wio.load_file(tmp_path / "nope.safetensors", SAM)
