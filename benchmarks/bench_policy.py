@@ -1,0 +1,122 @@
+"""Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN; lockstep
+steps/s of sim_node <-> policy_node over ROS against the same loop in-process; weight-push latency.
+
+Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_policy.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+import torch
+from common import Nodes, sim_steps_reader
+
+from uav_policy import weights as wio
+from uav_policy.actions import PAPER_ACTIONS
+from uav_policy.agent import Agent
+from uav_policy.frame_stack import FrameStack
+from uav_policy.networks import NetConfig, build_network
+from uav_sim.simulator import Simulator
+from uav_sim.vehicle import BodyTwist
+from uav_sim.world import load_world
+
+
+def inference_latency(model: str, n: int = 2000) -> tuple[float, float]:
+    cfg = NetConfig(model=model)
+    agent = Agent(build_network(cfg, seed=0), cfg)
+    state = np.random.default_rng(0).uniform(0, 10, (5, 64, 64)).astype(np.float32)
+    for _ in range(50):
+        agent.act(state, 0.0)
+    times = []
+    for _ in range(n):
+        t = time.perf_counter()
+        agent.act(state, 0.0)
+        times.append(time.perf_counter() - t)
+    return float(np.percentile(times, 50) * 1e3), float(np.percentile(times, 99) * 1e3)
+
+
+def in_process_loop(model: str, steps: int) -> float:
+    cfg = NetConfig(model=model)
+    agent = Agent(build_network(cfg, seed=0), cfg)
+    sim = Simulator(load_world("basic"))
+    stack = FrameStack(5)
+    r = sim.observe()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        state = stack.reset(r.depth_m) if (r.collided or stack.empty) else stack.push(r.depth_m)
+        a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
+        r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(0.5)))
+    rate = steps / (time.perf_counter() - t0)
+    sim.close()
+    return rate
+
+
+def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) -> tuple[float, list[float]]:
+    import rclpy
+    from rcl_interfaces.srv import SetParameters
+
+    from uav_policy.push import push_request
+    from uav_sim import contract
+
+    nodes = Nodes(domain)
+    rclpy.init(domain_id=domain)
+    node = rclpy.create_node("bench_policy")
+    try:
+        read = sim_steps_reader(node)
+        nodes.start("uav_sim", "sim_node")
+        nodes.start("uav_policy", "policy_node", "-p", f"model:={model}")
+        end = time.perf_counter() + 60
+        while read()[1] is None or read()[1] < 50:
+            rclpy.spin_once(node, timeout_sec=0.1)
+            if time.perf_counter() > end:
+                raise RuntimeError("the sim <-> policy loop did not start")
+        t0, s0 = read()
+        while read()[0] - t0 < seconds:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        t1, s1 = read()
+        rate = (s1 - s0) / (t1 - t0)
+        cfg = NetConfig(model=model)
+        blob = wio.to_bytes(build_network(cfg, seed=1), cfg)
+        client = node.create_client(SetParameters, contract.PUSH_WEIGHTS_SERVICE)
+        client.wait_for_service(timeout_sec=10)
+        lat = []
+        for _ in range(pushes):
+            t = time.perf_counter()
+            fut = client.call_async(push_request(blob))
+            rclpy.spin_until_future_complete(node, fut, timeout_sec=10)
+            assert fut.result().results[0].successful, fut.result().results[0].reason
+            lat.append((time.perf_counter() - t) * 1e3)
+        return rate, lat, len(blob)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        nodes.stop_all()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--steps", type=int, default=1500, help="in-process loop steps")
+    ap.add_argument("--seconds", type=float, default=8.0, help="ROS loop measuring time")
+    ap.add_argument("--pushes", type=int, default=10)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op thread, {os.cpu_count()} cores")
+    for model in ("sam", "cnn"):
+        p50, p99 = inference_latency(model)
+        print(f"[{model}] inference batch 1: p50 {p50:.3f} ms, p99 {p99:.3f} ms")
+    for i, model in enumerate(("sam", "cnn")):
+        base = in_process_loop(model, a.steps)
+        ros, lat, size = ros_loop_and_pushes(model, a.seconds, a.pushes, 80 + (os.getpid() + i) % 10)
+        print(f"[{model}] lockstep loop: in-process {base:.1f} steps/s, over ROS {ros:.1f} steps/s, ratio {ros / base:.3f}")
+        print(
+            f"[{model}] weight push ({size / 1024:.0f} KiB, SetParameters BYTE_ARRAY): "
+            f"p50 {np.percentile(lat, 50):.1f} ms, max {max(lat):.1f} ms over {len(lat)}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

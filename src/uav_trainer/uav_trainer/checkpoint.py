@@ -1,0 +1,116 @@
+"""Atomic checkpoints: weights, target, Adam state, counters and RNG states; safetensors + JSON, no pickle.
+
+Layout under `dir`: ckpt-<updates>/{state.safetensors, meta.json} and a `latest` file naming
+the newest complete one. A checkpoint directory is renamed into place only when complete,
+and `latest` is replaced atomically after it, so a crash mid-write never corrupts a resume.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from uav_policy.networks import NetConfig
+from uav_policy.weights import write_atomic
+
+from .learner import Learner
+
+KEEP = 3
+
+
+def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list]:
+    sd = opt.state_dict()
+    tensors = {}
+    for idx, st in sd["state"].items():
+        for k, v in st.items():
+            tensors[f"optimizer.state.{idx}.{k}"] = torch.as_tensor(v).detach().cpu().contiguous()
+    groups = [{k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()} for g in sd["param_groups"]]
+    return tensors, groups
+
+
+def save(dir_: str | os.PathLike, learner: Learner, counters: dict, extra_rng: dict) -> Path:
+    """Write a checkpoint named after the update count; returns its directory."""
+    root = Path(dir_)
+    root.mkdir(parents=True, exist_ok=True)
+    name = f"ckpt-{learner.updates:09d}-{counters.get('env_steps', 0):09d}"
+    final = root / name
+    tmp = root / f".{name}.tmp"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    tensors = {f"online.{k}": v.detach().cpu().contiguous() for k, v in learner.online.state_dict().items()}
+    tensors.update({f"target.{k}": v.detach().cpu().contiguous() for k, v in learner.target.state_dict().items()})
+    opt_tensors, groups = _optimizer_tensors(learner.optimizer)
+    tensors.update(opt_tensors)
+    tensors["rng.torch"] = torch.random.get_rng_state()
+    save_file(tensors, str(tmp / "state.safetensors"))
+    meta = {
+        "format": "uav_trainer_checkpoint/1",
+        "net_config": json.loads(learner.net_cfg.to_json()),
+        "learner_config": {k: getattr(learner.cfg, k) for k in learner.cfg.__dataclass_fields__},
+        "updates": learner.updates,
+        "optimizer_param_groups": groups,
+        "counters": counters,
+        "rng": extra_rng,
+    }
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    for f in tmp.iterdir():
+        with open(f, "rb") as fh:
+            os.fsync(fh.fileno())
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    write_atomic(root / "latest", name.encode())
+    for old in sorted(p for p in root.glob("ckpt-*") if p.is_dir())[:-KEEP]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def latest(dir_: str | os.PathLike) -> Path | None:
+    root = Path(dir_)
+    try:
+        name = (root / "latest").read_text().strip()
+    except OSError:
+        return None
+    p = root / name
+    return p if (p / "meta.json").is_file() and (p / "state.safetensors").is_file() else None
+
+
+def load(path: Path, learner: Learner) -> dict:
+    """Restore a learner in place; returns the meta (counters, rng). Raises ValueError on mismatch."""
+    meta = json.loads((path / "meta.json").read_text())
+    if meta.get("format") != "uav_trainer_checkpoint/1":
+        raise ValueError(f"{path}: not a uav_trainer checkpoint")
+    cfg = NetConfig.from_json(json.dumps(meta["net_config"]))
+    if cfg != learner.net_cfg:
+        raise ValueError(f"{path}: checkpoint network {cfg.to_json()} differs from {learner.net_cfg.to_json()}")
+    tensors = load_file(str(path / "state.safetensors"))
+    learner.online.load_state_dict({k[7:]: v for k, v in tensors.items() if k.startswith("online.")})
+    learner.target.load_state_dict({k[7:]: v for k, v in tensors.items() if k.startswith("target.")})
+    state = {}
+    for k, v in tensors.items():
+        if k.startswith("optimizer.state."):
+            _, _, idx, key = k.split(".", 3)
+            state.setdefault(int(idx), {})[key] = v
+    groups = meta["optimizer_param_groups"]
+    for g in groups:
+        if "betas" in g:
+            g["betas"] = tuple(g["betas"])
+    learner.optimizer.load_state_dict({"state": state, "param_groups": groups})
+    learner.updates = int(meta["updates"])
+    torch.random.set_rng_state(tensors["rng.torch"])
+    return meta
+
+
+def rng_state(rng: np.random.Generator) -> dict:
+    return rng.bit_generator.state
+
+
+def set_rng_state(rng: np.random.Generator, state: dict) -> None:
+    rng.bit_generator.state = state

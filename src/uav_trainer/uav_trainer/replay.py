@@ -1,0 +1,100 @@
+"""Replay memory that keeps each depth frame once; 5-frame stacks are rebuilt at sample time.
+
+Slot i holds frame i, whether it starts an episode (or a new chain after a gap), and the
+transition that left it: action, reward, done, and whether that transition exists. A stack
+for slot i is frames i-N+1..i, where every frame before the latest episode start inside the
+window is replaced by that start frame - exactly what the policy's FrameStack does at reset.
+The next state of transition i is the stack at slot i+1; `done` masks it after a collision.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class ReplayMemory:
+    def __init__(self, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0):
+        if capacity < frames + 2:
+            raise ValueError(f"capacity must be at least frames + 2 = {frames + 2}, got {capacity}")
+        self.capacity, self.frames = capacity, frames
+        self.frame = np.zeros((capacity, *frame_shape), dtype=np.float16)  # metres; inf survives float16
+        self.start = np.zeros(capacity, dtype=bool)
+        self.action = np.zeros(capacity, dtype=np.int64)
+        self.reward = np.zeros(capacity, dtype=np.float32)
+        self.done = np.zeros(capacity, dtype=bool)
+        self.has_transition = np.zeros(capacity, dtype=bool)
+        self.cursor = 0  # next slot to write
+        self.count = 0  # frames stored (<= capacity)
+        self.transitions_added = 0
+        self.rng = np.random.default_rng(seed)
+
+    def __len__(self) -> int:
+        """Number of sampleable transitions."""
+        return int(self._valid().sum())
+
+    def _write_frame(self, depth: np.ndarray, start: bool) -> None:
+        i = self.cursor
+        self.frame[i] = np.clip(np.nan_to_num(depth, nan=np.inf), -65000, np.inf).astype(np.float16)
+        self.start[i] = start
+        self.has_transition[i] = False
+        self.cursor = (i + 1) % self.capacity
+        self.count = min(self.count + 1, self.capacity)
+
+    def add_first(self, depth: np.ndarray) -> None:
+        """A frame that starts an episode or a new chain (no transition leads into it)."""
+        self._write_frame(depth, start=True)
+
+    def add_transition(self, action: int, reward: float, done: bool, next_depth: np.ndarray) -> None:
+        """Complete the transition from the newest frame; `next_depth` is the frame it led to.
+
+        After a collision (done=True) the next frame is the first of a new episode.
+        """
+        if self.count == 0:
+            raise RuntimeError("add_first must come before add_transition")
+        i = (self.cursor - 1) % self.capacity
+        self.action[i], self.reward[i], self.done[i] = action, reward, done
+        self.has_transition[i] = True
+        self._write_frame(next_depth, start=done)
+        self.transitions_added += 1
+
+    def _valid(self) -> np.ndarray:
+        """Slots whose transition can be sampled: complete, next frame stored, full history kept."""
+        valid = self.has_transition.copy()
+        newest = (self.cursor - 1) % self.capacity
+        valid[newest] = False  # its next frame is not stored yet
+        if self.count == self.capacity:
+            # The oldest frames' histories were overwritten: only keep them if an episode start
+            # inside their window makes the overwritten part irrelevant.
+            for k in range(self.frames - 1):
+                j = (self.cursor + k) % self.capacity
+                window = [(j - m) % self.capacity for m in range(k + 1)]
+                if not any(self.start[w] for w in window):
+                    valid[j] = False
+        else:
+            valid[self.count :] = False
+        return valid
+
+    def stack(self, i: int) -> np.ndarray:
+        """(frames, H, W) float32 state ending at slot i."""
+        idx = [(i - m) % self.capacity for m in range(self.frames - 1, -1, -1)]  # oldest first
+        # Walk back from i: at the latest episode start, everything older is replaced by it.
+        for pos in range(self.frames - 1, 0, -1):
+            if self.start[idx[pos]]:
+                for older in range(pos):
+                    idx[older] = idx[pos]
+                break
+        return self.frame[idx].astype(np.float32)
+
+    def sample(self, batch: int) -> dict[str, np.ndarray]:
+        valid = np.flatnonzero(self._valid())
+        if valid.size == 0:
+            raise RuntimeError("the replay memory holds no complete transition yet")
+        picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
+        return {
+            "state": np.stack([self.stack(i) for i in picks]),
+            "action": self.action[picks],
+            "reward": self.reward[picks],
+            "done": self.done[picks].astype(np.float32),
+            "next_state": np.stack([self.stack((i + 1) % self.capacity) for i in picks]),
+            "index": picks,
+        }
