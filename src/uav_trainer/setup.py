@@ -20,6 +20,7 @@ setup(
         "console_scripts": [
             "trainer_node = uav_trainer.trainer_node:main",
             "train = uav_trainer.train:main",
+            "evaluate = uav_trainer.evaluate:main",
         ],
     },
 )

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 from collections import deque
 
+import cv2
 import numpy as np
+
+
+def fit_to_network(depth_m: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A frame at the network's input size (nearest neighbour: no invented depths between edges)."""
+    if depth_m.shape == (height, width):
+        return depth_m
+    return cv2.resize(depth_m, (width, height), interpolation=cv2.INTER_NEAREST)
 
 
 class FrameStack:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import threading
 import time
 
-import cv2
 import numpy as np
 import torch
 from geometry_msgs.msg import Twist, TwistStamped
@@ -32,7 +31,7 @@ from . import weights as wio
 from .actions import PAPER_ACTIONS, make_actions
 from .agent import Agent
 from .attention import attention_map, overlay
-from .frame_stack import FrameStack
+from .frame_stack import FrameStack, fit_to_network
 from .networks import NetConfig, build_network, parameter_count
 
 
@@ -66,6 +65,8 @@ class PolicyNode(Node):
         width = d("input_width", 64, "Network input width (px)", 8, 512)
         max_range = d("max_range_m", 10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
         self.publish_overlay = d("publish_overlay", True, "Publish attention/overlay (rgb8)")
+        threads = d("torch_threads", 1, "Torch intra-op threads (batch-1 inference gains nothing from more)", 1, 256)
+        torch.set_num_threads(threads)
         try:
             self.actions = make_actions(names, lin, yaw)
         except ValueError as e:
@@ -146,9 +147,7 @@ class PolicyNode(Node):
             self.bad_frames += 1
             self.get_logger().warning(f"ignoring malformed depth frame: {e}", throttle_duration_sec=2.0)
             return
-        net_in = depth
-        if depth.shape != (self.cfg.height, self.cfg.width):
-            net_in = cv2.resize(depth, (self.cfg.width, self.cfg.height), interpolation=cv2.INTER_NEAREST)
+        net_in = fit_to_network(depth, self.cfg.height, self.cfg.width)
         if contract.outcome_collided(outcome) or self.stack.empty:
             state = self.stack.reset(net_in)
         else:

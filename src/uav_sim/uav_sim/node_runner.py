@@ -35,6 +35,7 @@ def run(node_factory, args=None) -> int:
             close = getattr(node, "close", None)
             if close is not None:
                 close()
+            code = code or getattr(node, "exit_code", 0)
             node.destroy_node()
         rclpy.try_shutdown()
     return code

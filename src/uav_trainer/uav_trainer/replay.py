@@ -34,7 +34,8 @@ class ReplayMemory:
 
     def _write_frame(self, depth: np.ndarray, start: bool) -> None:
         i = self.cursor
-        self.frame[i] = np.clip(np.nan_to_num(depth, nan=np.inf), -65000, np.inf).astype(np.float16)
+        with np.errstate(over="ignore"):  # +Inf stays +Inf in float16
+            self.frame[i] = np.nan_to_num(depth, nan=np.inf).astype(np.float16)
         self.start[i] = start
         self.has_transition[i] = False
         self.cursor = (i + 1) % self.capacity

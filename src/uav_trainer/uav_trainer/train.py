@@ -1,2 +1,146 @@
-def main(args=None):
-    raise SystemExit("not implemented yet")
+"""train: the main job. Brings up sim_node, policy_node and trainer_node and trains an agent.
+
+    ros2 run uav_trainer train --model sam --steps 20000 --seed 0
+
+Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
+policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint,
+then the policy and the simulator. Running it again with the same run directory resumes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from .launching import Processes, params_args
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
+    ap.add_argument("--world", default="basic", help="training world (default: basic)")
+    ap.add_argument("--steps", type=int, default=20000, help="environment steps budget (default: 20000)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
+    ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml")
+    ap.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in the run directory")
+    ap.add_argument(
+        "--trainer-arg",
+        action="append",
+        default=[],
+        metavar="NAME:=VALUE",
+        help="extra trainer_node parameter, e.g. --trainer-arg learning_starts:=500 (repeatable)",
+    )
+    ap.add_argument("--sim-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra sim_node parameter")
+    a = ap.parse_args(argv)
+    if a.steps <= 0:
+        ap.error("--steps must be positive")
+    run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
+    params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
+    logs = run_dir / "logs"
+    procs = Processes(log_dir=logs)
+    p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
+    # Training starts from a random heading each episode so that episodes differ.
+    sim_extra = ["start_yaw_jitter_deg:=180.0", *a.sim_arg]
+    procs.start(
+        "sim", "uav_sim", "sim_node", params_args(params, "sim") + p("", [f"world:={a.world}", f"seed:={a.seed}", *sim_extra])
+    )
+    procs.start(
+        "policy",
+        "uav_policy",
+        "policy_node",
+        params_args(params, "policy") + p("", [f"model:={a.model}", f"seed:={a.seed}", "epsilon:=1.0"]),
+    )
+    trainer = procs.start(
+        "trainer",
+        "uav_trainer",
+        "trainer_node",
+        params_args(params, "trainer")
+        + p(
+            "",
+            [
+                f"model:={a.model}",
+                f"seed:={a.seed}",
+                f"total_steps:={a.steps}",
+                f"run_dir:={run_dir}",
+                f"resume:={'false' if a.no_resume else 'true'}",
+                *a.trainer_arg,
+            ],
+        ),
+    )
+    print(f"training D3QN-{a.model.upper()} in '{a.world}' for {a.steps} steps -> {run_dir} (node logs in {logs})")
+    interrupted = False
+
+    def on_sigint(*_):
+        nonlocal interrupted
+        interrupted = True
+
+    signal.signal(signal.SIGINT, on_sigint)
+    signal.signal(signal.SIGTERM, on_sigint)
+    code = 0
+    try:
+        code = follow(trainer, run_dir, a.steps, lambda: interrupted, procs)
+    finally:
+        procs.stop("trainer", timeout_s=120)
+        procs.stop_all(["policy", "sim"])
+    trainer_code = trainer.returncode
+    weights = run_dir / f"policy_{a.model}.safetensors"
+    if weights.exists():
+        print(
+            f"weights: {weights}\nfly them: ros2 run uav_policy policy_node --ros-args -p model:={a.model} -p weights:={weights}"
+        )
+    if trainer_code not in (0, None, -signal.SIGINT):
+        print(f"trainer_node exited with code {trainer_code}; see {logs / 'trainer.log'}", file=sys.stderr)
+        return trainer_code
+    return code if not interrupted else 130
+
+
+def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes) -> int:
+    """Show a progress bar from metrics.csv until the trainer exits or Ctrl-C."""
+    from tqdm import tqdm
+
+    metrics = run_dir / "metrics.csv"
+    bar = tqdm(total=total, unit="step", dynamic_ncols=True, disable=None)
+    done = 0
+    while trainer.poll() is None and not interrupted():
+        for name in ("sim", "policy"):
+            if procs.procs[name].poll() is not None:
+                print(f"\n{name}_node exited early (code {procs.procs[name].returncode}); stopping", file=sys.stderr)
+                bar.close()
+                return 1
+        time.sleep(1.0)
+        steps, info = read_progress(metrics)
+        if steps > done:
+            bar.update(min(steps, total) - done)
+            done = min(steps, total)
+        if info:
+            bar.set_postfix_str(info, refresh=True)
+    bar.close()
+    return 0
+
+
+def read_progress(metrics: Path) -> tuple[int, str]:
+    try:
+        lines = metrics.read_text().strip().splitlines()
+    except OSError:
+        return 0, ""
+    if len(lines) < 2:
+        return 0, ""
+    head, last = lines[0].split(","), lines[-1].split(",")
+    row = dict(zip(head, last, strict=False))
+    try:
+        return int(row["env_steps"]), (
+            f"ep len {float(row['mean_episode_length']):.0f} ep rew {float(row['mean_episode_reward']):.0f} "
+            f"eps {float(row['epsilon']):.2f} {float(row['env_steps_per_s']):.0f} st/s"
+        )
+    except (KeyError, ValueError):
+        return 0, ""
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    raise SystemExit(main())

@@ -1,2 +1,288 @@
-def main(args=None):
-    raise SystemExit("not implemented yet")
+"""trainer_node: replay memory, learning, weight pushes and checkpoints over ROS 2.
+
+Joins depth/image_raw, step_outcome and the policy's action (TwistStamped) by exact stamp.
+Consecutive steps (stamps one step_duration_s apart) make transitions (s, a, r, s', done) with
+the reward from uav_sim.reward; anything that does not pair is counted and reported on
+/diagnostics and in the log, never guessed. A learner thread updates the network; weights go
+to the policy over policy_node/push_weights, epsilon through policy_node's parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+
+import rclpy
+import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import TwistStamped
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+from sensor_msgs.msg import Image, Range
+
+from uav_policy.actions import PAPER_ACTIONS, make_actions, match_action
+from uav_policy.frame_stack import fit_to_network
+from uav_policy.push import push_request
+from uav_sim import contract
+from uav_sim.node_runner import run
+from uav_sim.ros_params import ParameterError, declare
+
+from .learner import LearnerConfig
+from .training import TrainerConfig, Training
+
+
+@dataclasses.dataclass
+class Record:
+    stamp: int
+    action: int | None
+
+
+class TrainerNode(Node):
+    def __init__(self):
+        super().__init__("trainer_node")
+        d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+        D = TrainerConfig()
+        L = LearnerConfig()
+        device = d(
+            "device", "auto", "Learner device: auto (cuda when present, else cpu), cpu or cuda", choices=("auto", "cpu", "cuda")
+        )
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        elif device == "cuda" and not torch.cuda.is_available():
+            raise ParameterError("parameter 'device'='cuda' but no CUDA device is available")
+        learner = LearnerConfig(
+            gamma=d("gamma", L.gamma, "Discount factor", 0.0, 1.0),
+            learning_rate=d("learning_rate", L.learning_rate, "Adam learning rate", 1e-7, 1.0),
+            batch_size=d("batch_size", L.batch_size, "Transitions per update", 1, 4096),
+            grad_clip_norm=d("grad_clip_norm", L.grad_clip_norm, "Max global gradient norm", 0.01, 1e6),
+            target_update_interval=d(
+                "target_update_interval", L.target_update_interval, "Updates between target-network syncs", 1, 10**7
+            ),
+            target_tau=d("target_tau", L.target_tau, "1.0: hard copy at each sync; <1: Polyak factor", 0.0001, 1.0),
+            huber_delta=d("huber_delta", L.huber_delta, "Huber loss threshold", 0.01, 100.0),
+        )
+        self.cfg = TrainerConfig(
+            model=d("model", D.model, "Q-network: sam or cnn (must match policy_node's model)", choices=("sam", "cnn")),
+            seed=d("seed", D.seed, "Seed for initialisation and replay sampling", 0, 2**31 - 1),
+            device=device,
+            replay_capacity=d("replay_capacity", D.replay_capacity, "Frames kept in replay (each stored once)", 100, 10**7),
+            learning_starts=d("learning_starts", D.learning_starts, "Transitions before the first update", 1, 10**8),
+            replay_ratio=d("replay_ratio", D.replay_ratio, "Max updates per environment step", 0.001, 64.0),
+            push_interval_updates=d(
+                "push_interval_updates", D.push_interval_updates, "Push weights to the policy every N updates", 1, 10**7
+            ),
+            checkpoint_interval_updates=d(
+                "checkpoint_interval_updates", D.checkpoint_interval_updates, "Write a checkpoint every N updates", 1, 10**8
+            ),
+            epsilon_start=d("epsilon_start", D.epsilon_start, "Initial exploration rate", 0.0, 1.0),
+            epsilon_end=d("epsilon_end", D.epsilon_end, "Final exploration rate (the paper keeps 0.05)", 0.0, 1.0),
+            epsilon_decay_steps=d("epsilon_decay_steps", D.epsilon_decay_steps, "Env steps of linear decay", 0, 10**9),
+            total_steps=d("total_steps", D.total_steps, "Env steps budget; 0 = until Ctrl-C", 0, 10**10),
+            learner=learner,
+        )
+        run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")
+        resume = d("resume", True, "Resume from run_dir's latest checkpoint when there is one")
+        self.step_ns = int(round(1e9 * d("step_duration_s", 0.5, "Sim step duration (s); must equal sim_node's", 0.01, 5.0)))
+        names = d("action_names", [a.name for a in PAPER_ACTIONS], "Action names (must match policy_node)")
+        lin = d("action_linear_x_mps", [a.linear_x_mps for a in PAPER_ACTIONS], "Forward speed of each action")
+        yaw = d("action_yaw_deg", [a.yaw_deg_per_step for a in PAPER_ACTIONS], "Yaw per step of each action")
+        policy = d("policy_node", "policy_node", "Name of the policy node to push weights and epsilon to")
+        self.log_interval_s = d("log_interval_s", 10.0, "Seconds between progress lines and metrics rows", 0.1, 3600.0)
+        threads = d("torch_threads", 1, "Torch intra-op threads for the learner (2 cores are shared)", 1, 256)
+        try:
+            self.actions = make_actions(names, lin, yaw)
+        except ValueError as e:
+            raise ParameterError(f"parameters 'action_*': {e}") from None
+        if len(self.actions) != 4:
+            raise ParameterError(f"parameters 'action_*': the networks have 4 outputs, got {len(self.actions)} actions")
+        torch.set_num_threads(threads)
+        self.training = Training(self.cfg, run_dir, log=self.get_logger().info, resume=resume)
+        self.net_hw = (self.training.net_cfg.height, self.training.net_cfg.width)
+
+        q = contract.STREAM_QOS
+        self.joiner = contract.StampJoiner(("frame", "outcome", "action"), max_pending=500)
+        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), q)
+        self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), q)
+        self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self._on("action", m), q)
+        self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
+        self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
+        self.param_client = self.create_client(SetParameters, f"{policy}/set_parameters")
+        self.prev: Record | None = None
+        self.counts = {
+            "chain_breaks": 0,
+            "unmatched_actions": 0,
+            "bad_frames": 0,
+            "out_of_order": 0,
+            "pushes_ok": 0,
+            "pushes_rejected": 0,
+        }
+        self.push_in_flight = None
+        self.push_latency_ms: list[float] = []
+        self.eps_in_flight = None
+        self.eps_sent = None
+        self.exit_code = 0
+        self._stop = threading.Event()
+        self._learner_thread = threading.Thread(target=self._learn_loop, name="learner", daemon=True)
+        self._learner_thread.start()
+        self.create_timer(0.05, self._service_tick)
+        self.create_timer(self.log_interval_s, self._report)
+        self._closed = False
+        self.get_logger().info(
+            f"training {self.cfg.model} (seed {self.cfg.seed}) on {device} into {self.training.dir}; "
+            f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames"
+        )
+
+    # -- pairing ------------------------------------------------------------------------
+    def _on(self, stream: str, msg) -> None:
+        late_before = self.joiner.late
+        joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
+        if self.joiner.late > late_before:
+            self.counts["out_of_order"] += 1
+        if joined is not None:
+            self._on_record(joined)
+
+    def _on_record(self, rec: dict) -> None:
+        stamp = contract.stamp_ns(rec["frame"].header.stamp)
+        try:
+            frame = fit_to_network(contract.image_to_depth(rec["frame"]), *self.net_hw)
+        except ValueError as e:
+            self.counts["bad_frames"] += 1
+            self.get_logger().warning(f"malformed depth frame dropped: {e}", throttle_duration_sec=5.0)
+            self.prev = None
+            return
+        tw = rec["action"].twist
+        action = match_action(self.actions, tw.linear.x, tw.angular.z, self.step_ns / 1e9)
+        if action is None:
+            self.counts["unmatched_actions"] += 1
+        outcome = rec["outcome"]
+        prev = self.prev
+        if prev is not None and prev.action is not None and stamp - prev.stamp == self.step_ns:
+            collided = contract.outcome_collided(outcome)
+            beta = 0.0 if collided else min(max(float(outcome.range), 0.0), float(outcome.max_range))
+            self.training.add_step(prev.action, beta, collided, frame)
+        else:
+            if prev is not None:
+                self.counts["chain_breaks"] += 1
+            self.training.add_first(frame)
+        self.prev = Record(stamp, action)
+
+    # -- learning -----------------------------------------------------------------------
+    def _learn_loop(self) -> None:
+        while not self._stop.is_set():
+            if self.training.failed or self.training.budget_done:
+                return
+            if not self.training.learn_once():
+                time.sleep(0.002)
+
+    # -- services: pushes and epsilon -----------------------------------------------------
+    def _service_tick(self) -> None:
+        if self.training.failed and self.exit_code == 0:
+            self.get_logger().error(self.training.failed)
+            self.exit_code = 3
+            self._shutdown()
+            return
+        if self.training.budget_done and not self._closed:
+            self.get_logger().info(f"step budget of {self.cfg.total_steps} reached")
+            self._shutdown()
+            return
+        if self.push_in_flight is None and self.push_client.service_is_ready():
+            blob = self.training.take_push()
+            if blob is not None:
+                t0 = time.perf_counter()
+                fut = self.push_client.call_async(push_request(blob))
+                fut.add_done_callback(lambda f, t0=t0: self._push_done(f, t0))
+                self.push_in_flight = fut
+        eps = round(self.training.epsilon(), 3)
+        if self.eps_in_flight is None and eps != self.eps_sent and self.param_client.service_is_ready():
+            p = Parameter(name="epsilon", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=eps))
+            fut = self.param_client.call_async(SetParameters.Request(parameters=[p]))
+            fut.add_done_callback(lambda f, e=eps: self._eps_done(f, e))
+            self.eps_in_flight = fut
+
+    def _push_done(self, fut, t0: float) -> None:
+        self.push_in_flight = None
+        res = fut.result().results[0] if fut.result() else None
+        if res is not None and res.successful:
+            self.counts["pushes_ok"] += 1
+            self.push_latency_ms.append(1e3 * (time.perf_counter() - t0))
+        else:
+            self.counts["pushes_rejected"] += 1
+            self.get_logger().error(f"policy rejected pushed weights: {res.reason if res else 'no answer'}")
+
+    def _eps_done(self, fut, eps: float) -> None:
+        self.eps_in_flight = None
+        res = fut.result()
+        if res is not None and res.results and res.results[0].successful:
+            self.eps_sent = eps
+
+    # -- reporting ----------------------------------------------------------------------
+    def _status(self) -> dict:
+        t = self.training
+        j = self.joiner
+        lat = sorted(self.push_latency_ms[-100:])
+        return {
+            "env_steps": t.env_steps,
+            "updates": t.learner.updates,
+            "episodes": t.stats.episodes,
+            "epsilon": f"{t.epsilon():.3f}",
+            "loss": f"{t.last_loss:.4f}",
+            "replay_transitions": len(t.replay),
+            "frames_without_action": j.dropped["action"],
+            "frames_without_outcome": j.dropped["outcome"],
+            "outcomes_or_actions_without_frame": j.dropped["frame"],
+            "duplicates": j.duplicates,
+            "push_latency_p50_ms": f"{lat[len(lat) // 2]:.1f}" if lat else "nan",
+            "total_steps": self.cfg.total_steps,
+            **self.counts,
+        }
+
+    def _report(self) -> None:
+        row = self.training.metrics_row()
+        st = self._status()
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        level = DiagnosticStatus.ERROR if self.training.failed else DiagnosticStatus.OK
+        text = self.training.failed or "training"
+        status = DiagnosticStatus(level=level, name="uav_trainer", message=text, hardware_id=self.get_fully_qualified_name())
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in st.items()]
+        msg.status = [status]
+        self.pub_diag.publish(msg)
+        pct = f" ({100.0 * row['env_steps'] / self.cfg.total_steps:.1f}%)" if self.cfg.total_steps else ""
+        unpaired = st["frames_without_action"] + st["frames_without_outcome"] + st["outcomes_or_actions_without_frame"]
+        self.get_logger().info(
+            f"steps {row['env_steps']}{pct} updates {row['updates']} episodes {row['episodes']} "
+            f"mean len {row['mean_episode_length']:.1f} mean ep reward {row['mean_episode_reward']:.1f} "
+            f"eps {row['epsilon']:.3f} loss {row['loss']:.4f} | {row['env_steps_per_s']:.0f} steps/s "
+            f"{row['updates_per_s']:.1f} updates/s | unpaired {unpaired} breaks {st['chain_breaks']} "
+            f"out-of-order {st['out_of_order']}"
+        )
+
+    def _shutdown(self) -> None:
+        rclpy.try_shutdown(context=self.context)
+
+    def close(self) -> None:
+        """Stop learning and write the final checkpoint and weights (also on Ctrl-C)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._learner_thread.join(timeout=30)
+        path = self.training.save_checkpoint()
+        if path is not None:
+            self.get_logger().info(
+                f"final checkpoint {path}; policy weights {self.training.policy_weights_path} "
+                f"({self.training.env_steps} env steps, {self.training.learner.updates} updates)"
+            )
+        elif self.training.failed:
+            self.get_logger().error(self.training.failed)
+        self.training.close()
+
+
+def main(args=None) -> int:
+    return run(TrainerNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

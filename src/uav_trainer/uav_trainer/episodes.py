@@ -1,0 +1,39 @@
+"""Episode bookkeeping shared by the trainer node, the in-process trainer and evaluation."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+
+
+@dataclasses.dataclass
+class EpisodeStats:
+    """Running episode length/reward; `window` recent episodes for the paper's training curves."""
+
+    window: int = 20
+    episodes: int = 0
+    length: int = 0
+    reward: float = 0.0
+    history: list = dataclasses.field(default_factory=list)  # (env_step, length, reward)
+
+    def __post_init__(self):
+        self._recent = deque(maxlen=self.window)
+
+    def step(self, reward: float, collided: bool, env_step: int) -> tuple[int, float] | None:
+        """Account one transition; returns (length, reward) when it ended an episode."""
+        self.length += 1
+        self.reward += reward
+        if not collided:
+            return None
+        done = (self.length, self.reward)
+        self.history.append((env_step, *done))
+        self._recent.append(done)
+        self.episodes += 1
+        self.length, self.reward = 0, 0.0
+        return done
+
+    def mean_length(self) -> float:
+        return sum(x[0] for x in self._recent) / len(self._recent) if self._recent else float("nan")
+
+    def mean_reward(self) -> float:
+        return sum(x[1] for x in self._recent) / len(self._recent) if self._recent else float("nan")

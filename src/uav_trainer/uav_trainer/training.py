@@ -1,0 +1,293 @@
+"""The training core shared by the ROS trainer node and the in-process loop (no ROS here).
+
+It owns the replay memory, the learner, the episode statistics and the run directory:
+metrics.csv, episodes.csv, TensorBoard events (tb/), curves.png, checkpoints/ and the latest
+policy weights (policy_<model>.safetensors, loadable by policy_node's `weights`).
+Thread-safe: one thread adds transitions while another calls `learn_once`.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uav_policy import weights as wio
+from uav_policy.networks import NetConfig
+from uav_sim.reward import step_reward
+
+from . import checkpoint
+from .episodes import EpisodeStats
+from .learner import Learner, LearnerConfig, NonFiniteLoss, linear_epsilon
+from .replay import ReplayMemory
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainerConfig:
+    model: str = "sam"  # sam | cnn
+    seed: int = 0
+    device: str = "cpu"
+    replay_capacity: int = 50000  # frames kept (each once)
+    learning_starts: int = 1000  # transitions collected before the first update
+    replay_ratio: float = 0.25  # at most this many updates per environment step
+    push_interval_updates: int = 50  # weights go to the policy every N updates
+    checkpoint_interval_updates: int = 1000
+    epsilon_start: float = 1.0
+    epsilon_end: float = 0.05
+    epsilon_decay_steps: int = 10000  # environment steps of linear decay
+    total_steps: int = 0  # environment steps budget; 0 = unlimited
+    learner: LearnerConfig = LearnerConfig()
+
+
+class Training:
+    def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
+        self.cfg = cfg
+        self.log = log
+        self.dir = Path(run_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.net_cfg = NetConfig(model=cfg.model)
+        torch.manual_seed(cfg.seed)
+        self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), cfg.device)
+        self.replay = ReplayMemory(
+            cfg.replay_capacity, (self.net_cfg.height, self.net_cfg.width), self.net_cfg.frames, seed=cfg.seed
+        )
+        self.stats = EpisodeStats()
+        self.lock = threading.Lock()
+        self.env_steps = 0
+        self.collisions = 0
+        self.reward_sum = 0.0
+        self.last_loss = float("nan")
+        self.last_q = float("nan")
+        self.failed: str | None = None
+        self._pending_push: bytes | None = None
+        self.t_start = time.monotonic()
+        self.resumed_from = None
+        if resume:
+            self._resume()
+        # A resumed run refills its (unsaved) replay memory before learning continues.
+        self._updates_at_start, self._steps_at_start = self.learner.updates, self.env_steps
+        self._pending_push = self.weights_blob()  # the policy acts with the learner's weights from the start
+        self._open_logs()
+
+    # -- run directory ------------------------------------------------------------------
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.dir / "checkpoints"
+
+    @property
+    def policy_weights_path(self) -> Path:
+        return self.dir / f"policy_{self.cfg.model}.safetensors"
+
+    def _open_logs(self) -> None:
+        new = not (self.dir / "metrics.csv").exists()
+        self._metrics = open(self.dir / "metrics.csv", "a", newline="")
+        self._metrics_csv = csv.writer(self._metrics)
+        if new:
+            self._metrics_csv.writerow(
+                [
+                    "wall_s",
+                    "env_steps",
+                    "updates",
+                    "episodes",
+                    "mean_episode_length",
+                    "mean_episode_reward",
+                    "loss",
+                    "q_mean",
+                    "epsilon",
+                    "env_steps_per_s",
+                    "updates_per_s",
+                ]
+            )
+        new = not (self.dir / "episodes.csv").exists()
+        self._episodes = open(self.dir / "episodes.csv", "a", newline="")
+        self._episodes_csv = csv.writer(self._episodes)
+        if new:
+            self._episodes_csv.writerow(["episode", "env_step", "length", "reward"])
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(self.dir / "tb"))
+        except Exception as e:  # tensorboard is optional at run time
+            self.log(f"TensorBoard disabled: {e}")
+            self.tb = None
+        self._rate_mark = (time.monotonic(), self.env_steps, self.learner.updates)
+
+    def _resume(self) -> None:
+        path = checkpoint.latest(self.checkpoint_dir)
+        if path is None:
+            return
+        meta = checkpoint.load(path, self.learner)
+        c = meta["counters"]
+        self.env_steps = int(c.get("env_steps", 0))
+        self.stats.episodes = int(c.get("episodes", 0))
+        self.collisions = int(c.get("collisions", 0))
+        if "replay" in meta.get("rng", {}):
+            checkpoint.set_rng_state(self.replay.rng, meta["rng"]["replay"])
+        self.resumed_from = path
+        self.log(
+            f"resumed from {path}: {self.learner.updates} updates, {self.env_steps} env steps "
+            "(the replay memory refills before learning continues)"
+        )
+
+    # -- acting side --------------------------------------------------------------------
+    def epsilon(self) -> float:
+        c = self.cfg
+        return linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps)
+
+    def add_first(self, frame: np.ndarray) -> None:
+        with self.lock:
+            self.replay.add_first(frame)
+
+    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
+        """One transition; the reward comes from the simulator package's reward function."""
+        reward = step_reward(beta_m, collided)
+        with self.lock:
+            self.replay.add_transition(action, reward, collided, next_frame)
+            self.env_steps += 1
+            self.reward_sum += reward
+            self.collisions += int(collided)
+            ended = self.stats.step(reward, collided, self.env_steps)
+        if ended:
+            self._episodes_csv.writerow([self.stats.episodes, self.env_steps, ended[0], f"{ended[1]:.3f}"])
+            self._episodes.flush()
+            if self.tb:
+                self.tb.add_scalar("episode/length", ended[0], self.env_steps)
+                self.tb.add_scalar("episode/reward", ended[1], self.env_steps)
+        return reward
+
+    @property
+    def budget_done(self) -> bool:
+        return self.cfg.total_steps > 0 and self.env_steps >= self.cfg.total_steps
+
+    # -- learning side ------------------------------------------------------------------
+    def can_learn(self) -> bool:
+        """Enough transitions since start-up, and updates below replay_ratio x env steps."""
+        if self.failed:
+            return False
+        with self.lock:
+            ready = len(self.replay) >= min(self.cfg.learning_starts, self.cfg.replay_capacity - 10)
+            fresh_steps = self.env_steps - self._steps_at_start - self.cfg.learning_starts
+        allowed = self._updates_at_start + fresh_steps * self.cfg.replay_ratio
+        return ready and self.learner.updates < allowed
+
+    def learn_once(self) -> bool:
+        """One update if allowed now; handles push and checkpoint cadence. False if nothing done."""
+        if not self.can_learn():
+            return False
+        with self.lock:
+            batch = self.replay.sample(self.cfg.learner.batch_size)
+        try:
+            out = self.learner.update(batch)
+        except NonFiniteLoss as e:
+            self.failed = (
+                f"learning stopped: {e}. The last good checkpoint is kept"
+                f" ({checkpoint.latest(self.checkpoint_dir) or 'none written yet'})."
+            )
+            self.log(self.failed)
+            return False
+        self.last_loss, self.last_q = out["loss"], out["q_mean"]
+        u = self.learner.updates
+        if self.tb and u % 10 == 0:
+            self.tb.add_scalar("train/loss", out["loss"], u)
+            self.tb.add_scalar("train/q_mean", out["q_mean"], u)
+        if u % self.cfg.push_interval_updates == 0:
+            self._pending_push = wio.to_bytes(self.learner.online, self.net_cfg)
+        if u % self.cfg.checkpoint_interval_updates == 0:
+            self.save_checkpoint()
+        return True
+
+    def take_push(self) -> bytes | None:
+        blob, self._pending_push = self._pending_push, None
+        return blob
+
+    def weights_blob(self) -> bytes:
+        return wio.to_bytes(self.learner.online, self.net_cfg)
+
+    # -- outputs ------------------------------------------------------------------------
+    def counters(self) -> dict:
+        return {
+            "env_steps": self.env_steps,
+            "episodes": self.stats.episodes,
+            "collisions": self.collisions,
+            "updates": self.learner.updates,
+        }
+
+    def save_checkpoint(self) -> Path | None:
+        if self.failed:
+            return None
+        with self.lock:
+            counters = self.counters()
+            rng = {"replay": checkpoint.rng_state(self.replay.rng)}
+        path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng)
+        wio.save_file(self.learner.online, self.net_cfg, self.policy_weights_path)
+        self.plot()
+        return path
+
+    def metrics_row(self) -> dict:
+        now = time.monotonic()
+        t, s, u = self._rate_mark
+        dt = max(now - t, 1e-9)
+        self._rate_mark = (now, self.env_steps, self.learner.updates)
+        row = {
+            "wall_s": round(now - self.t_start, 2),
+            "env_steps": self.env_steps,
+            "updates": self.learner.updates,
+            "episodes": self.stats.episodes,
+            "mean_episode_length": self.stats.mean_length(),
+            "mean_episode_reward": self.stats.mean_reward(),
+            "loss": self.last_loss,
+            "q_mean": self.last_q,
+            "epsilon": self.epsilon(),
+            "env_steps_per_s": (self.env_steps - s) / dt,
+            "updates_per_s": (self.learner.updates - u) / dt,
+        }
+        self._metrics_csv.writerow([f"{v:.4f}" if isinstance(v, float) else v for v in row.values()])
+        self._metrics.flush()
+        if self.tb:
+            for k in ("mean_episode_length", "mean_episode_reward", "epsilon", "env_steps_per_s", "updates_per_s"):
+                if not math.isnan(row[k]):
+                    self.tb.add_scalar(f"progress/{k}", row[k], self.env_steps)
+            self.tb.flush()
+        return row
+
+    def plot(self) -> Path | None:
+        """curves.png: mean episode length and reward against environment steps (paper Figs. 3-4)."""
+        hist = list(self.stats.history)
+        if len(hist) < 2:
+            return None
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        steps = np.array([h[0] for h in hist])
+        k = max(1, min(20, len(hist) // 5))
+        smooth = lambda x: np.convolve(x, np.ones(k) / k, mode="valid")  # noqa: E731
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+        for ax, col, label in ((axes[0], 1, "mean episode length (steps)"), (axes[1], 2, "mean episode reward")):
+            vals = np.array([h[col] for h in hist], dtype=float)
+            ax.plot(steps, vals, alpha=0.25, lw=0.8)
+            ax.plot(steps[k - 1 :], smooth(vals), lw=1.8)
+            ax.set_xlabel("environment steps")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        fig.suptitle(f"D3QN-{self.cfg.model.upper()} training, seed {self.cfg.seed} (moving mean of {k} episodes)")
+        fig.tight_layout()
+        out = self.dir / "curves.png"
+        tmp = self.dir / ".curves.png.tmp.png"
+        fig.savefig(tmp, dpi=100)
+        plt.close(fig)
+        tmp.replace(out)
+        return out
+
+    def close(self) -> None:
+        for f in (self._metrics, self._episodes):
+            f.close()
+        if self.tb:
+            self.tb.close()
