@@ -34,6 +34,9 @@ WEIGHTS_PARAMETER = "weights"
 
 # Lockstep needs every message: reliable, with room for bursts.
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
+# For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
+# history holds the backlog (64x64 frames: ~16 KiB each).
+DEEP_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=5000)
 # Latched-style: late joiners get the last value.
 LATCHED_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,

@@ -69,6 +69,13 @@ class SimNode(Node):
             0.05,
             60.0,
         )
+        self.max_rate_hz = d(
+            "max_rate_hz",
+            0.0,
+            "lockstep: at most this many steps per wall-clock second (0 = as fast as commands come)",
+            0.0,
+            100000.0,
+        )
         self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
         self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
         self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
@@ -98,6 +105,7 @@ class SimNode(Node):
         self.last_cmd_wall = -math.inf
         self.watchdog_active = False
         self.last_publish_wall = time.monotonic()
+        self.next_step_wall = time.monotonic()
         self.steps_at_diag = 0
         self.diag_wall = time.monotonic()
         self.current: StepResult = self.sim.observe()
@@ -124,6 +132,12 @@ class SimNode(Node):
             return
         self.last_cmd_wall = time.monotonic()
         if self.mode == "lockstep":
+            if self.max_rate_hz > 0:
+                # Rate cap: lets a learner on a small machine keep its replay ratio.
+                wait = self.next_step_wall - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                self.next_step_wall = max(self.next_step_wall, time.monotonic() - 1.0) + 1.0 / self.max_rate_hz
             self.advance(cmd)
         else:
             self.cmd = cmd

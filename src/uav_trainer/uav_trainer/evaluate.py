@@ -149,6 +149,41 @@ def evaluate_once(
     return EvalResult(model, world, weights, mon.steps, mon.crashes, mon.reward / max(mon.steps, 1), mon.distance)
 
 
+def evaluate_inprocess(model: str, weights: str, world: str, steps: int, seed: int = 0, net=None) -> EvalResult:
+    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks."""
+    from uav_policy import weights as wio
+    from uav_policy.actions import PAPER_ACTIONS
+    from uav_policy.agent import Agent
+    from uav_policy.frame_stack import FrameStack
+    from uav_policy.networks import NetConfig
+    from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.vehicle import BodyTwist
+    from uav_sim.world import load_world
+
+    cfg = NetConfig(model=model)
+    agent = Agent(net if net is not None else wio.load_file(weights, cfg), cfg, seed=seed)
+    sim = Simulator(load_world(world), SimConfig(seed=seed))
+    stack = FrameStack(cfg.frames)
+    r = sim.observe()
+    state = stack.reset(r.depth_m)
+    crashes, reward, dist, last = 0, 0.0, 0.0, (r.pose.x_m, r.pose.y_m)
+    try:
+        for _ in range(steps):
+            a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
+            r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(sim.config.step_duration_s)))
+            reward += r.reward
+            if r.collided:
+                crashes += 1
+                state = stack.reset(r.depth_m)
+            else:
+                dist += math.hypot(r.pose.x_m - last[0], r.pose.y_m - last[1])
+                state = stack.push(r.depth_m)
+            last = (r.pose.x_m, r.pose.y_m)
+    finally:
+        sim.close()
+    return EvalResult(model, world, weights, steps, crashes, reward / steps, dist)
+
+
 def mean_ci95(values) -> tuple[float, float]:
     """Mean and half-width of a 95% t confidence interval (nan for n < 2)."""
     v = np.asarray(values, dtype=float)

@@ -25,6 +25,12 @@ def main(argv=None) -> int:
     ap.add_argument("--world", default="basic", help="training world (default: basic)")
     ap.add_argument("--steps", type=int, default=20000, help="environment steps budget (default: 20000)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--max-rate-hz",
+        type=float,
+        default=60.0,
+        help="lockstep step-rate cap so the learner keeps its replay ratio on 2 CPU cores; 0 = uncapped (default: 60)",
+    )
     ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
     ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml")
     ap.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in the run directory")
@@ -45,7 +51,7 @@ def main(argv=None) -> int:
     procs = Processes(log_dir=logs)
     p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     # Training starts from a random heading each episode so that episodes differ.
-    sim_extra = ["start_yaw_jitter_deg:=180.0", *a.sim_arg]
+    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", *a.sim_arg]
     procs.start(
         "sim", "uav_sim", "sim_node", params_args(params, "sim") + p("", [f"world:={a.world}", f"seed:={a.seed}", *sim_extra])
     )

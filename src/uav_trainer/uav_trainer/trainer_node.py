@@ -9,7 +9,6 @@ to the policy over policy_node/push_weights, epsilon through policy_node's param
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time
 
@@ -22,21 +21,15 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import Image, Range
 
-from uav_policy.actions import PAPER_ACTIONS, make_actions, match_action
-from uav_policy.frame_stack import fit_to_network
+from uav_policy.actions import PAPER_ACTIONS, make_actions
 from uav_policy.push import push_request
 from uav_sim import contract
 from uav_sim.node_runner import run
 from uav_sim.ros_params import ParameterError, declare
 
 from .learner import LearnerConfig
+from .pairing import TransitionAssembler
 from .training import TrainerConfig, Training
-
-
-@dataclasses.dataclass
-class Record:
-    stamp: int
-    action: int | None
 
 
 class TrainerNode(Node):
@@ -99,25 +92,17 @@ class TrainerNode(Node):
             raise ParameterError(f"parameters 'action_*': the networks have 4 outputs, got {len(self.actions)} actions")
         torch.set_num_threads(threads)
         self.training = Training(self.cfg, run_dir, log=self.get_logger().info, resume=resume)
-        self.net_hw = (self.training.net_cfg.height, self.training.net_cfg.width)
 
-        q = contract.STREAM_QOS
-        self.joiner = contract.StampJoiner(("frame", "outcome", "action"), max_pending=500)
-        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), q)
-        self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), q)
-        self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self._on("action", m), q)
+        q = contract.DEEP_QOS
+        hw = (self.training.net_cfg.height, self.training.net_cfg.width)
+        self.pairing = TransitionAssembler(self.training, self.actions, self.step_ns, hw)
+        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self.pairing.add("frame", m), q)
+        self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self.pairing.add("outcome", m), q)
+        self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self.pairing.add("action", m), q)
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
         self.param_client = self.create_client(SetParameters, f"{policy}/set_parameters")
-        self.prev: Record | None = None
-        self.counts = {
-            "chain_breaks": 0,
-            "unmatched_actions": 0,
-            "bad_frames": 0,
-            "out_of_order": 0,
-            "pushes_ok": 0,
-            "pushes_rejected": 0,
-        }
+        self.counts = {"pushes_ok": 0, "pushes_rejected": 0}
         self.push_in_flight = None
         self.push_latency_ms: list[float] = []
         self.eps_in_flight = None
@@ -133,40 +118,6 @@ class TrainerNode(Node):
             f"training {self.cfg.model} (seed {self.cfg.seed}) on {device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames"
         )
-
-    # -- pairing ------------------------------------------------------------------------
-    def _on(self, stream: str, msg) -> None:
-        late_before = self.joiner.late
-        joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
-        if self.joiner.late > late_before:
-            self.counts["out_of_order"] += 1
-        if joined is not None:
-            self._on_record(joined)
-
-    def _on_record(self, rec: dict) -> None:
-        stamp = contract.stamp_ns(rec["frame"].header.stamp)
-        try:
-            frame = fit_to_network(contract.image_to_depth(rec["frame"]), *self.net_hw)
-        except ValueError as e:
-            self.counts["bad_frames"] += 1
-            self.get_logger().warning(f"malformed depth frame dropped: {e}", throttle_duration_sec=5.0)
-            self.prev = None
-            return
-        tw = rec["action"].twist
-        action = match_action(self.actions, tw.linear.x, tw.angular.z, self.step_ns / 1e9)
-        if action is None:
-            self.counts["unmatched_actions"] += 1
-        outcome = rec["outcome"]
-        prev = self.prev
-        if prev is not None and prev.action is not None and stamp - prev.stamp == self.step_ns:
-            collided = contract.outcome_collided(outcome)
-            beta = 0.0 if collided else min(max(float(outcome.range), 0.0), float(outcome.max_range))
-            self.training.add_step(prev.action, beta, collided, frame)
-        else:
-            if prev is not None:
-                self.counts["chain_breaks"] += 1
-            self.training.add_first(frame)
-        self.prev = Record(stamp, action)
 
     # -- learning -----------------------------------------------------------------------
     def _learn_loop(self) -> None:
@@ -220,7 +171,6 @@ class TrainerNode(Node):
     # -- reporting ----------------------------------------------------------------------
     def _status(self) -> dict:
         t = self.training
-        j = self.joiner
         lat = sorted(self.push_latency_ms[-100:])
         return {
             "env_steps": t.env_steps,
@@ -229,12 +179,9 @@ class TrainerNode(Node):
             "epsilon": f"{t.epsilon():.3f}",
             "loss": f"{t.last_loss:.4f}",
             "replay_transitions": len(t.replay),
-            "frames_without_action": j.dropped["action"],
-            "frames_without_outcome": j.dropped["outcome"],
-            "outcomes_or_actions_without_frame": j.dropped["frame"],
-            "duplicates": j.duplicates,
             "push_latency_p50_ms": f"{lat[len(lat) // 2]:.1f}" if lat else "nan",
             "total_steps": self.cfg.total_steps,
+            **self.pairing.report(),
             **self.counts,
         }
 
@@ -255,7 +202,8 @@ class TrainerNode(Node):
             f"steps {row['env_steps']}{pct} updates {row['updates']} episodes {row['episodes']} "
             f"mean len {row['mean_episode_length']:.1f} mean ep reward {row['mean_episode_reward']:.1f} "
             f"eps {row['epsilon']:.3f} loss {row['loss']:.4f} | {row['env_steps_per_s']:.0f} steps/s "
-            f"{row['updates_per_s']:.1f} updates/s | unpaired {unpaired} breaks {st['chain_breaks']} "
+            f"{row['updates_per_s']:.1f} updates/s (ratio {row['updates_per_s'] / max(row['env_steps_per_s'], 1e-9):.2f})"
+            f" | unpaired {unpaired} breaks {st['chain_breaks']} "
             f"out-of-order {st['out_of_order']}"
         )
 

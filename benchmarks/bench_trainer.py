@@ -1,0 +1,109 @@
+"""Trainer figures: environment steps/s and learner updates/s while training over ROS (capped and
+uncapped lockstep), and wall-clock on this machine from scratch until the SAM policy flies 1000
+exploit steps in Basic with 0 crashes (in-process trainer, evaluated every --eval-every steps;
+evaluation time is included in the wall-clock).
+
+Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_trainer.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from uav_trainer.evaluate import evaluate_inprocess
+from uav_trainer.inprocess import run as run_inprocess
+from uav_trainer.training import TrainerConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def ros_throughput(steps: int, max_rate_hz: float, domain: int) -> tuple[float, float]:
+    with tempfile.TemporaryDirectory() as d:
+        cmd = [
+            str(ROOT / "install/uav_trainer/lib/uav_trainer/train"),
+            "--steps",
+            str(steps),
+            "--run-dir",
+            d,
+            "--max-rate-hz",
+            str(max_rate_hz),
+            "--params-dir",
+            str(ROOT / "params"),
+            "--trainer-arg",
+            "learning_starts:=500",
+            "--trainer-arg",
+            "log_interval_s:=2.0",
+        ]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        rows = list(csv.DictReader(open(Path(d) / "metrics.csv")))
+    learning = [r for r in rows if int(r["updates"]) > 0][1:]  # steady state, after learning_starts
+    env_rate = sum(float(r["env_steps_per_s"]) for r in learning) / max(len(learning), 1)
+    upd_rate = sum(float(r["updates_per_s"]) for r in learning) / max(len(learning), 1)
+    return env_rate, upd_rate
+
+
+def time_to_zero_crashes(seed: int, eval_every: int, max_steps: int) -> tuple[float | None, int, list]:
+    torch.set_num_threads(2)
+    t0 = time.perf_counter()
+    history = []
+    found = {}
+
+    def on_step(training):
+        if training.env_steps % eval_every:
+            return False
+        r = evaluate_inprocess("sam", "", "basic", 1000, net=training.learner.online)
+        history.append((training.env_steps, r.crashes, round(r.mean_reward, 3), round(time.perf_counter() - t0, 1)))
+        print(
+            f"  after {training.env_steps} steps ({time.perf_counter() - t0:.0f} s): {r.crashes} crashes in 1000 "
+            f"exploit steps, mean reward {r.mean_reward:.3f}",
+            flush=True,
+        )
+        if r.crashes == 0:
+            found["t"] = time.perf_counter() - t0
+            return True
+        return False
+
+    cfg = TrainerConfig(model="sam", seed=seed, total_steps=max_steps)
+    with tempfile.TemporaryDirectory() as d:
+        t = run_inprocess(cfg, d, log=lambda s: None, on_step=on_step)
+    return found.get("t"), t.env_steps, history
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--ros-steps", type=int, default=3000)
+    ap.add_argument("--eval-every", type=int, default=2500)
+    ap.add_argument("--max-steps", type=int, default=60000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--skip-ros", action="store_true")
+    a = ap.parse_args()
+    if not a.skip_ros:
+        for cap in (0.0, 60.0):
+            env_rate, upd_rate = ros_throughput(a.ros_steps, cap, 70 + os.getpid() % 10)
+            label = "uncapped" if cap == 0 else f"capped at {cap:.0f} Hz"
+            print(
+                f"ROS training, lockstep {label}: {env_rate:.1f} env steps/s, {upd_rate:.1f} updates/s, "
+                f"replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"
+            )
+    print(f"in-process SAM training (seed {a.seed}), exploit evaluation every {a.eval_every} steps:")
+    t, steps, _ = time_to_zero_crashes(a.seed, a.eval_every, a.max_steps)
+    if t is None:
+        print(f"no 0-crash 1000-step evaluation within {steps} steps")
+    else:
+        print(
+            f"wall-clock from scratch to 0 crashes in 1000 Basic exploit steps: {t:.0f} s ({t / 60:.1f} min), {steps} env steps"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

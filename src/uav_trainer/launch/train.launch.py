@@ -1,0 +1,30 @@
+"""Minimal launch file for users with a full ROS 2 install: the same three nodes and parameter files
+as `ros2 run uav_trainer train` (which is what this repository tests; `launch` is not on PyPI).
+
+    ros2 launch uav_trainer train.launch.py params_dir:=$PWD/params
+"""
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    params = LaunchConfiguration("params_dir")
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("params_dir", default_value="params"),
+            Node(
+                package="uav_sim",
+                executable="sim_node",
+                parameters=[PathJoinSubstitution([params, "sim.yaml"]), {"start_yaw_jitter_deg": 180.0, "max_rate_hz": 60.0}],
+            ),
+            Node(
+                package="uav_policy",
+                executable="policy_node",
+                parameters=[PathJoinSubstitution([params, "policy.yaml"]), {"epsilon": 1.0}],
+            ),
+            Node(package="uav_trainer", executable="trainer_node", parameters=[PathJoinSubstitution([params, "trainer.yaml"])]),
+        ]
+    )

@@ -1,0 +1,125 @@
+"""Integration: the installed sim_node, policy_node and trainer_node (and the train launcher) over ROS."""
+
+import os
+import subprocess
+
+from diagnostic_msgs.msg import DiagnosticArray
+
+from conftest import ROOT, executable, run_to_exit
+from uav_policy import weights as wio
+from uav_policy.networks import NetConfig, build_network
+from uav_trainer.evaluate import evaluate_once
+
+SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
+
+
+def diagnostics(ros):
+    latest = {}
+
+    def on(msg):
+        for st in msg.status:
+            latest[st.name] = {kv.key: kv.value for kv in st.values}
+
+    ros.node.create_subscription(DiagnosticArray, "/diagnostics", on, 50)
+    return latest
+
+
+def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
+    diag = diagnostics(ros)
+    run_dir = tmp_path / "run"
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0")
+    policy = ros.start("uav_policy", "policy_node")
+    trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
+    trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
+    ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 3000, 120)
+    assert ok, ros.log_of(trainer)[-2000:]
+    ros.stop(policy)  # the lockstep loop halts; let the trainer drain what is in flight
+    ros.spin_for(2.0)
+    sim_steps = int(diag["uav_sim"]["steps"])
+    t = diag["uav_trainer"]
+    # Every step became a transition except the newest, whose next frame was never answered.
+    assert int(t["env_steps"]) == sim_steps - 1, (t, sim_steps)
+    for key in (
+        "frames_without_action",
+        "frames_without_outcome",
+        "outcomes_or_actions_without_frame",
+        "chain_breaks",
+        "unmatched_actions",
+        "bad_frames",
+        "out_of_order",
+        "duplicates",
+    ):
+        assert t[key] == "0", f"{key}={t[key]}"
+    assert int(diag["uav_sim"]["collisions"]) > 50 and int(t["episodes"]) == int(diag["uav_sim"]["collisions"])
+    assert ros.stop(trainer) == 0
+    assert "final checkpoint" in ros.log_of(trainer)
+    assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
+    again = ros.start("uav_trainer", "trainer_node", *trainer_args, name="trainer2")
+    assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 30), ros.log_of(again)
+    assert f"{sim_steps - 1} env steps" in ros.log_of(again)
+
+
+def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
+    """The main job on a small world: the trained greedy policy must beat epsilon = 1 clearly."""
+    run_dir = tmp_path / "run"
+    cmd = [
+        str(executable("uav_trainer", "train")),
+        "--model",
+        "sam",
+        "--steps",
+        "4000",
+        "--world",
+        SMALL_WORLD,
+        "--run-dir",
+        str(run_dir),
+        "--params-dir",
+        str(ROOT / "params"),
+        "--trainer-arg",
+        "learning_starts:=500",
+        "--trainer-arg",
+        "epsilon_decay_steps:=2500",
+    ]
+    env_domain = "73"
+    env = dict(os.environ, ROS_DOMAIN_ID=env_domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
+    trainer_log = (run_dir / "logs" / "trainer.log").read_text()
+    assert r.returncode == 0, r.stderr[-2000:] + trainer_log[-2000:]
+    weights = run_dir / "policy_sam.safetensors"
+    assert weights.is_file() and (run_dir / "curves.png").is_file()
+    untrained = tmp_path / "untrained.safetensors"
+    wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), untrained)
+    os.environ["ROS_DOMAIN_ID"] = env_domain
+    trained = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=0.0)
+    baseline = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=1.0)
+    before = evaluate_once("sam", str(untrained), SMALL_WORLD, 500, epsilon=0.0)
+    print(f"trained greedy: {trained}\nepsilon=1 baseline: {baseline}\nuntrained greedy: {before}")
+    assert trained.steps == baseline.steps == 500
+    assert trained.mean_reward > baseline.mean_reward + 0.5, (trained, baseline)
+    assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
+
+
+def test_trainer_rejects_bad_parameters():
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "replay_ratio:=-1.0")
+    assert r.returncode == 2 and "replay_ratio" in r.stderr
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "model:=rnn")
+    assert r.returncode == 2 and "parameter 'model'" in r.stderr
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "action_linear_x_mps:=[1.0, 2.0]")
+    assert r.returncode == 2 and "action" in r.stderr
+
+
+def test_launcher_rejects_a_bad_budget():
+    r = subprocess.run([str(executable("uav_trainer", "train")), "--steps", "0"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--steps must be positive" in r.stderr
+
+
+def test_ros_evaluation_equals_the_in_process_measurement(tmp_path):
+    """Same simulator, stack and network: flying through the ROS nodes changes nothing."""
+    from uav_trainer.evaluate import evaluate_inprocess
+
+    w = tmp_path / "w.safetensors"
+    wio.save_file(build_network(NetConfig(), seed=4), NetConfig(), w)
+    os.environ["ROS_DOMAIN_ID"] = "74"
+    over_ros = evaluate_once("sam", str(w), "basic", 150)
+    local = evaluate_inprocess("sam", str(w), "basic", 150)
+    assert (over_ros.crashes, over_ros.steps) == (local.crashes, local.steps)
+    assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6
