@@ -22,6 +22,7 @@ setup(
     entry_points={
         "console_scripts": [
             "policy_node = uav_policy.policy_node:main",
+            "attention_figures = uav_policy.figures:main",
         ],
     },
 )

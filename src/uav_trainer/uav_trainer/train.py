@@ -23,7 +23,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
     ap.add_argument("--world", default="basic", help="training world (default: basic)")
-    ap.add_argument("--steps", type=int, default=20000, help="environment steps budget (default: 20000)")
+    ap.add_argument("--steps", type=int, default=30000, help="environment steps budget (default: 30000)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--max-rate-hz",

@@ -1,0 +1,128 @@
+"""attention_figures: pictures of what the agent attends to, made with the node's own overlay code.
+
+    ros2 run uav_policy attention_figures --model sam --weights W --worlds basic turbulent --out docs/figures
+
+Writes attention_<world>.png (depth frames and their attention overlays at representative
+steps, like the paper's attention figure) and flight_<world>.gif (an exploit-only flight).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from .actions import PAPER_ACTIONS
+from .agent import Agent
+from .attention import attention_map, colourise_depth, overlay
+from .frame_stack import FrameStack
+from .networks import NetConfig, build_network
+
+
+def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
+    """Frames of an exploit-only flight: (depth, attention map or None, action index, collided)."""
+    from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.vehicle import BodyTwist
+    from uav_sim.world import load_world
+
+    from . import weights as wio
+
+    cfg = NetConfig(model=model)
+    net = wio.load_file(weights, cfg) if weights else build_network(cfg, seed=seed)
+    agent = Agent(net, cfg, seed=seed)
+    sim = Simulator(load_world(world), SimConfig(seed=seed))
+    stack = FrameStack(cfg.frames)
+    r = sim.observe()
+    state = stack.reset(r.depth_m)
+    out = []
+    try:
+        for _ in range(steps):
+            action, q, w, _ = agent.act(state, 0.0)
+            amap = attention_map(w, net.grid_hw, r.depth_m.shape) if w is not None else None
+            out.append((r.depth_m, amap, action, r.collided))
+            a = PAPER_ACTIONS[action]
+            r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(sim.config.step_duration_s)))
+            state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
+    finally:
+        sim.close()
+    return out
+
+
+def representative(frames, k: int) -> list[int]:
+    """k steps spread over the flight, preferring frames with something near in view."""
+    nearest = np.array([np.nanmin(np.where(np.isfinite(f[0]), f[0], 10.0)) for f in frames])
+    chunks = np.array_split(np.arange(len(frames)), k)
+    return [int(c[np.argmin(nearest[c])]) for c in chunks if len(c)]
+
+
+def grid_png(frames, picks, path: Path, title: str, max_range_m: float = 10.0) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(picks), figsize=(2.2 * len(picks), 4.8), squeeze=False)
+    for col, i in enumerate(picks):
+        depth, amap, action, _ = frames[i]
+        axes[0, col].imshow(colourise_depth(depth, max_range_m))
+        axes[0, col].set_title(f"step {i}\n{PAPER_ACTIONS[action].name.split('_', 1)[0]}", fontsize=8)
+        axes[1, col].imshow(overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m))
+        for ax in axes[:, col]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    axes[0, 0].set_ylabel("depth (near = bright)", fontsize=8)
+    axes[1, 0].set_ylabel("attention (green)", fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def flight_gif(frames, path: Path, scale: int = 4, max_range_m: float = 10.0, every: int = 1) -> None:
+    from PIL import Image, ImageDraw
+
+    images = []
+    for i, (depth, amap, action, collided) in enumerate(frames[::every]):
+        rgb = overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m)
+        im = Image.fromarray(rgb).resize((rgb.shape[1] * scale, rgb.shape[0] * scale), Image.NEAREST)
+        draw = ImageDraw.Draw(im)
+        draw.text((4, 4), f"step {i * every} {PAPER_ACTIONS[action].name.split('_', 1)[0]}", fill=(255, 255, 0))
+        if collided:
+            draw.text((4, 16), "collision: back at start", fill=(255, 60, 60))
+        images.append(im)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=120, loop=0, optimize=True)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="attention_figures", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
+    ap.add_argument("--weights", default="", help="safetensors weights (default: packaged, else random init)")
+    ap.add_argument("--worlds", nargs="+", default=["basic", "turbulent"])
+    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--panels", type=int, default=6)
+    ap.add_argument("--out", default="docs/figures")
+    a = ap.parse_args(argv)
+    weights = a.weights
+    if not weights:
+        from .weights import packaged_weights
+
+        p = packaged_weights(a.model)
+        weights = str(p) if p else ""
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for world in a.worlds:
+        frames = fly(a.model, weights, world, a.steps)
+        picks = representative(frames, a.panels)
+        png = out / f"attention_{world}.png"
+        grid_png(frames, picks, png, f"D3QN-{a.model.upper()} in {world}: depth (top) and attention (bottom)")
+        gif = out / f"flight_{world}.gif"
+        flight_gif(frames, gif)
+        print(f"written: {png} {gif}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
