@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import torch
-from common import Nodes, sim_steps_reader
+from common import private_nodes, sim_steps_reader
 
 from uav_policy import weights as wio
 from uav_policy.actions import PAPER_ACTIONS
@@ -61,13 +61,13 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
     from uav_policy.push import push_request
     from uav_sim import contract
 
-    nodes = Nodes(domain)
+    nodes = private_nodes(domain)
     rclpy.init(domain_id=domain)
     node = rclpy.create_node("bench_policy")
     try:
         read = sim_steps_reader(node)
-        nodes.start("uav_sim", "sim_node")
-        nodes.start("uav_policy", "policy_node", "-p", f"model:={model}")
+        nodes.start("sim", "uav_sim", "sim_node", [])
+        nodes.start("policy", "uav_policy", "policy_node", ["-p", f"model:={model}"])
         end = time.perf_counter() + 60
         while read()[1] is None or read()[1] < 50:
             rclpy.spin_once(node, timeout_sec=0.1)

@@ -1,42 +1,20 @@
-"""Helpers for benchmarks: start installed nodes in a private domain, read sim_node's diagnostics."""
+"""Helpers for benchmarks: installed nodes in a private ROS domain, and sim_node's step counter."""
 
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
 import time
 from pathlib import Path
+
+from uav_trainer.launching import Processes
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-class Nodes:
-    """Installed executables as processes in one private ROS domain, stopped with SIGINT."""
-
-    def __init__(self, domain: int):
-        self.domain = domain
-        self.env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        self.procs = []
-
-    def start(self, pkg: str, exe: str, *ros_args: str, log: Path | None = None) -> subprocess.Popen:
-        out = log.open("w") if log else subprocess.DEVNULL
-        cmd = [str(ROOT / "install" / pkg / "lib" / pkg / exe)] + (["--ros-args", *ros_args] if ros_args else [])
-        p = subprocess.Popen(cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-        self.procs.append(p)
-        return p
-
-    def stop_all(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGINT)
-        for p in self.procs:
-            try:
-                p.wait(15)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-        self.procs.clear()
+def private_nodes(domain: int) -> Processes:
+    """Processes started in ROS domain `domain`, discovery limited to this machine."""
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    return Processes(quiet=True, env=dict(os.environ, ROS_DOMAIN_ID=str(domain)))
 
 
 def sim_steps_reader(node):

@@ -34,10 +34,11 @@ def params_args(params_dir: Path | None, name: str) -> list[str]:
 
 
 class Processes:
-    def __init__(self, log_dir: Path | None = None, quiet: bool = False):
+    def __init__(self, log_dir: Path | None = None, quiet: bool = False, env: dict | None = None):
         self.procs: dict[str, subprocess.Popen] = {}
         self.log_dir = log_dir
         self.quiet = quiet
+        self.env = env
 
     def start(self, name: str, pkg: str, exe: str, ros_args: list[str]) -> subprocess.Popen:
         cmd = [find_executable(pkg, exe), "--ros-args", *ros_args]
@@ -47,7 +48,7 @@ class Processes:
             out = open(self.log_dir / f"{name}.log", "w")
         elif self.quiet:
             out = subprocess.DEVNULL
-        p = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT if out else None, start_new_session=True)
+        p = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT if out else None, start_new_session=True, env=self.env)
         self.procs[name] = p
         return p
 
