@@ -70,6 +70,7 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     odom = rec.by_topic["odom"][-1]
     assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_link"
     assert abs(odom.pose.pose.position.x - (-6.0 + 5.0)) < 1e-3, "10 steps at 1 m/s x 0.5 s from x=-6"
+    assert odom.twist.twist.linear.x == 1.0, "odom twist is the body velocity flown in the step"
     outcome = rec.by_topic["outcome"][-1]
     assert math.isfinite(outcome.range) and 0.0 < outcome.range <= outcome.max_range
 

@@ -11,7 +11,6 @@ import tempfile
 from pathlib import Path
 
 import torch
-from safetensors import SafetensorError
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
@@ -86,7 +85,7 @@ def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
         raise WeightsError(f"weights were made for architecture {cfg.to_json()}, expected {expected.to_json()}")
     try:
         tensors = st_load(bytes(blob))
-    except (SafetensorError, Exception) as e:  # safetensors raises several types on corrupt input
+    except Exception as e:  # safetensors raises SafetensorError and others on corrupt input
         raise WeightsError(f"weights are corrupt or truncated: {e}") from None
     net = build_network(expected)
     want = net.state_dict()

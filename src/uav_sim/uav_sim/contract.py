@@ -15,7 +15,7 @@ from collections import OrderedDict
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Range
 
 DEPTH_TOPIC = "depth/image_raw"
@@ -37,13 +37,6 @@ STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryP
 # For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
 # history holds the backlog (64x64 frames: ~16 KiB each).
 DEEP_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=5000)
-# Latched-style: late joiners get the last value.
-LATCHED_QOS = QoSProfile(
-    reliability=ReliabilityPolicy.RELIABLE,
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
 
 
 def stamp_from_seconds(t_s: float) -> Time:

@@ -102,6 +102,7 @@ class SimNode(Node):
         self.rejected = 0
         self.brushes = 0
         self.cmd = HOVER
+        self.executed = HOVER
         self.last_cmd_wall = -math.inf
         self.watchdog_active = False
         self.last_publish_wall = time.monotonic()
@@ -167,6 +168,7 @@ class SimNode(Node):
 
     def advance(self, cmd: BodyTwist) -> None:
         result = self.sim.step(cmd)
+        self.executed = cmd
         self.brushes += result.brushes
         if result.collided:
             self.get_logger().info(
@@ -216,7 +218,7 @@ class SimNode(Node):
         msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = pose.x_m, pose.y_m, pose.z_m
         msg.pose.pose.orientation.z = math.sin(pose.yaw_rad / 2)
         msg.pose.pose.orientation.w = math.cos(pose.yaw_rad / 2)
-        cmd = self.cmd if self.mode == "realtime" else HOVER
+        cmd = self.executed  # the body velocity flown during the step that ended here
         msg.twist.twist.linear.x, msg.twist.twist.linear.y = cmd.vx_mps, cmd.vy_mps
         msg.twist.twist.linear.z, msg.twist.twist.angular.z = cmd.vz_mps, cmd.yaw_rate_radps
         return msg
