@@ -79,11 +79,11 @@ def grid_png(frames, picks, path: Path, title: str, max_range_m: float = 10.0) -
     plt.close(fig)
 
 
-def flight_gif(frames, path: Path, scale: int = 4, max_range_m: float = 10.0, every: int = 1) -> None:
+def flight_gif(frames, path: Path, scale: int = 3, max_range_m: float = 10.0, every: int = 1, limit: int = 100) -> None:
     from PIL import Image, ImageDraw
 
     images = []
-    for i, (depth, amap, action, collided) in enumerate(frames[::every]):
+    for i, (depth, amap, action, collided) in enumerate(frames[: limit * every : every]):
         rgb = overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m)
         im = Image.fromarray(rgb).resize((rgb.shape[1] * scale, rgb.shape[0] * scale), Image.NEAREST)
         draw = ImageDraw.Draw(im)
