@@ -241,28 +241,42 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int) -> tuple[
         "weight files (training seeds); n = runs per cell.",
         "",
     ]
-    for title, key, digits, paper_idx in (
-        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2, 0),
-        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3, 1),
-        ("Distance flown between crashes (m)", lambda r: r.distance_between_crashes_m, 1, None),
+    for title, key, digits in (
+        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2),
+        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3),
     ):
         lines += [f"### {title}", ""]
-        head = "| world | " + " | ".join(f"D3QN-{m.upper()}" + (" | paper" if paper_idx is not None else "") for m in models)
-        lines += [head + " |", "|" + "---|" * (1 + len(models) * (2 if paper_idx is not None else 1))]
+        lines += [
+            "| world | " + " | ".join(f"D3QN-{m.upper()} | paper" for m in models) + " |",
+            "|" + "---|" * (1 + 2 * len(models)),
+        ]
+        idx = 0 if "crashes" in title else 1
         for world in worlds:
             cells = []
             for m in models:
                 vals = [key(r) for r in results if r.model == m and r.world == world]
-                finite = [v for v in vals if not math.isinf(v)]
-                if vals and not finite:
-                    cells.append(f"no crash (n={len(vals)})")
-                else:
-                    cells.append(f"{fmt(*mean_ci95(finite), digits)} (n={len(vals)})" if vals else "-")
-                if paper_idx is not None:
-                    paper = PAPER.get((m, world))
-                    cells.append(str(paper[paper_idx]) if paper else "-")
+                cells.append(f"{fmt(*mean_ci95(vals), digits)} (n={len(vals)})" if vals else "-")
+                paper = PAPER.get((m, world))
+                cells.append(str(paper[idx]) if paper else "-")
             lines.append(f"| {world} | " + " | ".join(cells) + " |")
         lines.append("")
+    # Distance between crashes pooled over runs: runs without a crash would otherwise be dropped.
+    lines += [
+        "### Distance flown between crashes (m), pooled over runs",
+        "",
+        "| world | " + " | ".join(f"D3QN-{m.upper()}" for m in models) + " |",
+        "|" + "---|" * (1 + len(models)),
+    ]
+    for world in worlds:
+        cells = []
+        for m in models:
+            runs = [r for r in results if r.model == m and r.world == world]
+            dist, crashes = sum(r.distance_m for r in runs), sum(r.crashes for r in runs)
+            free = sum(1 for r in runs if r.crashes == 0)
+            head = f"{dist / crashes:.0f}" if crashes else f"no crash in {dist:.0f} m"
+            cells.append(f"{head} ({free}/{len(runs)} runs crash-free)" if runs else "-")
+        lines.append(f"| {world} | " + " | ".join(cells) + " |")
+    lines.append("")
     md_path = out_dir / "results.md"
     md_path.write_text("\n".join(lines))
     return md_path, csv_path
@@ -283,7 +297,25 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (weather)")
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
+    ap.add_argument("--from-csv", default=None, help="only rewrite the tables from an earlier results.csv")
     a = ap.parse_args(argv)
+    if a.from_csv:
+        rows = list(csv.DictReader(open(a.from_csv)))
+        results = [
+            EvalResult(
+                r["model"],
+                r["world"],
+                r["weights"],
+                int(r["steps"]),
+                int(r["crashes"]),
+                float(r["mean_reward"]),
+                float(r["distance_m"]),
+            )
+            for r in rows
+        ]
+        md, _ = write_tables(results, Path(a.out), results[0].steps if results else a.steps)
+        print(md.read_text())
+        return 0
     models = a.model or ["sam"]
     runs: list[tuple[str, str]] = []
     for m in models:
