@@ -2,8 +2,10 @@
 # The whole test suite: lint/format check, then unit and integration tests (installed nodes).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+set +u  # colcon's setup.bash reads unset variables
 . .venv/bin/activate
 . install/setup.bash
+set -u
 ruff check src tests benchmarks
 ruff format --check src tests benchmarks
 python -m pytest tests "$@"
