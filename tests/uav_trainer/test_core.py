@@ -126,3 +126,11 @@ def test_only_complete_checkpoints_are_resumed(tmp_path):
     good = checkpoint.save(tmp_path, lr, {}, {})
     (tmp_path / ".ckpt-broken.tmp").mkdir()  # a crash mid-write leaves only a temp dir
     assert checkpoint.latest(tmp_path) == good
+
+
+def test_confidence_interval_matches_a_hand_computed_t_interval():
+    from uav_trainer.evaluate import mean_ci95
+
+    mean, hw = mean_ci95([0.0, 1.0, 2.0])  # s = 1, n = 3: 4.303 * 1 / sqrt(3)
+    assert mean == 1.0 and hw == pytest.approx(4.303 / 3**0.5)
+    assert np.isnan(mean_ci95([5.0])[1])

@@ -6,7 +6,9 @@ A weights blob is a safetensors file whose metadata holds `format` = uav_policy/
 
 from __future__ import annotations
 
+import json
 import os
+import struct
 import tempfile
 from pathlib import Path
 
@@ -51,9 +53,6 @@ def write_atomic(path: Path, data: bytes) -> None:
 
 def read_header_config(blob: bytes) -> NetConfig:
     """The network config stored in a blob's metadata (without loading the tensors)."""
-    import json
-    import struct
-
     if len(blob) < 8:
         raise WeightsError(f"weights are truncated: {len(blob)} bytes is not a safetensors file")
     (n,) = struct.unpack("<Q", blob[:8])

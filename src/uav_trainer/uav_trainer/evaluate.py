@@ -184,6 +184,40 @@ def evaluate_inprocess(model: str, weights: str, world: str, steps: int, seed: i
     return EvalResult(model, world, weights, steps, crashes, reward / steps, dist)
 
 
+# Two-sided 95% Student t quantiles by sample size n (n - 1 degrees of freedom); normal beyond 30.
+T975 = {
+    2: 12.706,
+    3: 4.303,
+    4: 3.182,
+    5: 2.776,
+    6: 2.571,
+    7: 2.447,
+    8: 2.365,
+    9: 2.306,
+    10: 2.262,
+    11: 2.228,
+    12: 2.201,
+    13: 2.179,
+    14: 2.160,
+    15: 2.145,
+    16: 2.131,
+    17: 2.120,
+    18: 2.110,
+    19: 2.101,
+    20: 2.093,
+    21: 2.086,
+    22: 2.080,
+    23: 2.074,
+    24: 2.069,
+    25: 2.064,
+    26: 2.060,
+    27: 2.056,
+    28: 2.052,
+    29: 2.048,
+    30: 2.045,
+}
+
+
 def mean_ci95(values) -> tuple[float, float]:
     """Mean and half-width of a 95% t confidence interval (nan for n < 2)."""
     v = np.asarray(values, dtype=float)
@@ -191,7 +225,7 @@ def mean_ci95(values) -> tuple[float, float]:
         return math.nan, math.nan
     if v.size < 2:
         return float(v.mean()), math.nan
-    t = {2: 12.706, 3: 4.303, 4: 3.182, 5: 2.776, 6: 2.571, 7: 2.447, 8: 2.365, 9: 2.306, 10: 2.262}.get(v.size, 1.96)
+    t = T975.get(v.size, 1.96)
     return float(v.mean()), float(t * v.std(ddof=1) / math.sqrt(v.size))
 
 
