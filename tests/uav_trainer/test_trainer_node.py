@@ -4,10 +4,12 @@ import os
 import subprocess
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
 
-from conftest import ROOT, executable, run_to_exit
+from conftest import ROOT, deep_qos, executable, run_to_exit
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
+from uav_sim import contract
 from uav_trainer.evaluate import evaluate_once
 
 SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
@@ -26,6 +28,10 @@ def diagnostics(ros):
 
 def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
     diag = diagnostics(ros)
+    actions = set()
+    ros.node.create_subscription(
+        TwistStamped, contract.ACTION_TOPIC, lambda m: actions.add(contract.stamp_ns(m.header.stamp)), deep_qos()
+    )
     run_dir = tmp_path / "run"
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0")
     policy = ros.start("uav_policy", "policy_node")
@@ -37,8 +43,10 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     ros.spin_for(2.0)
     sim_steps = int(diag["uav_sim"]["steps"])
     t = diag["uav_trainer"]
-    # Every step became a transition except the newest, whose next frame was never answered.
-    assert int(t["env_steps"]) == sim_steps - 1, (t, sim_steps)
+    # Record k (frame, outcome, action k) completes when action k arrives; transition k-1 -> k then.
+    # So transitions = actions - 1: S - 1, or S when the policy answered the last frame before it stopped.
+    assert int(t["env_steps"]) == len(actions) - 1, (t, len(actions))
+    assert sim_steps - 1 <= int(t["env_steps"]) <= sim_steps, (t, sim_steps)
     for key in (
         "frames_without_action",
         "frames_without_outcome",
@@ -50,13 +58,13 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         "duplicates",
     ):
         assert t[key] == "0", f"{key}={t[key]}"
-    assert int(diag["uav_sim"]["collisions"]) > 50 and int(t["episodes"]) == int(diag["uav_sim"]["collisions"])
+    assert int(diag["uav_sim"]["collisions"]) > 20 and int(t["episodes"]) == int(diag["uav_sim"]["collisions"])
     assert ros.stop(trainer) == 0
     assert "final checkpoint" in ros.log_of(trainer)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
     again = ros.start("uav_trainer", "trainer_node", *trainer_args, name="trainer2")
     assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 30), ros.log_of(again)
-    assert f"{sim_steps - 1} env steps" in ros.log_of(again)
+    assert f"{t['env_steps']} env steps" in ros.log_of(again)
 
 
 def test_short_training_over_ros_beats_the_random_baseline(tmp_path):

@@ -157,11 +157,12 @@ class PolicyNode(Node):
         cmd = Twist()
         cmd.linear.x = a.linear_x_mps
         cmd.angular.z = a.yaw_rate_radps(self.step_duration_s)
-        self.pub_cmd.publish(cmd)
         stamped = TwistStamped(twist=cmd)
         stamped.header.stamp = img.header.stamp
         stamped.header.frame_id = "base_link"
+        # The record goes out before the command: whatever the simulator acts on is on record.
         self.pub_action.publish(stamped)
+        self.pub_cmd.publish(cmd)
         self.last_stamp, self.last_cmd = stamp, cmd
         self.frames_answered += 1
         self._publish_insight(img, depth, q, w)
