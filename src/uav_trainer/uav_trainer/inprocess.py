@@ -20,7 +20,7 @@ from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist
-from uav_sim.world import load_world
+from uav_sim.world import load_world, procedural_world
 
 from .learner import LearnerConfig
 from .training import TrainerConfig, Training
@@ -35,10 +35,17 @@ def run(
     log=print,
     resume: bool = False,
     on_step=None,
+    layout_per_episode: bool = False,
 ) -> Training:
-    """Train until the budget; `on_step(training)` may return True to stop early."""
+    """Train until the budget; `on_step(training)` may return True to stop early.
+
+    With `layout_per_episode`, every episode flies a new procedural layout (seeds 1000 and up,
+    so `random:0..999` stay held out) instead of `world`.
+    """
     training = Training(cfg, run_dir, log=log, resume=resume)
-    sim = Simulator(load_world(world), SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg))
+    sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg)
+    layouts = iter(range(1000 + 100_000 * cfg.seed, 10**9))
+    sim = Simulator(procedural_world(next(layouts)) if layout_per_episode else load_world(world), sim_cfg)
     agent = Agent(training.learner.online, training.net_cfg, cfg.device, seed=cfg.seed)
     stack = FrameStack(training.net_cfg.frames)
     r = sim.observe()
@@ -51,6 +58,10 @@ def run(
             action = agent.act(state, training.epsilon())[0]
             a = PAPER_ACTIONS[action]
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(dt)))
+            if r.collided and layout_per_episode:  # the next episode starts in a new layout
+                sim.close()
+                sim = Simulator(procedural_world(next(layouts)), sim_cfg)
+                r = dataclasses.replace(sim.observe(), collided=True, reward=r.reward, beta_m=r.beta_m)
             training.add_step(action, r.beta_m, r.collided, r.depth_m)
             state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
             while training.learn_once():
@@ -86,6 +97,9 @@ def main() -> int:
     ap.add_argument("--learning-starts", type=int, default=TrainerConfig.learning_starts)
     ap.add_argument("--replay-ratio", type=float, default=TrainerConfig.replay_ratio)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument(
+        "--layout-per-episode", action="store_true", help="experiment: a new procedural layout every episode instead of --world"
+    )
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
