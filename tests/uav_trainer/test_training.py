@@ -76,3 +76,15 @@ def test_inprocess_training_is_reproducible(tmp_path):
         assert t.learner.updates == 50 and not math.isnan(t.last_loss)
     for a, b in zip(*weights, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monkeypatch):
+    import uav_trainer.inprocess as ip
+
+    made = []
+    real = ip.procedural_world
+    monkeypatch.setattr(ip, "procedural_world", lambda seed: made.append(seed) or real(seed))
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=120, learning_starts=10**6, epsilon_start=1.0)
+    t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True)
+    assert t.stats.episodes >= 3 and len(made) == t.stats.episodes + 1  # the first layout plus one per crash
+    assert min(made) >= 1000 and len(set(made)) == len(made)  # never the held-out random:0..999

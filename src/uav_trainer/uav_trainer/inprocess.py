@@ -111,7 +111,14 @@ def main() -> int:
         replay_ratio=a.replay_ratio,
         learner=dataclasses.replace(LearnerConfig(), learning_rate=a.learning_rate),
     )
-    t = run(cfg, a.run_dir or f"runs/inproc_{a.model}_seed{a.seed}", a.world, resume=a.resume, log=lambda s: print(s, flush=True))
+    t = run(
+        cfg,
+        a.run_dir or f"runs/inproc_{a.model}_seed{a.seed}",
+        a.world,
+        resume=a.resume,
+        log=lambda s: print(s, flush=True),
+        layout_per_episode=a.layout_per_episode,
+    )
     print(f"weights: {t.policy_weights_path}")
     return 0
 
