@@ -17,7 +17,6 @@ class Agent:
         self._net = net.to(self.device).eval()
         self._lock = threading.Lock()
         self.rng = np.random.default_rng(seed)
-        self.swaps = 0
 
     @property
     def net(self) -> torch.nn.Module:
@@ -28,7 +27,6 @@ class Agent:
         net = net.to(self.device).eval()
         with self._lock:
             self._net = net
-            self.swaps += 1
 
     @torch.no_grad()
     def q_values(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

@@ -95,7 +95,7 @@ class PolicyNode(Node):
         self.stack = FrameStack(frames)
         self.last_stamp = None
         self.last_cmd = None
-        self.frames_answered = 0
+        self.q_label = "action:" + ",".join(a.name for a in self.actions)
         self.bad_frames = 0
         self.pushes_rejected = 0
         self.get_logger().info(
@@ -164,13 +164,11 @@ class PolicyNode(Node):
         self.pub_action.publish(stamped)
         self.pub_cmd.publish(cmd)
         self.last_stamp, self.last_cmd = stamp, cmd
-        self.frames_answered += 1
         self._publish_insight(img, depth, q, w)
 
     def _publish_insight(self, img: Image, depth: np.ndarray, q: np.ndarray, w) -> None:
         qmsg = Float32MultiArray(data=q.astype(np.float32).tolist())
-        label = "action:" + ",".join(a.name for a in self.actions)
-        qmsg.layout.dim = [MultiArrayDimension(label=label, size=len(q), stride=len(q))]
+        qmsg.layout.dim = [MultiArrayDimension(label=self.q_label, size=len(q), stride=len(q))]
         self.pub_q.publish(qmsg)
         if w is None:
             return
