@@ -6,6 +6,6 @@ set +u  # colcon's setup.bash reads unset variables
 . .venv/bin/activate
 . install/setup.bash
 set -u
-ruff check src tests benchmarks
-ruff format --check src tests benchmarks
+ruff check src tests benchmarks scripts
+ruff format --check src tests benchmarks scripts
 python -m pytest tests "$@"

@@ -49,7 +49,23 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
     assert len(rows) == 2 and {r["world"] for r in rows} == {"basic"}
     for r in rows:
         assert int(r["steps"]) == 50 and 0 <= int(r["crashes"]) <= 50
+        assert min(1, int(r["crashes"])) <= int(r["crash_sites"]) <= int(r["crashes"])
         assert float(r["crashes_per_1000"]) == pytest.approx(1000 * int(r["crashes"]) / 50)
+
+
+def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):
+    w = tmp_path / "sam.safetensors"
+    wio.save_file(build_network(NetConfig(), seed=2), NetConfig(), w)
+    args = ["--weights", str(w), "--worlds", "basic", "--steps", "40", "--params-dir", str(ROOT / "params")]
+    r = run_tool(
+        "uav_trainer", "evaluate", *args, "--start-yaw-jitter-deg", "180", "--repeats", "2", "--out", str(tmp_path / "e")
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "random heading (uniform ±180°), 2 x 40 steps" in (tmp_path / "e" / "results.md").read_text()
+    rows = list(csv.DictReader(open(tmp_path / "e" / "results.csv")))
+    assert len(rows) == 1 and int(rows[0]["steps"]) == 80  # two runs of one weight file pooled into one row
+    bad = run_tool("uav_trainer", "evaluate", *args, "--start-yaw-jitter-deg", "200")
+    assert bad.returncode == 2 and "--start-yaw-jitter-deg" in bad.stderr
 
 
 def test_attention_figures_are_written(tmp_path):

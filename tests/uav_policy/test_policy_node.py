@@ -1,7 +1,10 @@
 """Integration: installed sim_node + policy_node in lockstep, observed and pushed to with rclpy."""
 
+import signal
+
 import torch
 from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
 from rcl_interfaces.srv import SetParameters
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
@@ -68,6 +71,39 @@ def test_policy_answers_each_frame_once_and_explains_it(ros):
         assert 0.0 <= amap.min() and amap.max() <= 1.0
     q = w.q[-1]
     assert len(q.data) == 4 and "a3_forward_2mps" in q.layout.dim[0].label
+
+
+def test_a_stalled_policy_does_not_answer_a_repeated_frame_twice(ros):
+    """The lockstep sim says a frame again when no command came for lockstep_republish_s. A policy
+    that was only slow (its command had a listener) must not answer again: the sim would step
+    twice, and from then on every command would act on a later frame than the one it answered."""
+    actions, odoms = {}, {}
+    qos = deep_qos()
+    ros.node.create_subscription(
+        TwistStamped, contract.ACTION_TOPIC, lambda m: actions.setdefault(contract.stamp_ns(m.header.stamp), m.twist), qos
+    )
+    ros.node.create_subscription(
+        Odometry, contract.ODOM_TOPIC, lambda m: odoms.setdefault(contract.stamp_ns(m.header.stamp), m.twist.twist), qos
+    )
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.05")
+    policy = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
+    assert ros.spin_until(lambda: len(actions) >= 30, 60), ros.log_of(policy)
+    policy.send_signal(signal.SIGSTOP)  # a busy machine: the sim says its frame again about 10 times
+    ros.spin_for(0.5)
+    policy.send_signal(signal.SIGCONT)
+    assert ros.spin_until(lambda: len(actions) >= 80, 60), ros.log_of(policy)
+    ros.spin_for(0.3)
+    step_ns = 500_000_000
+    checked = 0
+    for stamp, executed in sorted(odoms.items()):
+        answered = actions.get(stamp - step_ns)  # the command the policy chose for the previous frame
+        if answered is None:
+            continue
+        assert (executed.linear.x, executed.angular.z) == (answered.linear.x, answered.angular.z), (
+            f"the step to {stamp} executed a command that was not the answer to the frame before it"
+        )
+        checked += 1
+    assert checked >= 60
 
 
 def call_push(ros, blob: bytes, timeout_s=30.0):

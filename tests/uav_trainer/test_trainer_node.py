@@ -3,6 +3,7 @@
 import os
 import subprocess
 
+import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 
@@ -120,14 +121,16 @@ def test_launcher_rejects_a_bad_budget():
     assert r.returncode == 2 and "--steps must be positive" in r.stderr
 
 
-def test_ros_evaluation_equals_the_in_process_measurement(tmp_path):
-    """Same simulator, stack and network: flying through the ROS nodes changes nothing."""
+@pytest.mark.parametrize(("jitter", "hfov"), [(0.0, 90.0), (180.0, 90.0), (180.0, 120.0)])
+def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov):
+    """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
+    random start heading and extra sim parameters reach sim_node)."""
     from uav_trainer.evaluate import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
     wio.save_file(build_network(NetConfig(), seed=4), NetConfig(), w)
     os.environ["ROS_DOMAIN_ID"] = "74"
-    over_ros = evaluate_once("sam", str(w), "basic", 150)
-    local = evaluate_inprocess("sam", str(w), "basic", 150)
-    assert (over_ros.crashes, over_ros.steps) == (local.crashes, local.steps)
+    over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=(f"hfov_deg:={hfov}",))
+    local = evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=hfov)
+    assert (over_ros.crashes, over_ros.steps, over_ros.crash_sites) == (local.crashes, local.steps, local.crash_sites)
     assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6

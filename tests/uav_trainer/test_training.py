@@ -88,3 +88,55 @@ def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monke
     t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True)
     assert t.stats.episodes >= 3 and len(made) == t.stats.episodes + 1  # the first layout plus one per crash
     assert min(made) >= 1000 and len(set(made)) == len(made)  # never the held-out random:0..999
+
+
+def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
+    import csv
+
+    from uav_policy import weights as wio
+    from uav_policy.networks import NetConfig
+    from uav_trainer.inprocess import Validation
+
+    cfg = TrainerConfig(model="sam", seed=5, total_steps=300, learning_starts=100, replay_ratio=0.25, epsilon_decay_steps=100)
+    plain = run_inprocess(cfg, str(tmp_path / "plain"), log=lambda s: None)
+    val = lambda t: Validation(t, every=100, worlds=("random:200", "random:201"), steps=40, log=lambda s: None)  # noqa: E731
+    selected = run_inprocess(cfg, str(tmp_path / "val"), log=lambda s: None, validation=val)
+    for a, b in zip(plain.learner.online.parameters(), selected.learner.online.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)  # validation flights leave training untouched
+    rows = list(csv.DictReader(open(tmp_path / "val" / "validation.csv")))
+    assert [int(r["env_steps"]) for r in rows] == [100, 200, 300] and all(int(r["steps"]) == 80 for r in rows)
+    best = [(int(r["crashes"]), -float(r["mean_reward"])) for r in rows]
+    flags = [int(r["best"]) for r in rows]
+    assert flags[0] == 1 and all(f == int(best[i] < min(best[:i])) for i, f in enumerate(flags) if i > 0)
+    wio.load_file(tmp_path / "val" / "policy_sam_best.safetensors", NetConfig(model="sam"))
+
+
+def test_clearance_penalty_is_added_to_the_papers_reward_only_when_asked(tmp_path):
+    from uav_sim.reward import step_reward
+
+    frame = np.full((64, 64), 8.0, dtype=np.float32)
+    frame[32, 0] = 0.5  # something beside the path, outside beta's window
+    paper = Training(small_cfg(), tmp_path / "a", log=lambda s: None)
+    shaped = Training(small_cfg(clearance_m=1.0, clearance_weight=4.0), tmp_path / "b", log=lambda s: None)
+    for t in (paper, shaped):
+        t.add_first(frame)
+    assert paper.add_step(0, 8.0, False, frame) == step_reward(8.0, False)
+    assert shaped.add_step(0, 8.0, False, frame) == step_reward(8.0, False) - 2.0
+    assert shaped.add_step(0, 8.0, True, frame) == -10.0  # a collision's frame is the next episode's: no penalty
+    paper.close()
+    shaped.close()
+
+
+def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
+    """Why evaluate reports crash sites: flying straight ahead in a small room from the same start
+    pose crashes at one site every lap; random start headings spread the crashes out."""
+    from uav_trainer.evaluate import evaluate_inprocess
+
+    class Straight(torch.nn.Module):  # constant Q: the agent always picks action 3 (2 m/s ahead)
+        def forward(self, x):
+            return torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(x.shape[0], 4), None
+
+    fixed = evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight())
+    varied = evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight(), start_yaw_jitter_deg=180.0)
+    assert fixed.crashes >= 3 and fixed.crash_sites == 1
+    assert varied.crash_sites > 1

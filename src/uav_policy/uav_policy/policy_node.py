@@ -94,7 +94,7 @@ class PolicyNode(Node):
         self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
         self.stack = FrameStack(frames)
         self.last_stamp = None
-        self.last_cmd = None
+        self.last_cmd, self.last_cmd_unheard = None, False
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
         self.bad_frames = 0
         self.pushes_rejected = 0
@@ -135,8 +135,11 @@ class PolicyNode(Node):
         joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
         if joined is not None:
             self._act(joined["frame"], joined["outcome"])
-        elif stream == "frame" and contract.stamp_ns(msg.header.stamp) == self.last_stamp and self.last_cmd is not None:
-            # The simulator said this frame again: our command was lost. Answer it again.
+        elif stream == "frame" and contract.stamp_ns(msg.header.stamp) == self.last_stamp and self.last_cmd_unheard:
+            # The simulator said an answered frame again, and our command went out before anyone
+            # listened (discovery): answer again. A command that had a reliable listener is only
+            # late (a busy machine); answering it twice would advance a lockstep sim two steps.
+            self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0
             self.pub_cmd.publish(self.last_cmd)
 
     def _act(self, img: Image, outcome: Range) -> None:
@@ -162,6 +165,7 @@ class PolicyNode(Node):
         stamped.header.frame_id = "base_link"
         # The record goes out before the command: whatever the simulator acts on is on record.
         self.pub_action.publish(stamped)
+        self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0
         self.pub_cmd.publish(cmd)
         self.last_stamp, self.last_cmd = stamp, cmd
         self._publish_insight(img, depth, q, w)

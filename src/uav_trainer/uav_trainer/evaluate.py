@@ -7,6 +7,11 @@ For each (model, weights, world) it starts sim_node and policy_node (epsilon 0 u
 counts crashes, mean reward per step (uav_sim.reward) and distance flown between crashes over
 `--steps` lockstep steps, and writes Markdown and CSV tables (mean and 95% CI over the weight
 files given, i.e. over training seeds) beside the paper's numbers.
+
+The paper's protocol restarts every episode at the world's start pose. The simulator and an
+epsilon-0 policy are deterministic, so after a crash the same flight repeats and one failure is
+counted again every lap. `--start-yaw-jitter-deg 180 --repeats 5` measures over varied start
+headings instead (seeded: sim seeds --seed .. --seed+repeats-1, steps summed per weight file).
 """
 
 from __future__ import annotations
@@ -45,10 +50,17 @@ class EvalResult:
     crashes: int
     mean_reward: float
     distance_m: float
+    crash_sites: int = -1  # distinct places (0.1 m grid) where a crashing step began, per run, summed; -1 unknown
 
     @property
     def distance_between_crashes_m(self) -> float:
         return self.distance_m / self.crashes if self.crashes else math.inf
+
+
+def crash_site(xy) -> tuple[float, float]:
+    """Where a crashing step began, on a 0.1 m grid: a deterministic policy restarted at the same
+    pose crashes at the same site again, so crashes / sites tells repeats from new failures."""
+    return (round(xy[0], 1), round(xy[1], 1))
 
 
 class StepMonitor:
@@ -59,19 +71,27 @@ class StepMonitor:
         self.joiner = contract.StampJoiner(("outcome", "odom"), max_pending=1000)
         self.first = True
         self.steps = self.crashes = 0
+        self.sites: set[tuple[float, float]] = set()
         self.reward = 0.0
         self.distance = 0.0
         self.last_xy = None
+        self.last_stamp = self.step_ns = None
+        self.gaps = 0  # steps whose stamp is not one step after the previous one: messages were lost
 
     def add(self, stream: str, msg) -> None:
-        j = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
+        stamp = contract.stamp_ns(msg.header.stamp)
+        j = self.joiner.add(stream, stamp, msg)
         if j is None or self.done:
             return
         p = j["odom"].pose.pose.position
         xy = (p.x, p.y)
         if self.first:  # the frame before any command: not a step
-            self.first, self.last_xy = False, xy
+            self.first, self.last_xy, self.last_stamp = False, xy, stamp
             return
+        delta = stamp - self.last_stamp
+        self.step_ns = delta if self.step_ns is None else self.step_ns
+        self.gaps += delta != self.step_ns
+        self.last_stamp = stamp
         out = j["outcome"]
         collided = contract.outcome_collided(out)
         beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
@@ -79,6 +99,7 @@ class StepMonitor:
         self.steps += 1
         if collided:
             self.crashes += 1  # the vehicle is back at the start: no distance for this jump
+            self.sites.add(crash_site(self.last_xy))
         else:
             self.distance += math.hypot(xy[0] - self.last_xy[0], xy[1] - self.last_xy[1])
         self.last_xy = xy
@@ -97,6 +118,8 @@ def evaluate_once(
     seed: int = 0,
     params_dir: Path | None = None,
     timeout_s: float = 600.0,
+    start_yaw_jitter_deg: float = 0.0,
+    sim_args: tuple[str, ...] = (),
     log_dir: Path | None = None,
     progress=None,
 ) -> EvalResult:
@@ -119,8 +142,23 @@ def evaluate_once(
     procs = Processes(log_dir=log_dir, quiet=log_dir is None)
     pargs = lambda kv: [x for item in kv for x in ("-p", item)]  # noqa: E731
     try:
-        # The monitor subscribes before the sim starts; lockstep only advances once the policy answers.
-        procs.start("sim", "uav_sim", "sim_node", params_args(params_dir, "sim") + pargs([f"world:={world}", f"seed:={seed}"]))
+        # The lockstep sim only advances once the policy answers, and it says its first frame again
+        # every lockstep_republish_s: the policy starts once the monitor has that frame, so no step
+        # can go by before the monitor hears the simulator.
+        sim = procs.start(
+            "sim",
+            "uav_sim",
+            "sim_node",
+            params_args(params_dir, "sim")
+            + pargs([f"world:={world}", f"seed:={seed}", f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}", *sim_args]),
+        )
+        ready_by = time.monotonic() + 60.0
+        while mon.first:
+            executor.spin_once(timeout_sec=0.05)
+            if sim.poll() is not None:
+                raise RuntimeError(f"sim_node exited with code {sim.returncode} before its first frame")
+            if time.monotonic() > ready_by:
+                raise TimeoutError("no first frame from sim_node within 60 s")
         wargs = [f"weights:={weights}"] if weights else []
         procs.start(
             "policy",
@@ -141,15 +179,26 @@ def evaluate_once(
                     raise RuntimeError(f"{name}_node exited with code {p.returncode} during evaluation")
             if time.monotonic() > end:
                 raise TimeoutError(f"evaluation reached only {mon.steps}/{steps} steps in {timeout_s} s")
+        if mon.gaps:
+            raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
     finally:
         procs.stop_all(["policy", "sim"])
         executor.shutdown()
         node.destroy_node()
         ctx.try_shutdown()
-    return EvalResult(model, world, weights, mon.steps, mon.crashes, mon.reward / max(mon.steps, 1), mon.distance)
+    return EvalResult(model, world, weights, mon.steps, mon.crashes, mon.reward / max(mon.steps, 1), mon.distance, len(mon.sites))
 
 
-def evaluate_inprocess(model: str, weights: str, world: str, steps: int, seed: int = 0, net=None) -> EvalResult:
+def evaluate_inprocess(
+    model: str,
+    weights: str,
+    world: str,
+    steps: int,
+    seed: int = 0,
+    net=None,
+    start_yaw_jitter_deg: float = 0.0,
+    hfov_deg: float = 90.0,
+) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks."""
     from uav_policy import weights as wio
     from uav_policy.actions import PAPER_ACTIONS
@@ -162,11 +211,11 @@ def evaluate_inprocess(model: str, weights: str, world: str, steps: int, seed: i
 
     cfg = NetConfig(model=model)
     agent = Agent(net if net is not None else wio.load_file(weights, cfg), cfg, seed=seed)
-    sim = Simulator(load_world(world), SimConfig(seed=seed))
+    sim = Simulator(load_world(world), SimConfig(seed=seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg))
     stack = FrameStack(cfg.frames)
     r = sim.observe()
     state = stack.reset(r.depth_m)
-    crashes, reward, dist, last = 0, 0.0, 0.0, (r.pose.x_m, r.pose.y_m)
+    crashes, reward, dist, last, sites = 0, 0.0, 0.0, (r.pose.x_m, r.pose.y_m), set()
     try:
         for _ in range(steps):
             a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
@@ -174,6 +223,7 @@ def evaluate_inprocess(model: str, weights: str, world: str, steps: int, seed: i
             reward += r.reward
             if r.collided:
                 crashes += 1
+                sites.add(crash_site(last))
                 state = stack.reset(r.depth_m)
             else:
                 dist += math.hypot(r.pose.x_m - last[0], r.pose.y_m - last[1])
@@ -181,7 +231,24 @@ def evaluate_inprocess(model: str, weights: str, world: str, steps: int, seed: i
             last = (r.pose.x_m, r.pose.y_m)
     finally:
         sim.close()
-    return EvalResult(model, world, weights, steps, crashes, reward / steps, dist)
+    return EvalResult(model, world, weights, steps, crashes, reward / steps, dist, len(sites))
+
+
+def pool(runs: list[EvalResult]) -> EvalResult:
+    """Several evaluations of one weight file in one world as one (steps, crashes and distance summed)."""
+    first = runs[0]
+    steps = sum(r.steps for r in runs)
+    reward = sum(r.mean_reward * r.steps for r in runs) / steps
+    return EvalResult(
+        first.model,
+        first.world,
+        first.weights,
+        steps,
+        sum(r.crashes for r in runs),
+        reward,
+        sum(r.distance_m for r in runs),
+        sum(r.crash_sites for r in runs) if all(r.crash_sites >= 0 for r in runs) else -1,
+    )
 
 
 # Two-sided 95% Student t quantiles by sample size n (n - 1 degrees of freedom); normal beyond 30.
@@ -235,7 +302,27 @@ def fmt(mean: float, hw: float, digits: int = 2) -> str:
     return f"{mean:.{digits}f}" + ("" if math.isnan(hw) else f" ± {hw:.{digits}f}")
 
 
-def write_tables(results: list[EvalResult], out_dir: Path, steps: int) -> tuple[Path, Path]:
+def distance_cell(runs: list[EvalResult]) -> str:
+    dist, crashes = sum(r.distance_m for r in runs), sum(r.crashes for r in runs)
+    free = sum(1 for r in runs if r.crashes == 0)
+    head = f"{dist / crashes:.0f}" if crashes else f"no crash in {dist:.0f} m"
+    return f"{head} ({free}/{len(runs)} runs crash-free)"
+
+
+def pooled_table(results, models, worlds, title: str, column: str, cell, intro: str = "") -> list[str]:
+    """A Markdown table with one cell per (world, model) computed from all runs of that pair."""
+    lines = [f"### {title}", "", *([intro, ""] if intro else [])]
+    lines += ["| world | " + " | ".join(f"D3QN-{m.upper()}{column}" for m in models) + " |", "|" + "---|" * (1 + len(models))]
+    for world in worlds:
+        cells = []
+        for m in models:
+            runs = [r for r in results if r.model == m and r.world == world]
+            cells.append(cell(runs) if runs else "-")
+        lines.append(f"| {world} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol: str = "") -> tuple[Path, Path]:
     """results.csv (one row per run) and results.md (Tables 1-2 and distance, mean ± 95% CI over seeds)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = out_dir / "results.csv"
@@ -252,6 +339,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int) -> tuple[
                 "mean_reward",
                 "distance_m",
                 "distance_between_crashes_m",
+                "crash_sites",
             ]
         )
         for r in results:
@@ -266,13 +354,14 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int) -> tuple[
                     f"{r.mean_reward:.4f}",
                     f"{r.distance_m:.2f}",
                     f"{r.distance_between_crashes_m:.2f}",
+                    r.crash_sites,
                 ]
             )
     models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
     worlds = list(dict.fromkeys(r.world for r in results))
     lines = [
         f"Exploit-only (epsilon 0) evaluation, {steps} lockstep steps per run; mean ± 95% CI over the "
-        "weight files (training seeds); n = runs per cell.",
+        "weight files (training seeds); n = runs per cell." + (f" {protocol}" if protocol else ""),
         "",
     ]
     for title, key, digits in (
@@ -295,22 +384,22 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int) -> tuple[
             lines.append(f"| {world} | " + " | ".join(cells) + " |")
         lines.append("")
     # Distance between crashes pooled over runs: runs without a crash would otherwise be dropped.
-    lines += [
-        "### Distance flown between crashes (m), pooled over runs",
-        "",
-        "| world | " + " | ".join(f"D3QN-{m.upper()}" for m in models) + " |",
-        "|" + "---|" * (1 + len(models)),
-    ]
-    for world in worlds:
-        cells = []
-        for m in models:
-            runs = [r for r in results if r.model == m and r.world == world]
-            dist, crashes = sum(r.distance_m for r in runs), sum(r.crashes for r in runs)
-            free = sum(1 for r in runs if r.crashes == 0)
-            head = f"{dist / crashes:.0f}" if crashes else f"no crash in {dist:.0f} m"
-            cells.append(f"{head} ({free}/{len(runs)} runs crash-free)" if runs else "-")
-        lines.append(f"| {world} | " + " | ".join(cells) + " |")
-    lines.append("")
+    lines += pooled_table(results, models, worlds, "Distance flown between crashes (m), pooled over runs", "", distance_cell)
+    if results and all(r.crash_sites >= 0 for r in results):
+        intro = (
+            "A site is where a crashing step began (0.1 m grid), counted per run. With a fixed start pose a "
+            "deterministic policy repeats its flight after every crash, so many crashes at few sites are one "
+            "failure counted again."
+        )
+        lines += pooled_table(
+            results,
+            models,
+            worlds,
+            "Crashes and distinct crash sites, summed over runs",
+            " crashes / sites",
+            lambda runs: f"{sum(r.crashes for r in runs)} / {sum(r.crash_sites for r in runs)}",
+            intro,
+        )
     md_path = out_dir / "results.md"
     md_path.write_text("\n".join(lines))
     return md_path, csv_path
@@ -328,11 +417,29 @@ def main(argv=None) -> int:
     ap.add_argument("--worlds", nargs="+", default=["basic", "complex", "turbulent"])
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--epsilon", type=float, default=0.0)
-    ap.add_argument("--seed", type=int, default=0, help="simulator seed (weather)")
+    ap.add_argument("--seed", type=int, default=0, help="simulator seed (weather, start jitter)")
+    ap.add_argument(
+        "--start-yaw-jitter-deg",
+        type=float,
+        default=0.0,
+        help="random start heading (+-deg) for every episode; 0 = the paper's fixed start pose",
+    )
+    ap.add_argument(
+        "--sim-arg",
+        action="append",
+        default=[],
+        metavar="NAME:=VALUE",
+        help="extra sim_node parameter, e.g. --sim-arg hfov_deg:=120.0 (repeatable; must match how the policy was trained)",
+    )
+    ap.add_argument("--repeats", type=int, default=1, help="runs per weight file and world (sim seeds --seed + i), pooled")
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
     ap.add_argument("--from-csv", default=None, help="only rewrite the tables from an earlier results.csv")
     a = ap.parse_args(argv)
+    if a.repeats < 1 or a.steps < 1:
+        ap.error("--repeats and --steps must be >= 1")
+    if not 0.0 <= a.start_yaw_jitter_deg <= 180.0:
+        ap.error("--start-yaw-jitter-deg must be in [0, 180]")
     if a.from_csv:
         rows = list(csv.DictReader(open(a.from_csv)))
         results = [
@@ -344,6 +451,7 @@ def main(argv=None) -> int:
                 int(r["crashes"]),
                 float(r["mean_reward"]),
                 float(r["distance_m"]),
+                int(r.get("crash_sites", -1)),
             )
             for r in rows
         ]
@@ -361,18 +469,43 @@ def main(argv=None) -> int:
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     results = []
-    total = len(runs) * len(a.worlds) * a.steps
+    total = len(runs) * len(a.worlds) * a.steps * a.repeats
     with tqdm(total=total, unit="step", dynamic_ncols=True, disable=None) as bar:
         for model, weights in runs:
             for world in a.worlds:
                 bar.set_description(f"{model} {world} {Path(weights).name if weights else 'packaged'}")
-                r = evaluate_once(model, weights, world, a.steps, a.epsilon, a.seed, params, progress=bar.update)
+                r = pool(
+                    [
+                        evaluate_once(
+                            model,
+                            weights,
+                            world,
+                            a.steps,
+                            a.epsilon,
+                            a.seed + i,
+                            params,
+                            start_yaw_jitter_deg=a.start_yaw_jitter_deg,
+                            sim_args=tuple(a.sim_arg),
+                            progress=bar.update,
+                        )
+                        for i in range(a.repeats)
+                    ]
+                )
                 results.append(r)
                 bar.write(
-                    f"{model:3s} {world:10s} {weights or 'packaged'}: {r.crashes} crashes, "
+                    f"{model:3s} {world:10s} {weights or 'packaged'}: {r.crashes} crashes at {r.crash_sites} sites, "
                     f"mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                 )
-    md, csv_path = write_tables(results, Path(a.out), a.steps)
+    if a.start_yaw_jitter_deg > 0:
+        protocol = (
+            f"Every episode starts at a random heading (uniform ±{a.start_yaw_jitter_deg:g}°), "
+            f"{a.repeats} x {a.steps} steps per weight file (sim seeds {a.seed}..{a.seed + a.repeats - 1})."
+        )
+    else:
+        protocol = "Every episode starts at the world's start pose (the paper's protocol)."
+    if a.sim_arg:
+        protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
+    md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())
     print(f"written: {md} {csv_path}")
     return 0

@@ -10,11 +10,13 @@ weights use it; the ROS trainer runs the same pieces concurrently. Example:
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
 import time
 
 import torch
 
+from uav_policy import weights as wio
 from uav_policy.actions import PAPER_ACTIONS
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
@@ -24,6 +26,68 @@ from uav_sim.world import load_world, procedural_world
 
 from .learner import LearnerConfig
 from .training import TrainerConfig, Training
+
+VALIDATION_WORLDS = ("random:200", "random:201", "random:202", "random:203", "random:204")
+
+
+class Validation:
+    """Model selection on held-out layouts: every `every` env steps (once epsilon has reached its
+    end) the greedy network flies `steps` steps in each validation world from random start
+    headings; the best so far (fewest crashes, then highest mean reward) is written atomically to
+    policy_<model>_best.safetensors, and every score to validation.csv.
+
+    The validation worlds are procedural layouts that neither training (seeds >= 1000) nor the
+    held-out test worlds (random:101..103) use, so selecting on them leaves the test worlds unseen.
+    """
+
+    def __init__(self, training: Training, every: int, worlds=VALIDATION_WORLDS, steps: int = 500, log=print, hfov_deg=90.0):
+        if every < 1 or steps < 1 or not worlds:
+            raise ValueError(f"validation needs every >= 1, steps >= 1 and a world, got {every}, {steps}, {worlds}")
+        self.training, self.every, self.worlds, self.steps, self.log = training, every, tuple(worlds), steps, log
+        self.hfov_deg = hfov_deg
+        self.best: tuple[int, float] | None = None
+        self.path = training.dir / f"policy_{training.cfg.model}_best.safetensors"
+        self._csv = open(training.dir / "validation.csv", "a", newline="")
+        self._rows = csv.writer(self._csv)
+        if self._csv.tell() == 0:
+            self._rows.writerow(["env_steps", "updates", "crashes", "steps", "mean_reward", "best"])
+
+    def __call__(self, training: Training) -> bool:
+        c = training.cfg
+        if training.env_steps % self.every or training.env_steps < c.epsilon_decay_steps:
+            return False
+        from .evaluate import evaluate_inprocess
+
+        results = [
+            evaluate_inprocess(
+                c.model,
+                "",
+                w,
+                self.steps,
+                seed=i,
+                net=training.learner.online,
+                start_yaw_jitter_deg=180.0,
+                hfov_deg=self.hfov_deg,
+            )
+            for i, w in enumerate(self.worlds)
+        ]
+        crashes = sum(r.crashes for r in results)
+        reward = sum(r.mean_reward for r in results) / len(results)
+        better = self.best is None or (crashes, -reward) < (self.best[0], -self.best[1])
+        if better:
+            self.best = (crashes, reward)
+            wio.save_file(training.learner.online, training.net_cfg, self.path)
+        self._rows.writerow(
+            [training.env_steps, training.learner.updates, crashes, self.steps * len(self.worlds), f"{reward:.4f}", int(better)]
+        )
+        self._csv.flush()
+        self.log(
+            f"validation at step {training.env_steps}: {crashes} crashes, mean reward {reward:.3f}{' (best)' if better else ''}"
+        )
+        return False
+
+    def close(self) -> None:
+        self._csv.close()
 
 
 def run(
@@ -36,6 +100,8 @@ def run(
     resume: bool = False,
     on_step=None,
     layout_per_episode: bool = False,
+    validation=None,
+    hfov_deg: float = SimConfig.hfov_deg,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -43,7 +109,8 @@ def run(
     so `random:0..999` stay held out) instead of `world`.
     """
     training = Training(cfg, run_dir, log=log, resume=resume)
-    sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg)
+    validator = validation(training) if validation is not None else None
+    sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg)
     layouts = iter(range(1000 + 100_000 * cfg.seed, 10**9))
     sim = Simulator(procedural_world(next(layouts)) if layout_per_episode else load_world(world), sim_cfg)
     agent = Agent(training.learner.online, training.net_cfg, cfg.device, seed=cfg.seed)
@@ -66,6 +133,8 @@ def run(
             state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
             while training.learn_once():
                 pass
+            if validator is not None:
+                validator(training)
             if on_step is not None and on_step(training):
                 break
             if training.env_steps % log_every == 0:
@@ -79,6 +148,8 @@ def run(
                 )
     finally:
         sim.close()
+        if validator is not None:
+            validator.close()
         training.save_checkpoint()
         training.close()
     return training
@@ -100,6 +171,22 @@ def main() -> int:
     ap.add_argument(
         "--layout-per-episode", action="store_true", help="experiment: a new procedural layout every episode instead of --world"
     )
+    ap.add_argument(
+        "--clearance-m",
+        type=float,
+        default=TrainerConfig.clearance_m,
+        help="experiment: side-clearance penalty distance (0 = the paper's reward)",
+    )
+    ap.add_argument("--clearance-weight", type=float, default=TrainerConfig.clearance_weight)
+    ap.add_argument(
+        "--validate-every",
+        type=int,
+        default=0,
+        help="model selection: every N env steps after the epsilon decay, fly the held-out validation layouts "
+        f"({', '.join(VALIDATION_WORLDS)}) and keep the best network as policy_<model>_best.safetensors (0 = off)",
+    )
+    ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
+    ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
@@ -109,15 +196,24 @@ def main() -> int:
         epsilon_decay_steps=a.epsilon_decay_steps,
         learning_starts=a.learning_starts,
         replay_ratio=a.replay_ratio,
+        clearance_m=a.clearance_m,
+        clearance_weight=a.clearance_weight,
         learner=dataclasses.replace(LearnerConfig(), learning_rate=a.learning_rate),
     )
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    run_dir = a.run_dir or f"runs/inproc_{a.model}_seed{a.seed}"
+    validation = None
+    if a.validate_every:
+        validation = lambda t: Validation(t, a.validate_every, steps=a.validation_steps, log=log, hfov_deg=a.hfov_deg)  # noqa: E731
     t = run(
         cfg,
-        a.run_dir or f"runs/inproc_{a.model}_seed{a.seed}",
+        run_dir,
         a.world,
         resume=a.resume,
-        log=lambda s: print(s, flush=True),
+        log=log,
         layout_per_episode=a.layout_per_episode,
+        validation=validation,
+        hfov_deg=a.hfov_deg,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0

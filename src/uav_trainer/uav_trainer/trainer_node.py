@@ -73,6 +73,17 @@ class TrainerNode(Node):
             epsilon_end=d("epsilon_end", D.epsilon_end, "Final exploration rate (the paper keeps 0.05)", 0.0, 1.0),
             epsilon_decay_steps=d("epsilon_decay_steps", D.epsilon_decay_steps, "Env steps of linear decay", 0, 10**9),
             total_steps=d("total_steps", D.total_steps, "Env steps budget; 0 = until Ctrl-C", 0, 10**10),
+            clearance_m=d(
+                "clearance_m",
+                D.clearance_m,
+                "Side clearance (m): > 0 adds a penalty for returns nearer than this in the central band of rows "
+                "(an extension, not the paper's reward); 0 = the paper's reward",
+                0.0,
+                10.0,
+            ),
+            clearance_weight=d(
+                "clearance_weight", D.clearance_weight, "Clearance penalty at contact (linear to 0 at clearance_m)", 0.0, 100.0
+            ),
             learner=learner,
         )
         run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")

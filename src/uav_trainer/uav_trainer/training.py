@@ -20,7 +20,7 @@ import torch
 
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig
-from uav_sim.reward import step_reward
+from uav_sim.reward import band_min_depth, clearance_penalty, step_reward
 
 from . import checkpoint
 from .episodes import EpisodeStats
@@ -42,6 +42,8 @@ class TrainerConfig:
     epsilon_end: float = 0.05
     epsilon_decay_steps: int = 10000  # environment steps of linear decay
     total_steps: int = 0  # environment steps budget; 0 = unlimited
+    clearance_m: float = 0.0  # > 0 adds clearance_penalty (not in the paper's reward); 0 = the paper's reward
+    clearance_weight: float = 4.0
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -147,6 +149,8 @@ class Training:
     def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
         """One transition; the reward comes from the simulator package's reward function."""
         reward = step_reward(beta_m, collided)
+        if self.cfg.clearance_m > 0.0 and not collided:  # after a collision next_frame is the next episode's
+            reward += clearance_penalty(band_min_depth(next_frame), self.cfg.clearance_m, self.cfg.clearance_weight)
         with self.lock:
             self.replay.add_transition(action, reward, collided, next_frame)
             self.env_steps += 1

@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# Regenerates the investigation experiments in docs/RESULTS.md (run scripts/reproduce_results.sh
+# first: it trains the paper-protocol runs runs/paper_*). Trains D3QN-SAM and D3QN-CNN with a new
+# procedural layout every episode (3 seeds each), at the default 90 degree camera and at 120
+# degrees, then evaluates through the ROS nodes with the paper's fixed start pose and with random
+# start headings (5 x 1000 steps per weight file), and two SAM-only experiments; then re-measures
+# every table without ROS (scripts/crosscheck_eval.py). About 2 h 30 min on 2 cores.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+. .venv/bin/activate
+set +u; . install/setup.bash; set -u
+export PYTHONPATH=src/uav_sim:src/uav_policy:src/uav_trainer ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+SEEDS=${SEEDS:-"0 1 2"}
+EVAL=install/uav_trainer/lib/uav_trainer/evaluate
+VARIED=(--start-yaw-jitter-deg 180 --repeats 5)
+train() {  # tag model seed [inprocess args]
+  local tag=$1 model=$2 seed=$3 d=runs/$1_$2_seed$3
+  shift 3
+  [ -f "$d/DONE" ] || {
+    python -m uav_trainer.inprocess --threads 1 --model "$model" --steps 30000 --seed "$seed" --layout-per-episode \
+      --run-dir "$d" "$@" > "$d.log" 2>&1
+    touch "$d/DONE"
+  }
+}
+weights() {  # tag -> sam=... cnn=... for every seed
+  for m in sam cnn; do for s in $SEEDS; do echo "$m=runs/$1_${m}_seed$s/policy_$m.safetensors"; done; done
+}
+for seed in $SEEDS; do
+  for model in sam cnn; do
+    train layouts "$model" "$seed" &
+    train fov120 "$model" "$seed" --hfov-deg 120 &
+    wait
+  done
+done
+# Two SAM-only experiments (seeds 0 and 1): the side-clearance penalty, and validation selection
+# (the same training as runs/layouts_*, which it leaves bit-for-bit unchanged).
+train clear sam 0 --clearance-m 1.0 &
+train clear sam 1 --clearance-m 1.0 &
+wait
+train val sam 0 --validate-every 1000 &
+train val sam 1 --validate-every 1000 &
+wait
+# Layout-per-episode training, 90 degrees: the paper's fixed start and random start headings.
+mapfile -t W < <(weights layouts)
+$EVAL --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent random:101 random:102 random:103 \
+  --steps 1000 --out docs/results/layout_training
+$EVAL --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --out docs/results/varied_start/layouts_training
+# Basic-only (paper-protocol) training under random start headings.
+mapfile -t W < <(weights paper)
+$EVAL --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --out docs/results/varied_start/paper_training
+# The 120 degree camera: trained and flown at 120 degrees.
+mapfile -t W < <(weights fov120)
+$EVAL --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out docs/results/fov120/fixed_start
+$EVAL --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --sim-arg hfov_deg:=120.0 --out docs/results/fov120/varied_start
+$EVAL --model sam --weights runs/clear_sam_seed{0,1}/policy_sam.safetensors --worlds complex --steps 1000 "${VARIED[@]}" \
+  --out docs/results/clearance
+$EVAL --model sam --weights runs/val_sam_seed{0,1}/policy_sam_best.safetensors --worlds complex --steps 1000 "${VARIED[@]}" \
+  --out docs/results/validation_selection
+# Every ROS measurement again without ROS: the rows must agree.
+X=scripts/crosscheck_eval.py
+python $X docs/results/layout_training/results.csv
+python $X docs/results/varied_start/layouts_training/results.csv "${VARIED[@]}"
+python $X docs/results/varied_start/paper_training/results.csv "${VARIED[@]}"
+python $X docs/results/fov120/fixed_start/results.csv --hfov-deg 120
+python $X docs/results/fov120/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
+python $X docs/results/clearance/results.csv "${VARIED[@]}"
+python $X docs/results/validation_selection/results.csv "${VARIED[@]}"
