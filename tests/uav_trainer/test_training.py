@@ -109,6 +109,11 @@ def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
     flags = [int(r["best"]) for r in rows]
     assert flags[0] == 1 and all(f == int(best[i] < min(best[:i])) for i, f in enumerate(flags) if i > 0)
     wio.load_file(tmp_path / "val" / "policy_sam_best.safetensors", NetConfig(model="sam"))
+    resumed = val(selected)  # a resumed run competes with the best it already saved
+    assert resumed.best is not None and (resumed.best[0], -resumed.best[1]) == min(
+        b for b, f in zip(best, flags, strict=True) if f
+    )
+    resumed.close()
 
 
 def test_clearance_penalty_is_added_to_the_papers_reward_only_when_asked(tmp_path):

@@ -10,6 +10,7 @@ weights use it; the ROS trainer runs the same pieces concurrently. Example:
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import dataclasses
 import time
@@ -47,7 +48,11 @@ class Validation:
         self.hfov_deg = hfov_deg
         self.best: tuple[int, float] | None = None
         self.path = training.dir / f"policy_{training.cfg.model}_best.safetensors"
-        self._csv = open(training.dir / "validation.csv", "a", newline="")
+        path = training.dir / "validation.csv"
+        if path.exists():  # a resumed run keeps competing with the best it already saved
+            kept = [(int(r["crashes"]), float(r["mean_reward"])) for r in csv.DictReader(open(path)) if r["best"] == "1"]
+            self.best = min(kept, key=lambda b: (b[0], -b[1]), default=None)
+        self._csv = open(path, "a", newline="")
         self._rows = csv.writer(self._csv)
         if self._csv.tell() == 0:
             self._rows.writerow(["env_steps", "updates", "crashes", "steps", "mean_reward", "best"])
@@ -58,6 +63,7 @@ class Validation:
             return False
         from .evaluate import evaluate_inprocess
 
+        net = copy.deepcopy(training.learner.online).cpu()  # the flights must not move or switch the learner's network
         results = [
             evaluate_inprocess(
                 c.model,
@@ -65,7 +71,7 @@ class Validation:
                 w,
                 self.steps,
                 seed=i,
-                net=training.learner.online,
+                net=net,
                 start_yaw_jitter_deg=180.0,
                 hfov_deg=self.hfov_deg,
             )
