@@ -59,7 +59,10 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         "duplicates",
     ):
         assert t[key] == "0", f"{key}={t[key]}"
-    assert int(diag["uav_sim"]["collisions"]) > 20 and int(t["episodes"]) == int(diag["uav_sim"]["collisions"])
+    collisions, missing = int(diag["uav_sim"]["collisions"]), sim_steps - int(t["env_steps"])
+    # The transition into the sim's last step is missing when the policy stopped before answering
+    # its frame; if that step was a collision, the trainer has one episode fewer.
+    assert collisions > 20 and collisions - missing <= int(t["episodes"]) <= collisions, (t, collisions, sim_steps)
     assert ros.stop(trainer) == 0
     assert "final checkpoint" in ros.log_of(trainer)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
