@@ -41,16 +41,21 @@ def center_window_min_depth(depth_m: np.ndarray, max_range_m: float, fraction: f
     -Inf (too close to measure) counts as 0, NaN (invalid) is ignored. A window with no
     valid pixel at all reads as `max_range_m`.
     """
+    rows, cols = center_window_slices(*_image_shape(depth_m), fraction)
+    return min(_nearest(depth_m[rows, cols]), float(max_range_m))
+
+
+def _image_shape(depth_m: np.ndarray) -> tuple[int, int]:
     if depth_m.ndim != 2:
         raise ValueError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")
-    rows, cols = center_window_slices(depth_m.shape[0], depth_m.shape[1], fraction)
-    window = np.asarray(depth_m[rows, cols], dtype=np.float64)
-    window = np.where(np.isposinf(window), max_range_m, window)
-    window = np.where(np.isneginf(window), 0.0, window)
-    valid = window[~np.isnan(window)]
-    if valid.size == 0:
-        return float(max_range_m)
-    return float(min(max(valid.min(), 0.0), max_range_m))
+    return depth_m.shape
+
+
+def _nearest(pixels: np.ndarray) -> float:
+    """The nearest REP 117 return: -Inf (too close) counts as 0, NaN is ignored, +Inf when none."""
+    px = np.asarray(pixels, dtype=np.float64)
+    valid = np.where(np.isneginf(px), 0.0, px)[~np.isnan(px)]
+    return float(max(valid.min(), 0.0)) if valid.size else math.inf
 
 
 def step_reward(beta_m: float, collided: bool, delta_m: float = DELTA_M) -> float:
@@ -70,13 +75,8 @@ def band_min_depth(depth_m: np.ndarray, fraction: float = CENTER_WINDOW_FRACTION
     Unlike beta's central window it sees obstacles beside the flight path; the band keeps
     the floor and ceiling out of the near returns. +Inf when nothing is within range.
     """
-    if depth_m.ndim != 2:
-        raise ValueError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")
-    rows, _ = center_window_slices(depth_m.shape[0], depth_m.shape[1], fraction)
-    band = np.asarray(depth_m[rows, :], dtype=np.float64)
-    band = np.where(np.isneginf(band), 0.0, band)
-    valid = band[~np.isnan(band)]
-    return float(max(valid.min(), 0.0)) if valid.size else math.inf
+    rows, _ = center_window_slices(*_image_shape(depth_m), fraction)
+    return _nearest(depth_m[rows, :])
 
 
 def clearance_penalty(band_min_m: float, clearance_m: float, weight: float) -> float:

@@ -364,16 +364,15 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
         "weight files (training seeds); n = runs per cell." + (f" {protocol}" if protocol else ""),
         "",
     ]
-    for title, key, digits in (
-        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2),
-        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3),
+    for title, key, digits, idx in (  # idx: the column of PAPER
+        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2, 0),
+        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3, 1),
     ):
         lines += [f"### {title}", ""]
         lines += [
             "| world | " + " | ".join(f"D3QN-{m.upper()} | paper" for m in models) + " |",
             "|" + "---|" * (1 + 2 * len(models)),
         ]
-        idx = 0 if "crashes" in title else 1
         for world in worlds:
             cells = []
             for m in models:

@@ -57,10 +57,10 @@ class Validation:
         if self._csv.tell() == 0:
             self._rows.writerow(["env_steps", "updates", "crashes", "steps", "mean_reward", "best"])
 
-    def __call__(self, training: Training) -> bool:
+    def __call__(self, training: Training) -> None:
         c = training.cfg
         if training.env_steps % self.every or training.env_steps < c.epsilon_decay_steps:
-            return False
+            return
         from .evaluate import evaluate_inprocess
 
         net = copy.deepcopy(training.learner.online).cpu()  # the flights must not move or switch the learner's network
@@ -90,7 +90,6 @@ class Validation:
         self.log(
             f"validation at step {training.env_steps}: {crashes} crashes, mean reward {reward:.3f}{' (best)' if better else ''}"
         )
-        return False
 
     def close(self) -> None:
         self._csv.close()
