@@ -3,13 +3,15 @@
 # first: it trains the paper-protocol runs runs/paper_*). Trains D3QN-SAM and D3QN-CNN with a new
 # procedural layout every episode (3 seeds each), at the default 90 degree camera and at 120
 # degrees, then evaluates through the ROS nodes with the paper's fixed start pose and with random
-# start headings (5 x 1000 steps per weight file), and two SAM-only experiments; then re-measures
-# every table without ROS (scripts/crosscheck_eval.py). About 2 h 30 min on 2 cores.
+# start headings (5 x 1000 steps per weight file), and two SAM-only experiments; then a second
+# round at 120 degrees (longer training, weight averaging, learning-rate annealing, a turn
+# penalty) with turning share and area covered; then re-measures every ROS table without ROS
+# (scripts/crosscheck_eval.py). About 4 h 30 min on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
 set +u; . install/setup.bash; set -u
-export PYTHONPATH=src/uav_sim:src/uav_policy:src/uav_trainer ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export PYTHONPATH=src/uav_sim:src/uav_policy:src/uav_trainer:${PYTHONPATH:-} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 SEEDS=${SEEDS:-"0 1 2"}
 EVAL=install/uav_trainer/lib/uav_trainer/evaluate
 VARIED=(--start-yaw-jitter-deg 180 --repeats 5)
@@ -60,6 +62,40 @@ $EVAL --model sam --weights runs/clear_sam_seed{0,1}/policy_sam.safetensors --wo
   --out docs/results/clearance
 $EVAL --model sam --weights runs/val_sam_seed{0,1}/policy_sam_best.safetensors --worlds complex --steps 1000 "${VARIED[@]}" \
   --out docs/results/validation_selection
+# Round 2, SAM at 120 degrees (layouts): longer training (80 000 steps), a moving average of the
+# weights, learning-rate annealing, and a turn penalty (SAM and CNN). Trained two at a time.
+train long sam 0 --hfov-deg 120 --steps 80000 --ema-decay 0.999 &
+train long sam 1 --hfov-deg 120 --steps 80000 --ema-decay 0.999 &
+wait
+train long sam 2 --hfov-deg 120 --steps 80000 --ema-decay 0.999 &
+train ema sam 0 --hfov-deg 120 --ema-decay 0.999 &
+wait
+train ema sam 1 --hfov-deg 120 --ema-decay 0.999 &
+train anneal sam 0 --hfov-deg 120 --ema-decay 0.999 --lr-anneal &
+wait
+train anneal sam 1 --hfov-deg 120 --ema-decay 0.999 --lr-anneal &
+train turn sam 0 --hfov-deg 120 --turn-penalty 1.0 &
+wait
+for pair in "sam 1" "sam 2" "cnn 0" "cnn 1"; do
+  read -r m s <<< "$pair"
+  train turn "$m" "$s" --hfov-deg 120 --turn-penalty 1.0 &
+  if [ "$pair" = "sam 2" ] || [ "$pair" = "cnn 1" ]; then wait; fi
+done
+# How the policies fly (turning share, area covered) beside the crashes: in-process (--inprocess
+# gives the same rows as the ROS nodes; tested), random start headings.
+B=(--inprocess --worlds basic complex turbulent --steps 1000 "${VARIED[@]}")
+B120=("${B[@]}" --sim-arg hfov_deg:=120.0)
+mapfile -t W < <(weights paper)
+$EVAL "${B[@]}" --model sam --model cnn --weights "${W[@]}" --out docs/results/behaviour/paper_training
+mapfile -t W < <(weights fov120)
+$EVAL "${B120[@]}" --model sam --model cnn --weights "${W[@]}" --out docs/results/behaviour/fov120
+$EVAL "${B120[@]}" --model sam --weights runs/long_sam_seed{0,1,2}/policy_sam.safetensors --out docs/results/behaviour/long_training
+$EVAL "${B120[@]}" --model sam --weights runs/turn_sam_seed{0,1,2}/policy_sam.safetensors --out docs/results/behaviour/turn_penalty_sam
+$EVAL "${B120[@]}" --model cnn --weights runs/turn_cnn_seed{0,1}/policy_cnn.safetensors --out docs/results/behaviour/turn_penalty_cnn
+C120=(--inprocess --worlds complex --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --model sam)
+$EVAL "${C120[@]}" --weights runs/ema_sam_seed{0,1}/policy_sam_ema.safetensors --out docs/results/behaviour/weight_average
+$EVAL "${C120[@]}" --weights runs/anneal_sam_seed{0,1}/policy_sam.safetensors --out docs/results/behaviour/lr_anneal
+$EVAL "${C120[@]}" --weights runs/anneal_sam_seed{0,1}/policy_sam_ema.safetensors --out docs/results/behaviour/lr_anneal_ema
 # Every ROS measurement again without ROS: the rows must agree.
 X=scripts/crosscheck_eval.py
 python $X docs/results/layout_training/results.csv

@@ -7,7 +7,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
 . install/setup.bash
-export PYTHONPATH=src/uav_sim:src/uav_policy:src/uav_trainer ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export PYTHONPATH=src/uav_sim:src/uav_policy:src/uav_trainer:${PYTHONPATH:-} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 SEEDS=${SEEDS:-"0 1 2"}
 for seed in $SEEDS; do
   for model in sam cnn; do

@@ -9,7 +9,7 @@ import pytest
 from conftest import ROOT, executable
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_trainer.evaluate import evaluate_once
+from uav_trainer.evaluate import Behaviour, evaluate_once
 
 
 def run_tool(pkg, exe, *args, domain="75", timeout=300):
@@ -68,6 +68,25 @@ def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):
     assert bad.returncode == 2 and "--start-yaw-jitter-deg" in bad.stderr
 
 
+def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_path):
+    w = tmp_path / "sam.safetensors"
+    wio.save_file(build_network(NetConfig(), seed=3), NetConfig(), w)
+    args = ["--weights", str(w), "--worlds", "complex", "--steps", "60", "--params-dir", str(ROOT / "params")]
+    args += ["--start-yaw-jitter-deg", "180", "--repeats", "2", "--sim-arg", "hfov_deg:=120.0"]
+    ros = run_tool("uav_trainer", "evaluate", *args, "--out", str(tmp_path / "ros"), domain="77")
+    local = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "local"), domain="77")
+    assert ros.returncode == 0 and local.returncode == 0, ros.stderr[-2000:] + local.stderr[-2000:]
+    assert "Measured in-process" in (tmp_path / "local" / "results.md").read_text()
+    a, b = ([r for r in csv.DictReader(open(tmp_path / d / "results.csv"))] for d in ("ros", "local"))
+    assert len(a) == len(b) == 1 and int(a[0]["steps"]) == 120
+    assert 0 <= int(a[0]["turn_steps"]) <= 120 and 1 <= int(a[0]["cells_visited"]) <= 120
+    assert "Flight behaviour" in (tmp_path / "ros" / "results.md").read_text()
+    for k in ("crashes", "mean_reward", "distance_m", "crash_sites", "turn_steps", "cells_visited"):
+        assert a[0][k] == b[0][k], (k, a[0], b[0])
+    bad = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--sim-arg", "weather:=rain", domain="77")
+    assert bad.returncode == 2 and "--inprocess takes only --sim-arg hfov_deg" in bad.stderr
+
+
 def test_attention_figures_are_written(tmp_path):
     r = run_tool(
         "uav_policy",
@@ -96,3 +115,18 @@ def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model):
     os.environ["ROS_DOMAIN_ID"] = "76"
     r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged file
     assert r.steps == 200 and r.crashes == 0, r
+
+
+def test_behaviour_tells_circling_on_the_spot_from_flying_through_the_room():
+    import math
+
+    circling, straight = Behaviour(0.5, 0.5, 0.0), Behaviour(0.5, 0.5, 0.0)
+    for k in range(1, 13):  # 30 degrees and 0.5 m per step: a circle of radius ~0.95 m, twice round
+        yaw = k * math.radians(30)
+        circling.step(0.5 + 0.95 * math.sin(yaw), 0.5 + 0.95 * (1 - math.cos(yaw)), yaw, False)
+        straight.step(0.5 + 0.5 * k, 0.5, 0.0, False)
+    assert circling.turn_steps == 12 and len(circling.cells) <= 6
+    assert straight.turn_steps == 0 and len(straight.cells) == 7
+    # A crash puts the vehicle back at the start with another heading: not a turn.
+    straight.step(0.5, 0.5, math.pi, True)
+    assert straight.turn_steps == 0 and len(straight.cells) == 7

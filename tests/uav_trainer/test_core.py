@@ -134,3 +134,40 @@ def test_confidence_interval_matches_a_hand_computed_t_interval():
     mean, hw = mean_ci95([0.0, 1.0, 2.0])  # s = 1, n = 3: 4.303 * 1 / sqrt(3)
     assert mean == 1.0 and hw == pytest.approx(4.303 / 3**0.5)
     assert np.isnan(mean_ci95([5.0])[1])
+
+
+def test_weight_average_follows_online_without_changing_learning(tmp_path):
+    cfg = NetConfig(model="sam")
+    plain = Learner(cfg, LearnerConfig(seed=4, target_update_interval=2))
+    avg = Learner(cfg, LearnerConfig(seed=4, target_update_interval=2, ema_decay=0.9))
+    assert plain.ema is None
+    expected = [p.detach().clone() for p in avg.online.parameters()]
+    for k in range(4):
+        assert plain.update(small_batch(k))["loss"] == avg.update(small_batch(k))["loss"]
+        expected = [0.9 * e + 0.1 * p.detach() for e, p in zip(expected, avg.online.parameters(), strict=True)]
+    for a, b in zip(plain.online.parameters(), avg.online.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)  # the average never feeds back into learning
+    for e, p in zip(expected, avg.ema.parameters(), strict=True):
+        torch.testing.assert_close(p, e)
+    assert any(not torch.equal(p, o) for p, o in zip(avg.ema.parameters(), avg.online.parameters(), strict=True))
+    # The average is checkpointed and restored with the rest.
+    path = checkpoint.save(tmp_path, avg, {}, {})
+    back = Learner(cfg, LearnerConfig(seed=5, ema_decay=0.9))
+    checkpoint.load(path, back)
+    for a, b in zip(avg.ema.parameters(), back.ema.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_learning_rate_annealing_schedule_reaches_the_optimizer():
+    lr = Learner(NetConfig(model="cnn"), LearnerConfig(learning_rate=1e-3, lr_anneal_updates=4, lr_end_fraction=0.1))
+    assert [lr.learning_rate(u) for u in (0, 2, 4, 100)] == pytest.approx([1e-3, 5.5e-4, 1e-4, 1e-4])
+    for k in range(3):
+        lr.update(small_batch(k))
+    assert lr.optimizer.param_groups[0]["lr"] == pytest.approx(lr.learning_rate(2))
+    assert Learner(NetConfig(model="cnn"), LearnerConfig()).learning_rate(10**6) == LearnerConfig.learning_rate
+
+
+@pytest.mark.parametrize("bad", [{"ema_decay": 1.0}, {"ema_decay": -0.1}, {"lr_anneal_updates": -1}, {"lr_end_fraction": 0.0}])
+def test_bad_averaging_or_annealing_settings_are_refused(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        Learner(NetConfig(model="cnn"), LearnerConfig(**bad))

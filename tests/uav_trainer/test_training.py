@@ -54,6 +54,21 @@ def test_training_writes_outputs_and_resumes(tmp_path):
     again.close()
 
 
+def test_the_weight_average_is_written_beside_the_policy_weights(tmp_path):
+    from uav_policy import weights as wio
+
+    t = Training(small_cfg(learner=LearnerConfig(batch_size=8, ema_decay=0.99)), tmp_path, log=lambda s: None)
+    feed(t, 80)
+    while t.learn_once():
+        pass
+    t.save_checkpoint()
+    t.close()
+    net = wio.load_file(tmp_path / "policy_cnn_ema.safetensors", t.net_cfg)
+    for a, b in zip(net.parameters(), t.learner.ema.parameters(), strict=True):
+        torch.testing.assert_close(a, b)
+    assert any(not torch.equal(a, b) for a, b in zip(net.parameters(), t.learner.online.parameters(), strict=True))
+
+
 def test_non_finite_loss_stops_learning_and_keeps_the_last_good_checkpoint(tmp_path):
     t = Training(small_cfg(), tmp_path, log=lambda s: None)
     feed(t, 120)
@@ -128,6 +143,22 @@ def test_clearance_penalty_is_added_to_the_papers_reward_only_when_asked(tmp_pat
     assert paper.add_step(0, 8.0, False, frame) == step_reward(8.0, False)
     assert shaped.add_step(0, 8.0, False, frame) == step_reward(8.0, False) - 2.0
     assert shaped.add_step(0, 8.0, True, frame) == -10.0  # a collision's frame is the next episode's: no penalty
+    paper.close()
+    shaped.close()
+
+
+def test_turn_penalty_applies_to_turning_actions_only_when_asked(tmp_path):
+    from uav_sim.reward import step_reward
+
+    frame = np.full((64, 64), 8.0, dtype=np.float32)
+    paper = Training(small_cfg(), tmp_path / "a", log=lambda s: None)
+    shaped = Training(small_cfg(turn_penalty=0.75), tmp_path / "b", log=lambda s: None)
+    for t in (paper, shaped):
+        t.add_first(frame)
+    base = step_reward(8.0, False)
+    assert [paper.add_step(a, 8.0, False, frame) for a in range(4)] == [base] * 4
+    assert [shaped.add_step(a, 8.0, False, frame) for a in range(4)] == [base, base - 0.75, base - 0.75, base]
+    assert shaped.add_step(1, 8.0, True, frame) == -10.0  # a crash costs the same either way
     paper.close()
     shaped.close()
 

@@ -46,6 +46,8 @@ def save(dir_: str | os.PathLike, learner: Learner, counters: dict, extra_rng: d
     tmp.mkdir()
     tensors = {f"online.{k}": v.detach().cpu().contiguous() for k, v in learner.online.state_dict().items()}
     tensors.update({f"target.{k}": v.detach().cpu().contiguous() for k, v in learner.target.state_dict().items()})
+    if learner.ema is not None:
+        tensors.update({f"ema.{k}": v.detach().cpu().contiguous() for k, v in learner.ema.state_dict().items()})
     opt_tensors, groups = _optimizer_tensors(learner.optimizer)
     tensors.update(opt_tensors)
     tensors["rng.torch"] = torch.random.get_rng_state()
@@ -93,6 +95,9 @@ def load(path: Path, learner: Learner) -> dict:
     tensors = load_file(str(path / "state.safetensors"))
     learner.online.load_state_dict({k[7:]: v for k, v in tensors.items() if k.startswith("online.")})
     learner.target.load_state_dict({k[7:]: v for k, v in tensors.items() if k.startswith("target.")})
+    if learner.ema is not None:  # a checkpoint without an average (ema_decay was 0) starts it from online
+        ema = {k[4:]: v for k, v in tensors.items() if k.startswith("ema.")}
+        learner.ema.load_state_dict(ema or learner.online.state_dict())
     state = {}
     for k, v in tensors.items():
         if k.startswith("optimizer.state."):

@@ -12,6 +12,9 @@ The paper's protocol restarts every episode at the world's start pose. The simul
 epsilon-0 policy are deterministic, so after a crash the same flight repeats and one failure is
 counted again every lap. `--start-yaw-jitter-deg 180 --repeats 5` measures over varied start
 headings instead (seeded: sim seeds --seed .. --seed+repeats-1, steps summed per weight file).
+
+`--inprocess` measures the same thing without ROS (same simulator, stack and network in one
+process; several times faster), for screening many weight files; the tables say which was used.
 """
 
 from __future__ import annotations
@@ -51,6 +54,8 @@ class EvalResult:
     mean_reward: float
     distance_m: float
     crash_sites: int = -1  # distinct places (0.1 m grid) where a crashing step began, per run, summed; -1 unknown
+    turn_steps: int = -1  # steps that changed the heading by more than TURN_DEG (-1 unknown)
+    cells: int = -1  # distinct 1 m x 1 m floor cells flown through, per run, summed (-1 unknown)
 
     @property
     def distance_between_crashes_m(self) -> float:
@@ -61,6 +66,32 @@ def crash_site(xy) -> tuple[float, float]:
     """Where a crashing step began, on a 0.1 m grid: a deterministic policy restarted at the same
     pose crashes at the same site again, so crashes / sites tells repeats from new failures."""
     return (round(xy[0], 1), round(xy[1], 1))
+
+
+TURN_DEG = 15.0  # the paper's turning actions yaw 30 degrees per step, the straight ones 0
+
+
+class Behaviour:
+    """How a policy flies, beside how often it crashes: the share of steps spent turning, and how
+    much of the room it covers (distinct 1 m cells). A policy that circles on the spot can crash
+    rarely while covering almost nothing; these numbers make that visible."""
+
+    def __init__(self, x: float, y: float, yaw_rad: float):
+        self.turn_steps = 0
+        self.cells = {(math.floor(x), math.floor(y))}
+        self.yaw = yaw_rad
+
+    def step(self, x: float, y: float, yaw_rad: float, collided: bool) -> None:
+        """After every step; after a collision the pose is the next episode's start."""
+        if not collided:
+            turn = (yaw_rad - self.yaw + math.pi) % (2 * math.pi) - math.pi
+            self.turn_steps += abs(math.degrees(turn)) > TURN_DEG
+        self.cells.add((math.floor(x), math.floor(y)))
+        self.yaw = yaw_rad
+
+
+def quaternion_yaw(q) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
 class StepMonitor:
@@ -77,6 +108,7 @@ class StepMonitor:
         self.last_xy = None
         self.last_stamp = self.step_ns = None
         self.gaps = 0  # steps whose stamp is not one step after the previous one: messages were lost
+        self.behaviour: Behaviour | None = None
 
     def add(self, stream: str, msg) -> None:
         stamp = contract.stamp_ns(msg.header.stamp)
@@ -85,8 +117,10 @@ class StepMonitor:
             return
         p = j["odom"].pose.pose.position
         xy = (p.x, p.y)
+        yaw = quaternion_yaw(j["odom"].pose.pose.orientation)
         if self.first:  # the frame before any command: not a step
             self.first, self.last_xy, self.last_stamp = False, xy, stamp
+            self.behaviour = Behaviour(p.x, p.y, yaw)
             return
         delta = stamp - self.last_stamp
         self.step_ns = delta if self.step_ns is None else self.step_ns
@@ -102,6 +136,7 @@ class StepMonitor:
             self.sites.add(crash_site(self.last_xy))
         else:
             self.distance += math.hypot(xy[0] - self.last_xy[0], xy[1] - self.last_xy[1])
+        self.behaviour.step(p.x, p.y, yaw, collided)
         self.last_xy = xy
 
     @property
@@ -186,7 +221,19 @@ def evaluate_once(
         executor.shutdown()
         node.destroy_node()
         ctx.try_shutdown()
-    return EvalResult(model, world, weights, mon.steps, mon.crashes, mon.reward / max(mon.steps, 1), mon.distance, len(mon.sites))
+    b = mon.behaviour
+    return EvalResult(
+        model,
+        world,
+        weights,
+        mon.steps,
+        mon.crashes,
+        mon.reward / max(mon.steps, 1),
+        mon.distance,
+        len(mon.sites),
+        b.turn_steps if b else -1,
+        len(b.cells) if b else -1,
+    )
 
 
 def evaluate_inprocess(
@@ -210,12 +257,18 @@ def evaluate_inprocess(
     from uav_sim.world import load_world
 
     cfg = NetConfig(model=model)
-    agent = Agent(net if net is not None else wio.load_file(weights, cfg), cfg, seed=seed)
+    if net is None:
+        path = weights or wio.packaged_weights(model)
+        if path is None:
+            raise FileNotFoundError(f"no weights given and no packaged {model} weights")
+        net = wio.load_file(path, cfg)
+    agent = Agent(net, cfg, seed=seed)
     sim = Simulator(load_world(world), SimConfig(seed=seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg))
     stack = FrameStack(cfg.frames)
     r = sim.observe()
     state = stack.reset(r.depth_m)
     crashes, reward, dist, last, sites = 0, 0.0, 0.0, (r.pose.x_m, r.pose.y_m), set()
+    behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
     try:
         for _ in range(steps):
             a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
@@ -228,10 +281,13 @@ def evaluate_inprocess(
             else:
                 dist += math.hypot(r.pose.x_m - last[0], r.pose.y_m - last[1])
                 state = stack.push(r.depth_m)
+            behaviour.step(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad, r.collided)
             last = (r.pose.x_m, r.pose.y_m)
     finally:
         sim.close()
-    return EvalResult(model, world, weights, steps, crashes, reward / steps, dist, len(sites))
+    return EvalResult(
+        model, world, weights, steps, crashes, reward / steps, dist, len(sites), behaviour.turn_steps, len(behaviour.cells)
+    )
 
 
 def pool(runs: list[EvalResult]) -> EvalResult:
@@ -247,7 +303,10 @@ def pool(runs: list[EvalResult]) -> EvalResult:
         sum(r.crashes for r in runs),
         reward,
         sum(r.distance_m for r in runs),
-        sum(r.crash_sites for r in runs) if all(r.crash_sites >= 0 for r in runs) else -1,
+        *(
+            sum(getattr(r, k) for r in runs) if all(getattr(r, k) >= 0 for r in runs) else -1
+            for k in ("crash_sites", "turn_steps", "cells")
+        ),
     )
 
 
@@ -340,6 +399,8 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                 "distance_m",
                 "distance_between_crashes_m",
                 "crash_sites",
+                "turn_steps",
+                "cells_visited",
             ]
         )
         for r in results:
@@ -355,6 +416,8 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     f"{r.distance_m:.2f}",
                     f"{r.distance_between_crashes_m:.2f}",
                     r.crash_sites,
+                    r.turn_steps,
+                    r.cells,
                 ]
             )
     models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
@@ -399,6 +462,26 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
             lambda runs: f"{sum(r.crashes for r in runs)} / {sum(r.crash_sites for r in runs)}",
             intro,
         )
+    if results and all(r.turn_steps >= 0 and r.cells >= 0 for r in results):
+        lines += [
+            "### Flight behaviour: turning steps (%) / floor area covered (m² per 1000 steps)",
+            "",
+            f"A turning step changes the heading by more than {TURN_DEG:g}°; the area is the number of distinct "
+            "1 m x 1 m cells flown through, per run. A policy that circles on the spot crashes rarely but turns "
+            "on almost every step and covers little. Mean ± 95% CI over the weight files.",
+            "",
+            "| world | " + " | ".join(f"D3QN-{m.upper()}" for m in models) + " |",
+            "|" + "---|" * (1 + len(models)),
+        ]
+        for world in worlds:
+            cells = []
+            for m in models:
+                runs = [r for r in results if r.model == m and r.world == world]
+                turn = fmt(*mean_ci95([100 * r.turn_steps / r.steps for r in runs]), 0)
+                area = fmt(*mean_ci95([1000 * r.cells / r.steps for r in runs]), 0)
+                cells.append(f"{turn} / {area}" if runs else "-")
+            lines.append(f"| {world} | " + " | ".join(cells) + " |")
+        lines.append("")
     md_path = out_dir / "results.md"
     md_path.write_text("\n".join(lines))
     return md_path, csv_path
@@ -434,9 +517,27 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
     ap.add_argument("--from-csv", default=None, help="only rewrite the tables from an earlier results.csv")
+    ap.add_argument(
+        "--inprocess",
+        action="store_true",
+        help="measure without ROS (same simulator and network, one process): for screening; "
+        "takes --sim-arg hfov_deg:=X only, and --epsilon 0",
+    )
     a = ap.parse_args(argv)
     if a.repeats < 1 or a.steps < 1:
         ap.error("--repeats and --steps must be >= 1")
+    hfov_deg = 90.0
+    if a.inprocess:
+        for arg in a.sim_arg:
+            name, _, value = arg.partition(":=")
+            if name != "hfov_deg":
+                ap.error(f"--inprocess takes only --sim-arg hfov_deg:=X, got {arg!r}")
+            try:
+                hfov_deg = float(value)
+            except ValueError:
+                ap.error(f"--sim-arg {arg!r}: hfov_deg must be a number")
+        if a.epsilon != 0.0:
+            ap.error("--inprocess flies exploit-only: --epsilon must be 0")
     if not 0.0 <= a.start_yaw_jitter_deg <= 180.0:
         ap.error("--start-yaw-jitter-deg must be in [0, 180]")
     if a.from_csv:
@@ -451,6 +552,8 @@ def main(argv=None) -> int:
                 float(r["mean_reward"]),
                 float(r["distance_m"]),
                 int(r.get("crash_sites", -1)),
+                int(r.get("turn_steps", -1)),
+                int(r.get("cells_visited", -1)),
             )
             for r in rows
         ]
@@ -473,8 +576,23 @@ def main(argv=None) -> int:
         for model, weights in runs:
             for world in a.worlds:
                 bar.set_description(f"{model} {world} {Path(weights).name if weights else 'packaged'}")
-                r = pool(
-                    [
+                if a.inprocess:
+                    once = []
+                    for i in range(a.repeats):
+                        once.append(
+                            evaluate_inprocess(
+                                model,
+                                weights,
+                                world,
+                                a.steps,
+                                a.seed + i,
+                                start_yaw_jitter_deg=a.start_yaw_jitter_deg,
+                                hfov_deg=hfov_deg,
+                            )
+                        )
+                        bar.update(a.steps)
+                else:
+                    once = [
                         evaluate_once(
                             model,
                             weights,
@@ -489,7 +607,7 @@ def main(argv=None) -> int:
                         )
                         for i in range(a.repeats)
                     ]
-                )
+                r = pool(once)
                 results.append(r)
                 bar.write(
                     f"{model:3s} {world:10s} {weights or 'packaged'}: {r.crashes} crashes at {r.crash_sites} sites, "
@@ -504,6 +622,8 @@ def main(argv=None) -> int:
         protocol = "Every episode starts at the world's start pose (the paper's protocol)."
     if a.sim_arg:
         protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
+    if a.inprocess:
+        protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())
     print(f"written: {md} {csv_path}")

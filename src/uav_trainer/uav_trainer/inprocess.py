@@ -192,6 +192,23 @@ def main() -> int:
     )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
+    ap.add_argument(
+        "--turn-penalty",
+        type=float,
+        default=TrainerConfig.turn_penalty,
+        help="experiment: subtract this from the reward of every turning step (0 = the paper's reward)",
+    )
+    ap.add_argument(
+        "--ema-decay",
+        type=float,
+        default=LearnerConfig.ema_decay,
+        help="experiment: also keep a moving average of the weights (e.g. 0.999) as policy_<model>_ema.safetensors (0 = off)",
+    )
+    ap.add_argument(
+        "--lr-anneal",
+        action="store_true",
+        help="experiment: lower the learning rate linearly to 0.1x over the run's updates (default: constant, as the paper)",
+    )
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
@@ -203,7 +220,14 @@ def main() -> int:
         replay_ratio=a.replay_ratio,
         clearance_m=a.clearance_m,
         clearance_weight=a.clearance_weight,
-        learner=dataclasses.replace(LearnerConfig(), learning_rate=a.learning_rate),
+        turn_penalty=a.turn_penalty,
+        turning_actions=tuple(i for i, act in enumerate(PAPER_ACTIONS) if act.yaw_deg_per_step != 0.0),
+        learner=dataclasses.replace(
+            LearnerConfig(),
+            learning_rate=a.learning_rate,
+            ema_decay=a.ema_decay,
+            lr_anneal_updates=max(1, int((a.steps - a.learning_starts) * a.replay_ratio)) if a.lr_anneal else 0,
+        ),
     )
     log = lambda s: print(s, flush=True)  # noqa: E731
     run_dir = a.run_dir or f"runs/inproc_{a.model}_seed{a.seed}"

@@ -24,6 +24,14 @@ class LearnerConfig:
     target_tau: float = 1.0  # 1.0: hard copy; < 1: Polyak averaging at every sync
     huber_delta: float = 1.0
     seed: int = 0
+    # Learning-rate annealing: > 0 lowers the rate linearly to lr_end_fraction x learning_rate over
+    # this many updates, then keeps it there (0 = constant rate, as the paper).
+    lr_anneal_updates: int = 0
+    lr_end_fraction: float = 0.1
+    # Weight averaging: > 0 keeps an exponential moving average of the online weights,
+    # ema <- decay * ema + (1 - decay) * online after every update (0 = off). It never acts in
+    # training; the trainer writes it as policy_<model>_ema.safetensors for evaluation.
+    ema_decay: float = 0.0
 
 
 def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
@@ -47,6 +55,27 @@ class Learner:
             p.requires_grad_(False)
         self.optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.learning_rate)
         self.updates = 0
+        if not 0.0 <= cfg.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must be in [0, 1), got {cfg.ema_decay}")
+        if cfg.lr_anneal_updates < 0 or not 0.0 < cfg.lr_end_fraction <= 1.0:
+            raise ValueError(
+                "lr_anneal_updates must be >= 0 and lr_end_fraction in (0, 1], "
+                f"got {cfg.lr_anneal_updates}, {cfg.lr_end_fraction}"
+            )
+        self.ema = None
+        if cfg.ema_decay > 0.0:
+            self.ema = copy.deepcopy(self.online).eval()
+            for p in self.ema.parameters():
+                p.requires_grad_(False)
+
+    def learning_rate(self, updates: int | None = None) -> float:
+        """The rate for the next update (linear annealing when lr_anneal_updates > 0)."""
+        c = self.cfg
+        u = self.updates if updates is None else updates
+        if c.lr_anneal_updates <= 0:
+            return c.learning_rate
+        frac = min(u / c.lr_anneal_updates, 1.0)
+        return c.learning_rate * (1.0 - frac * (1.0 - c.lr_end_fraction))
 
     def _tensors(self, batch: dict[str, np.ndarray]):
         d = self.device
@@ -71,11 +100,24 @@ class Learner:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip_norm)
+        if self.cfg.lr_anneal_updates > 0:
+            for g in self.optimizer.param_groups:
+                g["lr"] = self.learning_rate()
         self.optimizer.step()
         self.updates += 1
+        if self.ema is not None:
+            self._update_ema()
         if self.updates % self.cfg.target_update_interval == 0:
             self.sync_target()
         return {"loss": float(loss.item()), "q_mean": float(q.mean().item()), "grad_norm": float(grad_norm)}
+
+    @torch.no_grad()
+    def _update_ema(self) -> None:
+        d = self.cfg.ema_decay
+        for e, o in zip(self.ema.parameters(), self.online.parameters(), strict=True):
+            e.mul_(d).add_(o, alpha=1.0 - d)
+        for e, o in zip(self.ema.buffers(), self.online.buffers(), strict=True):
+            e.copy_(o)
 
     @torch.no_grad()
     def sync_target(self) -> None:

@@ -9,6 +9,7 @@ to the policy over policy_node/push_weights, epsilon through policy_node's param
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 
@@ -55,6 +56,21 @@ class TrainerNode(Node):
             ),
             target_tau=d("target_tau", L.target_tau, "1.0: hard copy at each sync; <1: Polyak factor", 0.0001, 1.0),
             huber_delta=d("huber_delta", L.huber_delta, "Huber loss threshold", 0.01, 100.0),
+            lr_anneal_updates=d(
+                "lr_anneal_updates",
+                L.lr_anneal_updates,
+                "> 0: lower the learning rate linearly to lr_end_fraction x over this many updates; 0 = constant",
+                0,
+                10**9,
+            ),
+            lr_end_fraction=d("lr_end_fraction", L.lr_end_fraction, "Final learning rate / initial when annealing", 0.001, 1.0),
+            ema_decay=d(
+                "ema_decay",
+                L.ema_decay,
+                "> 0: also keep a moving average of the weights, written as policy_<model>_ema.safetensors (0 = off)",
+                0.0,
+                0.99999,
+            ),
         )
         self.cfg = TrainerConfig(
             model=d("model", D.model, "Q-network: sam or cnn (must match policy_node's model)", choices=("sam", "cnn")),
@@ -84,6 +100,13 @@ class TrainerNode(Node):
             clearance_weight=d(
                 "clearance_weight", D.clearance_weight, "Clearance penalty at contact (linear to 0 at clearance_m)", 0.0, 100.0
             ),
+            turn_penalty=d(
+                "turn_penalty",
+                D.turn_penalty,
+                "Subtracted from the reward of every turning step (an extension; 0 = the paper's reward)",
+                0.0,
+                100.0,
+            ),
             learner=learner,
         )
         run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")
@@ -101,6 +124,8 @@ class TrainerNode(Node):
             raise ParameterError(f"parameters 'action_*': {e}") from None
         if len(self.actions) != 4:
             raise ParameterError(f"parameters 'action_*': the networks have 4 outputs, got {len(self.actions)} actions")
+        turning = tuple(i for i, a in enumerate(self.actions) if a.yaw_deg_per_step != 0.0)
+        self.cfg = dataclasses.replace(self.cfg, turning_actions=turning)
         torch.set_num_threads(threads)
         self.training = Training(self.cfg, run_dir, log=self.get_logger().info, resume=resume)
 

@@ -44,6 +44,10 @@ class TrainerConfig:
     total_steps: int = 0  # environment steps budget; 0 = unlimited
     clearance_m: float = 0.0  # > 0 adds clearance_penalty (not in the paper's reward); 0 = the paper's reward
     clearance_weight: float = 4.0
+    # > 0 subtracts this from the reward of every step that turns (not in the paper's reward): under
+    # the paper's reward a policy can circle on the spot, crash rarely and cover nothing.
+    turn_penalty: float = 0.0
+    turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -85,6 +89,10 @@ class Training:
     @property
     def policy_weights_path(self) -> Path:
         return self.dir / f"policy_{self.cfg.model}.safetensors"
+
+    @property
+    def ema_weights_path(self) -> Path:
+        return self.dir / f"policy_{self.cfg.model}_ema.safetensors"
 
     def _open_logs(self) -> None:
         new = not (self.dir / "metrics.csv").exists()
@@ -151,6 +159,8 @@ class Training:
         reward = step_reward(beta_m, collided)
         if self.cfg.clearance_m > 0.0 and not collided:  # after a collision next_frame is the next episode's
             reward += clearance_penalty(band_min_depth(next_frame), self.cfg.clearance_m, self.cfg.clearance_weight)
+        if self.cfg.turn_penalty > 0.0 and not collided and action in self.cfg.turning_actions:
+            reward -= self.cfg.turn_penalty
         with self.lock:
             self.replay.add_transition(action, reward, collided, next_frame)
             self.env_steps += 1
@@ -230,6 +240,8 @@ class Training:
             rng = {"replay": checkpoint.rng_state(self.replay.rng)}
         path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng)
         wio.save_file(self.learner.online, self.net_cfg, self.policy_weights_path)
+        if self.learner.ema is not None:
+            wio.save_file(self.learner.ema, self.net_cfg, self.ema_weights_path)
         self.plot()
         return path
 
