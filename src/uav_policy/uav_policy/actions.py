@@ -16,6 +16,11 @@ class Action:
         return math.radians(self.yaw_deg_per_step) / step_duration_s
 
 
+def turning_indices(actions) -> tuple[int, ...]:
+    """Indices of the actions that yaw (the paper's a1 and a2)."""
+    return tuple(i for i, a in enumerate(actions) if a.yaw_deg_per_step != 0.0)
+
+
 PAPER_ACTIONS = (
     Action("a0_forward_1mps", 1.0, 0.0),
     Action("a1_yaw_right_30deg_forward_1mps", 1.0, -30.0),

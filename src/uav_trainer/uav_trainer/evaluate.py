@@ -463,25 +463,24 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
             intro,
         )
     if results and all(r.turn_steps >= 0 and r.cells >= 0 for r in results):
-        lines += [
-            "### Flight behaviour: turning steps (%) / floor area covered (m² per 1000 steps)",
-            "",
+        intro = (
             f"A turning step changes the heading by more than {TURN_DEG:g}°; the area is the number of distinct "
             "1 m x 1 m cells flown through, per run. A policy that circles on the spot crashes rarely but turns "
-            "on almost every step and covers little. Mean ± 95% CI over the weight files.",
+            "on almost every step and covers little. Mean ± 95% CI over the weight files."
+        )
+        lines += pooled_table(
+            results,
+            models,
+            worlds,
+            "Flight behaviour: turning steps (%) / floor area covered (m² per 1000 steps)",
             "",
-            "| world | " + " | ".join(f"D3QN-{m.upper()}" for m in models) + " |",
-            "|" + "---|" * (1 + len(models)),
-        ]
-        for world in worlds:
-            cells = []
-            for m in models:
-                runs = [r for r in results if r.model == m and r.world == world]
-                turn = fmt(*mean_ci95([100 * r.turn_steps / r.steps for r in runs]), 0)
-                area = fmt(*mean_ci95([1000 * r.cells / r.steps for r in runs]), 0)
-                cells.append(f"{turn} / {area}" if runs else "-")
-            lines.append(f"| {world} | " + " | ".join(cells) + " |")
-        lines.append("")
+            lambda runs: (
+                fmt(*mean_ci95([100 * r.turn_steps / r.steps for r in runs]), 0)
+                + " / "
+                + fmt(*mean_ci95([1000 * r.cells / r.steps for r in runs]), 0)
+            ),
+            intro,
+        )
     md_path = out_dir / "results.md"
     md_path.write_text("\n".join(lines))
     return md_path, csv_path
@@ -573,41 +572,30 @@ def main(argv=None) -> int:
     results = []
     total = len(runs) * len(a.worlds) * a.steps * a.repeats
     with tqdm(total=total, unit="step", dynamic_ncols=True, disable=None) as bar:
+
+        def measure(model: str, weights: str, world: str, seed: int) -> EvalResult:
+            jitter = a.start_yaw_jitter_deg
+            if not a.inprocess:
+                return evaluate_once(
+                    model,
+                    weights,
+                    world,
+                    a.steps,
+                    a.epsilon,
+                    seed,
+                    params,
+                    start_yaw_jitter_deg=jitter,
+                    sim_args=tuple(a.sim_arg),
+                    progress=bar.update,
+                )
+            r = evaluate_inprocess(model, weights, world, a.steps, seed, start_yaw_jitter_deg=jitter, hfov_deg=hfov_deg)
+            bar.update(a.steps)
+            return r
+
         for model, weights in runs:
             for world in a.worlds:
                 bar.set_description(f"{model} {world} {Path(weights).name if weights else 'packaged'}")
-                if a.inprocess:
-                    once = []
-                    for i in range(a.repeats):
-                        once.append(
-                            evaluate_inprocess(
-                                model,
-                                weights,
-                                world,
-                                a.steps,
-                                a.seed + i,
-                                start_yaw_jitter_deg=a.start_yaw_jitter_deg,
-                                hfov_deg=hfov_deg,
-                            )
-                        )
-                        bar.update(a.steps)
-                else:
-                    once = [
-                        evaluate_once(
-                            model,
-                            weights,
-                            world,
-                            a.steps,
-                            a.epsilon,
-                            a.seed + i,
-                            params,
-                            start_yaw_jitter_deg=a.start_yaw_jitter_deg,
-                            sim_args=tuple(a.sim_arg),
-                            progress=bar.update,
-                        )
-                        for i in range(a.repeats)
-                    ]
-                r = pool(once)
+                r = pool([measure(model, weights, world, a.seed + i) for i in range(a.repeats)])
                 results.append(r)
                 bar.write(
                     f"{model:3s} {world:10s} {weights or 'packaged'}: {r.crashes} crashes at {r.crash_sites} sites, "

@@ -18,7 +18,7 @@ import time
 import torch
 
 from uav_policy import weights as wio
-from uav_policy.actions import PAPER_ACTIONS
+from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
 from uav_sim.simulator import SimConfig, Simulator
@@ -221,7 +221,7 @@ def main() -> int:
         clearance_m=a.clearance_m,
         clearance_weight=a.clearance_weight,
         turn_penalty=a.turn_penalty,
-        turning_actions=tuple(i for i, act in enumerate(PAPER_ACTIONS) if act.yaw_deg_per_step != 0.0),
+        turning_actions=turning_indices(PAPER_ACTIONS),
         learner=dataclasses.replace(
             LearnerConfig(),
             learning_rate=a.learning_rate,

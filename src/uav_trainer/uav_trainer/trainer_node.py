@@ -22,7 +22,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import Image, Range
 
-from uav_policy.actions import PAPER_ACTIONS, make_actions
+from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
 from uav_policy.push import push_request
 from uav_sim import contract
 from uav_sim.node_runner import run
@@ -124,8 +124,7 @@ class TrainerNode(Node):
             raise ParameterError(f"parameters 'action_*': {e}") from None
         if len(self.actions) != 4:
             raise ParameterError(f"parameters 'action_*': the networks have 4 outputs, got {len(self.actions)} actions")
-        turning = tuple(i for i, a in enumerate(self.actions) if a.yaw_deg_per_step != 0.0)
-        self.cfg = dataclasses.replace(self.cfg, turning_actions=turning)
+        self.cfg = dataclasses.replace(self.cfg, turning_actions=turning_indices(self.actions))
         torch.set_num_threads(threads)
         self.training = Training(self.cfg, run_dir, log=self.get_logger().info, resume=resume)
 
