@@ -5,8 +5,9 @@
 # degrees, then evaluates through the ROS nodes with the paper's fixed start pose and with random
 # start headings (5 x 1000 steps per weight file), and two SAM-only experiments; then a second
 # round at 120 degrees (longer training, weight averaging, learning-rate annealing, a turn
-# penalty) with turning share and area covered; then re-measures every ROS table without ROS
-# (scripts/crosscheck_eval.py). About 4 h 30 min on 2 cores.
+# penalty) and a third (five seeds with the turn penalty; SAM with the flatten readout) with
+# turning share and area covered; then re-measures every ROS table without ROS
+# (scripts/crosscheck_eval.py). About 6 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -81,6 +82,21 @@ for pair in "sam 1" "sam 2" "cnn 0" "cnn 1"; do
   train turn "$m" "$s" --hfov-deg 120 --turn-penalty 1.0 &
   if [ "$pair" = "sam 2" ] || [ "$pair" = "cnn 1" ]; then wait; fi
 done
+# Round 3, 120 degrees with the turn penalty: SAM with the flatten readout (an extension), and
+# seeds 3 and 4 of the max-readout SAM and of the CNN (five seeds each).
+for pair in "flatten 0" "flatten 1" "flatten 2" "flatten 3" "flatten 4" "cnn 2" "cnn 3" "cnn 4" "sam 3" "sam 4"; do
+  read -r m s <<< "$pair"
+  case $m in
+    flatten) train turnflat sam "$s" --hfov-deg 120 --turn-penalty 1.0 --sam-readout flatten & ;;
+    *) train turn "$m" "$s" --hfov-deg 120 --turn-penalty 1.0 & ;;
+  esac
+  case $pair in "flatten 1" | "flatten 3" | "cnn 2" | "cnn 4" | "sam 4") wait ;; esac
+done
+# and SAM with the turn penalty and learning-rate annealing, five seeds.
+for s in 0 1 2 3 4; do
+  train turnanneal sam "$s" --hfov-deg 120 --turn-penalty 1.0 --lr-anneal &
+  case $s in 1 | 3 | 4) wait ;; esac
+done
 # How the policies fly (turning share, area covered) beside the crashes: in-process (--inprocess
 # gives the same rows as the ROS nodes; tested), random start headings.
 B=(--inprocess --worlds basic complex turbulent --steps 1000 "${VARIED[@]}")
@@ -90,8 +106,12 @@ $EVAL "${B[@]}" --model sam --model cnn --weights "${W[@]}" --out docs/results/b
 mapfile -t W < <(weights fov120)
 $EVAL "${B120[@]}" --model sam --model cnn --weights "${W[@]}" --out docs/results/behaviour/fov120
 $EVAL "${B120[@]}" --model sam --weights runs/long_sam_seed{0,1,2}/policy_sam.safetensors --out docs/results/behaviour/long_training
-$EVAL "${B120[@]}" --model sam --weights runs/turn_sam_seed{0,1,2}/policy_sam.safetensors --out docs/results/behaviour/turn_penalty_sam
-$EVAL "${B120[@]}" --model cnn --weights runs/turn_cnn_seed{0,1}/policy_cnn.safetensors --out docs/results/behaviour/turn_penalty_cnn
+$EVAL "${B120[@]}" --model sam --weights runs/turn_sam_seed{0,1,2,3,4}/policy_sam.safetensors --out docs/results/behaviour/turn_penalty_sam
+$EVAL "${B120[@]}" --model cnn --weights runs/turn_cnn_seed{0,1,2,3,4}/policy_cnn.safetensors --out docs/results/behaviour/turn_penalty_cnn
+$EVAL "${B120[@]}" --model sam --weights runs/turnflat_sam_seed{0,1,2,3,4}/policy_sam.safetensors \
+  --out docs/results/behaviour/turn_penalty_sam_flatten
+$EVAL "${B120[@]}" --model sam --weights runs/turnanneal_sam_seed{0,1,2,3,4}/policy_sam.safetensors \
+  --out docs/results/behaviour/turn_penalty_lr_anneal_sam
 C120=(--inprocess --worlds complex --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --model sam)
 $EVAL "${C120[@]}" --weights runs/ema_sam_seed{0,1}/policy_sam_ema.safetensors --out docs/results/behaviour/weight_average
 $EVAL "${C120[@]}" --weights runs/anneal_sam_seed{0,1}/policy_sam.safetensors --out docs/results/behaviour/lr_anneal

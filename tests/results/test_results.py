@@ -130,3 +130,23 @@ def test_behaviour_tells_circling_on_the_spot_from_flying_through_the_room():
     # A crash puts the vehicle back at the start with another heading: not a turn.
     straight.step(0.5, 0.5, math.pi, True)
     assert straight.turn_steps == 0 and len(straight.cells) == 7
+
+
+def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path):
+    """`--from-csv` joins per-run CSVs and, given the same protocol flags, rewrites the same tables;
+    a flatten-readout SAM file is flown with its own readout."""
+    from uav_trainer.evaluate import main
+
+    flat = NetConfig(sam_readout="flatten")
+    ws = [tmp_path / "max.safetensors", tmp_path / "flat.safetensors"]
+    wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), ws[0])
+    wio.save_file(build_network(flat, seed=0), flat, ws[1])
+    proto = ["--inprocess", "--worlds", "basic", "--steps", "30", "--start-yaw-jitter-deg", "180", "--repeats", "2"]
+    assert main([*proto, "--weights", *map(str, ws), "--out", str(tmp_path / "both")]) == 0
+    for i, w in enumerate(ws):
+        assert main([*proto, "--weights", str(w), "--out", str(tmp_path / f"one{i}")]) == 0
+    parts = [str(tmp_path / f"one{i}" / "results.csv") for i in range(2)]
+    assert main([*proto, "--from-csv", *parts, "--out", str(tmp_path / "joined")]) == 0
+    for name in ("results.md", "results.csv"):
+        assert (tmp_path / "joined" / name).read_text() == (tmp_path / "both" / name).read_text()
+    assert "random heading (uniform ±180°), 2 x 30 steps" in (tmp_path / "joined" / "results.md").read_text()

@@ -6,7 +6,7 @@ from uav_policy.actions import PAPER_ACTIONS, match_action
 from uav_policy.agent import Agent
 from uav_policy.attention import attention_map, overlay
 from uav_policy.frame_stack import FrameStack
-from uav_policy.networks import NetConfig, build_network, normalise_depth
+from uav_policy.networks import NetConfig, build_network, normalise_depth, parameter_count
 
 
 def depth_batch(b=3, seed=0):
@@ -24,6 +24,26 @@ def test_sam_shapes_and_attention_rows_sum_to_one():
     assert w.shape == (3, 3, 64, 64)  # (batch, heads, nodes, nodes): 8x8 grid, 3 heads
     torch.testing.assert_close(w.sum(-1), torch.ones(3, 3, 64))
     assert torch.isfinite(q).all()
+
+
+def test_sam_flatten_readout_sees_where_a_feature_is():
+    """Readout `flatten` feeds every node, in grid order, to the CNN's hidden layer; `max` pools them."""
+    cfg = NetConfig(model="sam", sam_readout="flatten")
+    net = build_network(cfg, seed=1)
+    q, w = net(depth_batch())
+    assert q.shape == (3, 4) and w.shape == (3, 3, 64, 64)
+    torch.testing.assert_close(w.sum(-1), torch.ones(3, 3, 64))
+    n = parameter_count(net)
+    assert 1.0 <= n / parameter_count(build_network(NetConfig(model="cnn"))) <= 1.2  # a CNN plus one relational block
+    # After the relational block, swapping two nodes changes nothing for max pooling but moves the
+    # features to other places of the flattened readout.
+    nodes = torch.randn(2, 64, cfg.d_model)
+    swapped = nodes[:, [1, 0, *range(2, 64)]]
+    pooled = build_network(NetConfig(model="sam"), seed=1)
+    torch.testing.assert_close(pooled.dueling_head(nodes.max(1).values), pooled.dueling_head(swapped.max(1).values))
+    assert not torch.allclose(net.readout(nodes), net.readout(swapped))
+    with pytest.raises(ValueError, match="sam_readout"):
+        NetConfig(model="sam", sam_readout="mean").validate()
 
 
 def test_cnn_shapes_and_no_attention():

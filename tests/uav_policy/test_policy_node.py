@@ -169,5 +169,7 @@ def test_policy_start_up_errors(tmp_path):
     cnn.write_bytes(forcing_action_cnn())
     r = run_to_exit("uav_policy", "policy_node", "-p", "model:=sam", "-p", f"weights:={cnn}")
     assert r.returncode == 2 and "model 'cnn'" in r.stderr and "runs model 'sam'" in r.stderr
+    r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
+    assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")
     assert r.returncode == 2 and "epsilon" in r.stderr

@@ -1,3 +1,4 @@
+import json
 import struct
 
 import pytest
@@ -83,6 +84,23 @@ def test_rejects_a_different_sam_architecture():
     b = wio.to_bytes(build_network(other), other)
     with pytest.raises(wio.WeightsError, match="architecture"):
         wio.load_bytes(b, SAM)
+
+
+def test_the_sam_readout_is_part_of_the_architecture(tmp_path):
+    flat = NetConfig(model="sam", sam_readout="flatten")
+    wio.save_file(build_network(flat, seed=1), flat, tmp_path / "flat.safetensors")
+    assert wio.read_file_config(tmp_path / "flat.safetensors") == flat
+    wio.load_file(tmp_path / "flat.safetensors", flat)
+    with pytest.raises(wio.WeightsError, match='"sam_readout": "flatten"'):
+        wio.load_file(tmp_path / "flat.safetensors", SAM)
+    # Files written before the readout existed carry no such field: they are max-readout SAMs.
+    net = build_network(SAM, seed=2)
+    old = json.loads(SAM.to_json())
+    del old["sam_readout"]
+    tensors = {k: v.contiguous() for k, v in net.state_dict().items()}
+    b = st_save(tensors, metadata={"format": wio.FORMAT, "config": json.dumps(old)})
+    x = torch.rand(1, 5, 64, 64) * 10
+    torch.testing.assert_close(wio.load_bytes(b, SAM)(x)[0], net(x)[0])
 
 
 def test_missing_file_message(tmp_path):

@@ -115,6 +115,8 @@ def test_trainer_rejects_bad_parameters():
     assert r.returncode == 2 and "replay_ratio" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "model:=rnn")
     assert r.returncode == 2 and "parameter 'model'" in r.stderr
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "sam_readout:=avg")
+    assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "action_linear_x_mps:=[1.0, 2.0]")
     assert r.returncode == 2 and "action" in r.stderr
 
@@ -124,14 +126,17 @@ def test_launcher_rejects_a_bad_budget():
     assert r.returncode == 2 and "--steps must be positive" in r.stderr
 
 
-@pytest.mark.parametrize(("jitter", "hfov"), [(0.0, 90.0), (180.0, 90.0), (180.0, 120.0)])
-def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov):
+@pytest.mark.parametrize(
+    ("jitter", "hfov", "readout"), [(0.0, 90.0, "max"), (180.0, 90.0, "max"), (180.0, 120.0, "max"), (0.0, 90.0, "flatten")]
+)
+def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, readout):
     """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
-    random start heading and extra sim parameters reach sim_node)."""
+    random start heading, extra sim parameters and the weights' SAM readout reach the nodes)."""
     from uav_trainer.evaluate import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
-    wio.save_file(build_network(NetConfig(), seed=4), NetConfig(), w)
+    cfg = NetConfig(sam_readout=readout)
+    wio.save_file(build_network(cfg, seed=4), cfg, w)
     os.environ["ROS_DOMAIN_ID"] = "74"
     over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=(f"hfov_deg:={hfov}",))
     local = evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=hfov)

@@ -28,7 +28,8 @@ def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
 
     from . import weights as wio
 
-    cfg = NetConfig(model=model)
+    readout = wio.read_file_config(weights).sam_readout if weights else "max"
+    cfg = NetConfig(model=model, sam_readout=readout)
     net = wio.load_file(weights, cfg) if weights else build_network(cfg, seed=seed)
     agent = Agent(net, cfg, seed=seed)
     sim = Simulator(load_world(world), SimConfig(seed=seed))

@@ -6,8 +6,11 @@ inside the network: +Inf/NaN -> max range, -Inf -> 0, then divide by the max ran
 D3QN-SAM: conv trunk -> feature map sliced into one node per spatial cell, with the cell's
 (x, y) in [-1, 1] appended (Zambaldi et al. 2018) -> linear projection -> relational block(s)
 (multi-head scaled dot-product self-attention with residual + LayerNorm, then an MLP with
-residual + LayerNorm) -> feature-wise max over nodes -> dueling head. The forward pass also
-returns the attention weights (B, heads, nodes, nodes); each row sums to 1.
+residual + LayerNorm) -> readout -> dueling head. The forward pass also returns the attention
+weights (B, heads, nodes, nodes); each row sums to 1. Readout `max` (default, Zambaldi et al.): the
+feature-wise max over nodes, which keeps what was seen but not where. Readout `flatten` (an
+extension): each node is projected to the trunk's channel count and the nodes are flattened in
+grid order into the CNN's hidden layer, so the head sees where each feature is, as the CNN does.
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
@@ -24,6 +27,7 @@ import torch
 from torch import nn
 
 MODELS = ("sam", "cnn")
+SAM_READOUTS = ("max", "flatten")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,10 +47,13 @@ class NetConfig:
     mlp_hidden: int = 96
     cnn_hidden: int = 128
     head_hidden: int = 64
+    sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten (cnn: unused)
 
     def validate(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+        if self.sam_readout not in SAM_READOUTS:
+            raise ValueError(f"sam_readout must be one of {SAM_READOUTS}, got {self.sam_readout!r}")
         if self.d_model % self.heads:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by heads ({self.heads})")
         if self.frames < 1 or self.actions < 2:
@@ -162,7 +169,15 @@ class D3QNSam(nn.Module):
         self.relational_blocks = nn.ModuleList(
             RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
         )
-        self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
+        if cfg.sam_readout == "flatten":
+            c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
+            self.readout = nn.Sequential(
+                nn.Linear(cfg.d_model, c), nn.Flatten(1), nn.Linear(n * c, cfg.cnn_hidden), nn.ReLU(inplace=True)
+            )
+            self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
+        else:
+            self.readout = None
+            self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
 
     @property
     def grid_hw(self) -> tuple[int, int]:
@@ -177,7 +192,10 @@ class D3QNSam(nn.Module):
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)
-        pooled = nodes.max(dim=1).values  # feature-wise max pooling over nodes
+        if self.readout is None:
+            pooled = nodes.max(dim=1).values  # feature-wise max pooling over nodes
+        else:
+            pooled = self.readout(nodes)  # (B, nodes, d) -> per-node projection -> flattened in grid order
         return self.dueling_head(pooled), weights
 
 

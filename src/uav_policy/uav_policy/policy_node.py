@@ -32,7 +32,7 @@ from .actions import PAPER_ACTIONS, make_actions
 from .agent import Agent
 from .attention import attention_map, overlay
 from .frame_stack import FrameStack, fit_to_network
-from .networks import NetConfig, build_network, parameter_count
+from .networks import SAM_READOUTS, NetConfig, build_network, parameter_count
 
 
 def resolve_device(name: str) -> str:
@@ -64,6 +64,13 @@ class PolicyNode(Node):
         height = d("input_height", 64, "Network input height (px); frames of another size are resized", 8, 512)
         width = d("input_width", 64, "Network input width (px)", 8, 512)
         max_range = d("max_range_m", 10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
+        readout = d(
+            "sam_readout",
+            "max",
+            "SAM readout: max pools the nodes (the paper's design); flatten keeps each node's place (an extension); "
+            "must match the weights",
+            choices=SAM_READOUTS,
+        )
         self.publish_overlay = d("publish_overlay", True, "Publish attention/overlay (rgb8)")
         threads = d("torch_threads", 1, "Torch intra-op threads (batch-1 inference gains nothing from more)", 1, 256)
         torch.set_num_threads(threads)
@@ -72,7 +79,13 @@ class PolicyNode(Node):
         except ValueError as e:
             raise ParameterError(f"parameters 'action_*': {e}") from None
         self.cfg = NetConfig(
-            model=model, frames=frames, height=height, width=width, actions=len(self.actions), max_range_m=max_range
+            model=model,
+            frames=frames,
+            height=height,
+            width=width,
+            actions=len(self.actions),
+            max_range_m=max_range,
+            sam_readout=readout,
         )
         device = resolve_device(device)
         net, source = self._initial_network(weights_path, seed)

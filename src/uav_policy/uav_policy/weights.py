@@ -114,6 +114,20 @@ def load_file(path: str | os.PathLike, expected: NetConfig) -> torch.nn.Module:
         raise WeightsError(f"{p}: {e}") from None
 
 
+def read_file_config(path: str | os.PathLike) -> NetConfig:
+    """The network config a weights file was made for (its header only; the tensors are not checked)."""
+    p = Path(path).expanduser()
+    try:
+        with p.open("rb") as f:
+            blob = f.read(8 + 16 * 1024 * 1024)
+    except OSError as e:
+        raise WeightsError(f"cannot read weights file '{p}': {e.strerror}") from None
+    try:
+        return read_header_config(blob)
+    except WeightsError as e:
+        raise WeightsError(f"{p}: {e}") from None
+
+
 def packaged_weights(model: str) -> Path | None:
     """The pretrained weights shipped with uav_policy for `model`, if any."""
     candidates = []

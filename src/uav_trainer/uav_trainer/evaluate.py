@@ -144,6 +144,19 @@ class StepMonitor:
         return self.steps >= self.target
 
 
+def file_readout(weights: str) -> str:
+    """The SAM readout a weights file was made for (read from its header)."""
+    from uav_policy import weights as wio
+
+    return wio.read_file_config(weights).sam_readout
+
+
+def readout_args(model: str, weights: str) -> list[str]:
+    """policy_node parameters for a weights file whose SAM readout is not the default."""
+    readout = file_readout(weights) if model == "sam" else "max"
+    return [f"sam_readout:={readout}"] if readout != "max" else []
+
+
 def evaluate_once(
     model: str,
     weights: str,
@@ -194,7 +207,7 @@ def evaluate_once(
                 raise RuntimeError(f"sim_node exited with code {sim.returncode} before its first frame")
             if time.monotonic() > ready_by:
                 raise TimeoutError("no first frame from sim_node within 60 s")
-        wargs = [f"weights:={weights}"] if weights else []
+        wargs = [f"weights:={weights}", *readout_args(model, weights)] if weights else []
         procs.start(
             "policy",
             "uav_policy",
@@ -256,7 +269,7 @@ def evaluate_inprocess(
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
-    cfg = NetConfig(model=model)
+    cfg = NetConfig(model=model, sam_readout=file_readout(weights) if weights else "max")
     if net is None:
         path = weights or wio.packaged_weights(model)
         if path is None:
@@ -515,7 +528,13 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=1, help="runs per weight file and world (sim seeds --seed + i), pooled")
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
-    ap.add_argument("--from-csv", default=None, help="only rewrite the tables from an earlier results.csv")
+    ap.add_argument(
+        "--from-csv",
+        nargs="+",
+        default=None,
+        help="only rewrite the tables from earlier results.csv files (rows joined; give the same protocol flags "
+        "as the measurement for the same protocol line)",
+    )
     ap.add_argument(
         "--inprocess",
         action="store_true",
@@ -537,10 +556,26 @@ def main(argv=None) -> int:
                 ap.error(f"--sim-arg {arg!r}: hfov_deg must be a number")
         if a.epsilon != 0.0:
             ap.error("--inprocess flies exploit-only: --epsilon must be 0")
+        import torch
+
+        # Batch-1 inference gains nothing from more threads (policy_node's torch_threads is 1 too),
+        # and two evaluations sharing 2 cores with 2 threads each ran 16x slower (570 s vs 35 s).
+        torch.set_num_threads(1)
     if not 0.0 <= a.start_yaw_jitter_deg <= 180.0:
         ap.error("--start-yaw-jitter-deg must be in [0, 180]")
+    if a.start_yaw_jitter_deg > 0:
+        protocol = (
+            f"Every episode starts at a random heading (uniform ±{a.start_yaw_jitter_deg:g}°), "
+            f"{a.repeats} x {a.steps} steps per weight file (sim seeds {a.seed}..{a.seed + a.repeats - 1})."
+        )
+    else:
+        protocol = "Every episode starts at the world's start pose (the paper's protocol)."
+    if a.sim_arg:
+        protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
+    if a.inprocess:
+        protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     if a.from_csv:
-        rows = list(csv.DictReader(open(a.from_csv)))
+        rows = [r for path in a.from_csv for r in csv.DictReader(open(path))]
         results = [
             EvalResult(
                 r["model"],
@@ -556,7 +591,7 @@ def main(argv=None) -> int:
             )
             for r in rows
         ]
-        md, _ = write_tables(results, Path(a.out), results[0].steps if results else a.steps)
+        md, _ = write_tables(results, Path(a.out), results[0].steps if results else a.steps, protocol)
         print(md.read_text())
         return 0
     models = a.model or ["sam"]
@@ -567,6 +602,15 @@ def main(argv=None) -> int:
         runs += [(m, f) for f in files] or [(m, "")]
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
+
+    from uav_policy.weights import WeightsError
+
+    for model, weights in runs:
+        try:
+            if weights:
+                file_readout(weights)
+        except WeightsError as e:
+            ap.error(f"--weights {model}={weights}: {e}")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     results = []
@@ -601,17 +645,6 @@ def main(argv=None) -> int:
                     f"{model:3s} {world:10s} {weights or 'packaged'}: {r.crashes} crashes at {r.crash_sites} sites, "
                     f"mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                 )
-    if a.start_yaw_jitter_deg > 0:
-        protocol = (
-            f"Every episode starts at a random heading (uniform ±{a.start_yaw_jitter_deg:g}°), "
-            f"{a.repeats} x {a.steps} steps per weight file (sim seeds {a.seed}..{a.seed + a.repeats - 1})."
-        )
-    else:
-        protocol = "Every episode starts at the world's start pose (the paper's protocol)."
-    if a.sim_arg:
-        protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
-    if a.inprocess:
-        protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())
     print(f"written: {md} {csv_path}")

@@ -21,6 +21,7 @@ from uav_policy import weights as wio
 from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
+from uav_policy.networks import SAM_READOUTS
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, procedural_world
@@ -209,6 +210,12 @@ def main() -> int:
         action="store_true",
         help="experiment: lower the learning rate linearly to 0.1x over the run's updates (default: constant, as the paper)",
     )
+    ap.add_argument(
+        "--sam-readout",
+        choices=SAM_READOUTS,
+        default=TrainerConfig.sam_readout,
+        help="SAM only: max pools the nodes (the paper's design); flatten keeps every node's place (an extension)",
+    )
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
@@ -222,6 +229,7 @@ def main() -> int:
         clearance_weight=a.clearance_weight,
         turn_penalty=a.turn_penalty,
         turning_actions=turning_indices(PAPER_ACTIONS),
+        sam_readout=a.sam_readout,
         learner=dataclasses.replace(
             LearnerConfig(),
             learning_rate=a.learning_rate,

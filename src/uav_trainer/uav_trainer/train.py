@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from uav_policy.networks import SAM_READOUTS
+
 from .launching import Processes, params_args
 
 
@@ -42,6 +44,12 @@ def main(argv=None) -> int:
         help="extra trainer_node parameter, e.g. --trainer-arg learning_starts:=500 (repeatable)",
     )
     ap.add_argument("--sim-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra sim_node parameter")
+    ap.add_argument(
+        "--sam-readout",
+        choices=SAM_READOUTS,
+        default="max",
+        help="SAM readout for policy_node and trainer_node: max (the paper) or flatten (an extension)",
+    )
     a = ap.parse_args(argv)
     if a.steps <= 0:
         ap.error("--steps must be positive")
@@ -59,7 +67,8 @@ def main(argv=None) -> int:
         "policy",
         "uav_policy",
         "policy_node",
-        params_args(params, "policy") + p("", [f"model:={a.model}", f"seed:={a.seed}", "epsilon:=1.0"]),
+        params_args(params, "policy")
+        + p("", [f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0"]),
     )
     trainer = procs.start(
         "trainer",
@@ -70,6 +79,7 @@ def main(argv=None) -> int:
             "",
             [
                 f"model:={a.model}",
+                f"sam_readout:={a.sam_readout}",
                 f"seed:={a.seed}",
                 f"total_steps:={a.steps}",
                 f"run_dir:={run_dir}",
@@ -98,6 +108,7 @@ def main(argv=None) -> int:
     if weights.exists():
         print(
             f"weights: {weights}\nfly them: ros2 run uav_policy policy_node --ros-args -p model:={a.model} -p weights:={weights}"
+            + (f" -p sam_readout:={a.sam_readout}" if a.sam_readout != "max" else "")
         )
     if trainer_code not in (0, None, -signal.SIGINT):
         print(f"trainer_node exited with code {trainer_code}; see {logs / 'trainer.log'}", file=sys.stderr)

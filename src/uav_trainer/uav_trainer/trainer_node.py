@@ -23,6 +23,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image, Range
 
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
+from uav_policy.networks import SAM_READOUTS
 from uav_policy.push import push_request
 from uav_sim import contract
 from uav_sim.node_runner import run
@@ -106,6 +107,12 @@ class TrainerNode(Node):
                 "Subtracted from the reward of every turning step (an extension; 0 = the paper's reward)",
                 0.0,
                 100.0,
+            ),
+            sam_readout=d(
+                "sam_readout",
+                D.sam_readout,
+                "SAM readout: max (the paper's design) or flatten (an extension); must match policy_node's sam_readout",
+                choices=SAM_READOUTS,
             ),
             learner=learner,
         )

@@ -48,6 +48,7 @@ class TrainerConfig:
     # the paper's reward a policy can circle on the spot, crash rarely and cover nothing.
     turn_penalty: float = 0.0
     turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
+    sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -57,7 +58,7 @@ class Training:
         self.log = log
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.net_cfg = NetConfig(model=cfg.model)
+        self.net_cfg = NetConfig(model=cfg.model, sam_readout=cfg.sam_readout)
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), cfg.device)
         self.replay = ReplayMemory(
