@@ -7,7 +7,7 @@
 # round at 120 degrees (longer training, weight averaging, learning-rate annealing, a turn
 # penalty) and a third (five seeds with the turn penalty; SAM with the flatten readout) with
 # turning share and area covered; then re-measures every ROS table without ROS
-# (scripts/crosscheck_eval.py). About 6 h on 2 cores.
+# (scripts/crosscheck_eval.py). About 7 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -92,10 +92,16 @@ for pair in "flatten 0" "flatten 1" "flatten 2" "flatten 3" "flatten 4" "cnn 2" 
   esac
   case $pair in "flatten 1" | "flatten 3" | "cnn 2" | "cnn 4" | "sam 4") wait ;; esac
 done
-# and SAM with the turn penalty and learning-rate annealing, five seeds.
+# and SAM with the turn penalty and learning-rate annealing, five seeds; then seeds 5-9 of SAM
+# and CNN with the turn penalty (ten seeds each).
 for s in 0 1 2 3 4; do
   train turnanneal sam "$s" --hfov-deg 120 --turn-penalty 1.0 --lr-anneal &
   case $s in 1 | 3 | 4) wait ;; esac
+done
+for s in 5 6 7 8 9; do
+  train turn sam "$s" --hfov-deg 120 --turn-penalty 1.0 &
+  train turn cnn "$s" --hfov-deg 120 --turn-penalty 1.0 &
+  wait
 done
 # How the policies fly (turning share, area covered) beside the crashes: in-process (--inprocess
 # gives the same rows as the ROS nodes; tested), random start headings.
@@ -112,6 +118,9 @@ $EVAL "${B120[@]}" --model sam --weights runs/turnflat_sam_seed{0,1,2,3,4}/polic
   --out docs/results/behaviour/turn_penalty_sam_flatten
 $EVAL "${B120[@]}" --model sam --weights runs/turnanneal_sam_seed{0,1,2,3,4}/policy_sam.safetensors \
   --out docs/results/behaviour/turn_penalty_lr_anneal_sam
+T=()
+for m in sam cnn; do for s in 0 1 2 3 4 5 6 7 8 9; do T+=("$m=runs/turn_${m}_seed$s/policy_$m.safetensors"); done; done
+$EVAL "${B120[@]}" --model sam --model cnn --weights "${T[@]}" --out docs/results/behaviour/turn_penalty_10_seeds
 C120=(--inprocess --worlds complex --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --model sam)
 $EVAL "${C120[@]}" --weights runs/ema_sam_seed{0,1}/policy_sam_ema.safetensors --out docs/results/behaviour/weight_average
 $EVAL "${C120[@]}" --weights runs/anneal_sam_seed{0,1}/policy_sam.safetensors --out docs/results/behaviour/lr_anneal

@@ -44,6 +44,7 @@ def test_sam_flatten_readout_sees_where_a_feature_is():
     assert not torch.allclose(net.readout(nodes), net.readout(swapped))
     with pytest.raises(ValueError, match="sam_readout"):
         NetConfig(model="sam", sam_readout="mean").validate()
+    assert NetConfig(model="cnn", sam_readout="flatten") == NetConfig(model="cnn")  # the CNN has no readout choice
 
 
 def test_cnn_shapes_and_no_attention():

@@ -47,7 +47,13 @@ class NetConfig:
     mlp_hidden: int = 96
     cnn_hidden: int = 128
     head_hidden: int = 64
-    sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten (cnn: unused)
+    sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten (cnn: always max)
+
+    def __post_init__(self):
+        # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)
+        # must not make CNN weights look like another architecture.
+        if self.model == "cnn" and self.sam_readout in SAM_READOUTS:
+            object.__setattr__(self, "sam_readout", "max")
 
     def validate(self) -> None:
         if self.model not in MODELS:

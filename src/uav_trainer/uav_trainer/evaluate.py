@@ -605,12 +605,12 @@ def main(argv=None) -> int:
 
     from uav_policy.weights import WeightsError
 
-    for model, weights in runs:
-        try:
-            if weights:
+    for model, weights in runs:  # unreadable weights fail here, before any node starts
+        if weights:
+            try:
                 file_readout(weights)
-        except WeightsError as e:
-            ap.error(f"--weights {model}={weights}: {e}")
+            except WeightsError as e:
+                ap.error(f"--weights {model}={weights}: {e}")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     results = []
