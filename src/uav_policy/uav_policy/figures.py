@@ -17,7 +17,7 @@ from .actions import PAPER_ACTIONS
 from .agent import Agent
 from .attention import attention_map, colourise_depth, overlay
 from .frame_stack import FrameStack
-from .networks import NetConfig, build_network
+from .networks import build_network
 
 
 def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
@@ -28,8 +28,7 @@ def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
 
     from . import weights as wio
 
-    readout = wio.read_file_config(weights).sam_readout if weights else "max"
-    cfg = NetConfig(model=model, sam_readout=readout)
+    cfg = wio.config_for(model, weights)
     net = wio.load_file(weights, cfg) if weights else build_network(cfg, seed=seed)
     agent = Agent(net, cfg, seed=seed)
     sim = Simulator(load_world(world), SimConfig(seed=seed))

@@ -128,6 +128,12 @@ def read_file_config(path: str | os.PathLike) -> NetConfig:
         raise WeightsError(f"{p}: {e}") from None
 
 
+def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
+    """The default architecture of `model` with the SAM readout `path` was made for (default without a path)."""
+    readout = read_file_config(path).sam_readout if path else NetConfig.sam_readout
+    return NetConfig(model=model, sam_readout=readout)
+
+
 def packaged_weights(model: str) -> Path | None:
     """The pretrained weights shipped with uav_policy for `model`, if any."""
     candidates = []

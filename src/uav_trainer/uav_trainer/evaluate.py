@@ -144,16 +144,11 @@ class StepMonitor:
         return self.steps >= self.target
 
 
-def file_readout(weights: str) -> str:
-    """The SAM readout a weights file was made for (read from its header)."""
-    from uav_policy import weights as wio
-
-    return wio.read_file_config(weights).sam_readout
-
-
 def readout_args(model: str, weights: str) -> list[str]:
     """policy_node parameters for a weights file whose SAM readout is not the default."""
-    readout = file_readout(weights) if model == "sam" else "max"
+    from uav_policy import weights as wio
+
+    readout = wio.config_for(model, weights).sam_readout
     return [f"sam_readout:={readout}"] if readout != "max" else []
 
 
@@ -264,12 +259,11 @@ def evaluate_inprocess(
     from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
     from uav_policy.frame_stack import FrameStack
-    from uav_policy.networks import NetConfig
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
-    cfg = NetConfig(model=model, sam_readout=file_readout(weights) if weights else "max")
+    cfg = wio.config_for(model, weights)
     if net is None:
         path = weights or wio.packaged_weights(model)
         if path is None:
@@ -603,12 +597,12 @@ def main(argv=None) -> int:
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
 
-    from uav_policy.weights import WeightsError
+    from uav_policy.weights import WeightsError, read_file_config
 
     for model, weights in runs:  # unreadable weights fail here, before any node starts
         if weights:
             try:
-                file_readout(weights)
+                read_file_config(weights)
             except WeightsError as e:
                 ap.error(f"--weights {model}={weights}: {e}")
 
