@@ -5,9 +5,10 @@
 # degrees, then evaluates through the ROS nodes with the paper's fixed start pose and with random
 # start headings (5 x 1000 steps per weight file), and two SAM-only experiments; then a second
 # round at 120 degrees (longer training, weight averaging, learning-rate annealing, a turn
-# penalty) and a third (five seeds with the turn penalty; SAM with the flatten readout) with
-# turning share and area covered; then re-measures every ROS table without ROS
-# (scripts/crosscheck_eval.py). About 7 h on 2 cores.
+# penalty), a third (five and ten seeds with the turn penalty; SAM with the flatten readout) with
+# turning share and area covered, and a fourth (twenty seeds; choosing, packaging and measuring the
+# shipped weights, and the attention figures); then re-measures every ROS table without ROS
+# (scripts/crosscheck_eval.py). About 8 h 30 min on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -16,12 +17,12 @@ export PYTHONPATH=src/uav_sim:src/uav_policy:src/uav_trainer:${PYTHONPATH:-} ROS
 SEEDS=${SEEDS:-"0 1 2"}
 EVAL=install/uav_trainer/lib/uav_trainer/evaluate
 VARIED=(--start-yaw-jitter-deg 180 --repeats 5)
-train() {  # tag model seed [inprocess args]
+train() {  # tag model seed [inprocess args]; the paper's 90 degree camera unless the args say --hfov-deg
   local tag=$1 model=$2 seed=$3 d=runs/$1_$2_seed$3
   shift 3
   [ -f "$d/DONE" ] || {
     python -m uav_trainer.inprocess --threads 1 --model "$model" --steps 30000 --seed "$seed" --layout-per-episode \
-      --run-dir "$d" "$@" > "$d.log" 2>&1
+      --hfov-deg 90 --run-dir "$d" "$@" > "$d.log" 2>&1
     touch "$d/DONE"
   }
 }
@@ -125,6 +126,30 @@ C120=(--inprocess --worlds complex --steps 1000 "${VARIED[@]}" --sim-arg hfov_de
 $EVAL "${C120[@]}" --weights runs/ema_sam_seed{0,1}/policy_sam_ema.safetensors --out docs/results/behaviour/weight_average
 $EVAL "${C120[@]}" --weights runs/anneal_sam_seed{0,1}/policy_sam.safetensors --out docs/results/behaviour/lr_anneal
 $EVAL "${C120[@]}" --weights runs/anneal_sam_seed{0,1}/policy_sam_ema.safetensors --out docs/results/behaviour/lr_anneal_ema
+# Round 4: seeds 10-19 of SAM and CNN with the turn penalty (twenty seeds each).
+for s in 10 11 12 13 14 15 16 17 18 19; do
+  train turn sam "$s" --hfov-deg 120 --turn-penalty 1.0 &
+  train turn cnn "$s" --hfov-deg 120 --turn-penalty 1.0 &
+  wait
+done
+T=()
+for m in sam cnn; do for s in $(seq 0 19); do T+=("$m=runs/turn_${m}_seed$s/policy_$m.safetensors"); done; done
+$EVAL "${B120[@]}" --model sam --model cnn --weights "${T[@]}" --out docs/results/behaviour/turn_penalty_20_seeds
+# Choosing the shipped weights among seeds 0-9 (docs/RESULTS.md, "Shipped weights"): the validation
+# layouts, and the paper's fixed start; the rule picked SAM seed 4 and CNN seed 8. Then package
+# them with their camera and measure the packaged files through the ROS nodes.
+T=()
+for m in sam cnn; do for s in $(seq 0 9); do T+=("$m=runs/turn_${m}_seed$s/policy_$m.safetensors"); done; done
+$EVAL --inprocess --model sam --model cnn --weights "${T[@]}" --worlds random:200 random:201 random:202 random:203 random:204 \
+  --steps 1000 --start-yaw-jitter-deg 180 --repeats 2 --sim-arg hfov_deg:=120.0 --out docs/results/shipping/validation_layouts
+$EVAL --inprocess --model sam --model cnn --weights "${T[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out docs/results/shipping/fixed_start
+python scripts/package_weights.py runs/turn_sam_seed4/policy_sam.safetensors --model sam --camera-hfov-deg 120
+python scripts/package_weights.py runs/turn_cnn_seed8/policy_cnn.safetensors --model cnn --camera-hfov-deg 120
+colcon build --base-paths src > /dev/null
+$EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 --out docs/results/shipped/fixed_start
+$EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" --out docs/results/shipped/varied_start
+install/uav_policy/lib/uav_policy/attention_figures --model sam --worlds basic turbulent --steps 150 --out docs/figures
 # Every ROS measurement again without ROS: the rows must agree.
 X=scripts/crosscheck_eval.py
 python $X docs/results/layout_training/results.csv
@@ -134,3 +159,5 @@ python $X docs/results/fov120/fixed_start/results.csv --hfov-deg 120
 python $X docs/results/fov120/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
 python $X docs/results/clearance/results.csv "${VARIED[@]}"
 python $X docs/results/validation_selection/results.csv "${VARIED[@]}"
+python $X docs/results/shipped/fixed_start/results.csv --hfov-deg 120
+python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120

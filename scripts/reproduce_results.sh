@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates docs/RESULTS.md's material: trains D3QN-SAM and D3QN-CNN (3 seeds each, 30 000 steps,
-# in-process trainer = the ROS trainer's core run synchronously, bit-reproducible), evaluates every
+# in-process trainer = the ROS trainer's core run synchronously, bit-reproducible) with the paper's
+# 90 degree camera (recorded in the weights files, so evaluate flies them with it), evaluates every
 # run exploit-only through the ROS nodes in basic/complex/turbulent and held-out random layouts,
 # and draws the curves and attention figures. About 1 h 15 min on 2 cores.
 set -euo pipefail
@@ -12,7 +13,7 @@ SEEDS=${SEEDS:-"0 1 2"}
 for seed in $SEEDS; do
   for model in sam cnn; do
     d=runs/paper_${model}_seed${seed}
-    [ -f "$d/DONE" ] || { python -m uav_trainer.inprocess --model $model --steps 30000 --seed $seed --run-dir "$d"; touch "$d/DONE"; }
+    [ -f "$d/DONE" ] || { python -m uav_trainer.inprocess --model $model --steps 30000 --seed $seed --hfov-deg 90 --run-dir "$d"; touch "$d/DONE"; }
   done
 done
 sam=(); cnn=()

@@ -109,9 +109,13 @@ def test_attention_figures_are_written(tmp_path):
 
 @pytest.mark.parametrize("model", ["sam", "cnn"])
 def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model):
+    from uav_sim.simulator import SimConfig
+
     shipped = ROOT / "src" / "uav_policy" / "weights" / f"{model}.safetensors"
     assert shipped.is_file(), f"no shipped {model} weights"
     wio.load_file(shipped, NetConfig(model=model))  # valid for the architecture
+    # Trained with sim_node's default camera: out of the box, no camera mismatch.
+    assert wio.read_file_camera(shipped) == SimConfig.hfov_deg
     os.environ["ROS_DOMAIN_ID"] = "76"
     r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged file
     assert r.steps == 200 and r.crashes == 0, r

@@ -114,7 +114,7 @@ def call_push(ros, blob: bytes, timeout_s=30.0):
     return fut.result().results[0]
 
 
-def forcing_action(index: int) -> bytes:
+def forcing_action(index: int, camera_hfov_deg: float | None = None) -> bytes:
     """Weights whose advantage stream always prefers `index`."""
     net = build_network(SAM, seed=0)
     with torch.no_grad():
@@ -122,7 +122,7 @@ def forcing_action(index: int) -> bytes:
         last.weight.zero_()
         last.bias.zero_()
         last.bias[index] = 5.0
-    return wio.to_bytes(net, SAM)
+    return wio.to_bytes(net, SAM, camera_hfov_deg)
 
 
 def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes_actions(ros):
@@ -139,6 +139,7 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
         "wrong shape": st_save(dict(tensors, **{name: torch.zeros(2, 2)}), metadata=meta),
         "non-finite": st_save(dict(tensors, **{name: torch.full_like(tensors[name], float("inf"))}), metadata=meta),
         "other architecture": forcing_action_cnn(),
+        "hostile camera entry": st_save(tensors, metadata=dict(meta, camera_hfov_deg="__import__('os')")),
     }
     for label, blob in bad_pushes.items():
         before = len(w.actions)
@@ -152,7 +153,15 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
     # The reader lags the 250 Hz loop: wait until what arrives is post-push.
     all_a3 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 2.0 for m in w.actions[-20:])  # noqa: E731
     assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
-    assert "weights push rejected" in ros.log_of(proc)
+    log = ros.log_of(proc)
+    assert "weights push rejected" in log and "'camera_hfov_deg' must be a number" in log
+    assert "trained with a 120 deg camera)" in log, "the start-up line names the packaged weights' camera"
+    assert "depth/camera_info says" not in log, "the packaged weights' camera is the sim's default: no warning"
+    # Weights trained behind another camera still fly, with a warning naming the camera to use.
+    r = call_push(ros, forcing_action(3, camera_hfov_deg=90.0))
+    assert r.successful, r.reason
+    assert ros.spin_until(lambda: "trained with a 90 deg camera" in ros.log_of(proc), 10), ros.log_of(proc)
+    assert "depth/camera_info says 120.0 deg" in ros.log_of(proc) and "hfov_deg:=90" in ros.log_of(proc)
 
 
 def forcing_action_cnn() -> bytes:

@@ -106,3 +106,25 @@ def test_the_sam_readout_is_part_of_the_architecture(tmp_path):
 def test_missing_file_message(tmp_path):
     with pytest.raises(wio.WeightsError, match="cannot read weights file"):
         wio.load_file(tmp_path / "nope.safetensors", SAM)
+
+
+def test_the_trained_camera_is_recorded_and_hostile_entries_are_refused(tmp_path):
+    net = build_network(SAM, seed=3)
+    wio.save_file(net, SAM, tmp_path / "cam.safetensors", camera_hfov_deg=120.0)
+    wio.save_file(net, SAM, tmp_path / "plain.safetensors")
+    assert wio.read_file_camera(tmp_path / "cam.safetensors") == 120.0
+    assert wio.read_file_camera(tmp_path / "plain.safetensors") is None  # files older than the entry say nothing
+    assert wio.camera_for(tmp_path / "cam.safetensors", 90.0) == 120.0
+    assert wio.camera_for(tmp_path / "plain.safetensors", 90.0) == 90.0 and wio.camera_for(None, 75.0) == 75.0
+    assert wio.read_header_camera(wio.to_bytes(net, SAM, 90.0)) == 90.0
+    wio.load_file(tmp_path / "cam.safetensors", SAM)  # the entry does not change what loads
+    tensors = {k: v.contiguous() for k, v in net.state_dict().items()}
+    for bad in ("__import__('os')", "nan", "1e9", "5", ""):
+        b = st_save(tensors, metadata={"format": wio.FORMAT, "config": SAM.to_json(), "camera_hfov_deg": bad})
+        with pytest.raises(wio.WeightsError, match="'camera_hfov_deg' must be a number of degrees in"):
+            wio.load_bytes(b, SAM)
+        (tmp_path / "bad.safetensors").write_bytes(b)
+        with pytest.raises(wio.WeightsError, match="bad.safetensors: .*camera_hfov_deg"):
+            wio.read_file_config(tmp_path / "bad.safetensors")
+    with pytest.raises(wio.WeightsError, match="camera_hfov_deg"):
+        wio.to_bytes(net, SAM, 400.0)

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 from sensor_msgs.msg import Image
@@ -58,3 +60,16 @@ def test_stamp_joiner_pairs_exactly_and_counts_what_it_drops():
     for s in range(10, 20):
         j.add("frame", s, s)
     assert len(j.pending) <= 3 and j.dropped["action"] == 1 + 7
+
+
+def test_camera_info_field_of_view():
+    from sensor_msgs.msg import CameraInfo
+
+    info = CameraInfo(width=64, height=64)
+    info.k = [32.0, 0.0, 32.0, 0.0, 32.0, 32.0, 0.0, 0.0, 1.0]
+    assert contract.camera_info_hfov_deg(info) == pytest.approx(90.0)
+    info.k[0] = 32.0 / math.tan(math.radians(60.0))
+    assert contract.camera_info_hfov_deg(info) == pytest.approx(120.0)
+    info.k[0] = 0.0  # an uncalibrated camera (REP 104: K all zero) gives no field of view
+    assert contract.camera_info_hfov_deg(info) is None
+    assert contract.camera_info_hfov_deg(CameraInfo()) is None

@@ -3,6 +3,7 @@
 import math
 import time
 
+import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
@@ -66,7 +67,9 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     depth = contract.image_to_depth(img)
     assert depth.shape == (64, 64) and float(depth[32, 32]) > 0.0
     info = rec.by_topic["info"][-1]
-    assert abs(info.k[0] - 32.0) < 1e-9 and info.k[0] == info.k[4] and info.header.frame_id == img.header.frame_id
+    # The default camera: 120 deg horizontal, fx = (64 / 2) / tan(60 deg) = 18.475 px.
+    assert abs(info.k[0] - 32.0 / math.tan(math.radians(60.0))) < 1e-9 and info.k[0] == info.k[4]
+    assert info.header.frame_id == img.header.frame_id and contract.camera_info_hfov_deg(info) == pytest.approx(120.0)
     odom = rec.by_topic["odom"][-1]
     assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_link"
     assert abs(odom.pose.pose.position.x - (-6.0 + 5.0)) < 1e-3, "10 steps at 1 m/s x 0.5 s from x=-6"

@@ -34,7 +34,7 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         TwistStamped, contract.ACTION_TOPIC, lambda m: actions.add(contract.stamp_ns(m.header.stamp)), deep_qos()
     )
     run_dir = tmp_path / "run"
-    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0")
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0", "-p", "hfov_deg:=100.0")
     policy = ros.start("uav_policy", "policy_node")
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
@@ -66,6 +66,8 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert ros.stop(trainer) == 0
     assert "final checkpoint" in ros.log_of(trainer)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
+    # The weights record the camera the trainer saw on depth/camera_info.
+    assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 100.0
     again = ros.start("uav_trainer", "trainer_node", *trainer_args, name="trainer2")
     assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 30), ros.log_of(again)
     assert f"{t['env_steps']} env steps" in ros.log_of(again)
@@ -127,18 +129,34 @@ def test_launcher_rejects_a_bad_budget():
 
 
 @pytest.mark.parametrize(
-    ("jitter", "hfov", "readout"), [(0.0, 90.0, "max"), (180.0, 90.0, "max"), (180.0, 120.0, "max"), (0.0, 90.0, "flatten")]
+    ("jitter", "hfov", "trained_hfov", "readout"),
+    [
+        (0.0, 90.0, None, "max"),
+        (180.0, 90.0, None, "max"),
+        (180.0, 120.0, None, "max"),
+        (0.0, 90.0, None, "flatten"),
+        (180.0, None, 90.0, "max"),
+    ],
 )
-def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, readout):
+def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, trained_hfov, readout):
     """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
-    random start heading, extra sim parameters and the weights' SAM readout reach the nodes)."""
+    random start heading, extra sim parameters, the weights' SAM readout and, without an hfov_deg
+    argument, the camera recorded in the weights reach the nodes)."""
+    from uav_sim.simulator import SimConfig
     from uav_trainer.evaluate import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
     cfg = NetConfig(sam_readout=readout)
-    wio.save_file(build_network(cfg, seed=4), cfg, w)
+    wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov)
     os.environ["ROS_DOMAIN_ID"] = "74"
-    over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=(f"hfov_deg:={hfov}",))
-    local = evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=hfov)
+    sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
+    over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args)
+    flown = hfov if hfov is not None else trained_hfov
+    local = evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=flown)
     assert (over_ros.crashes, over_ros.steps, over_ros.crash_sites) == (local.crashes, local.steps, local.crash_sites)
     assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6
+    if trained_hfov is not None:  # the recorded camera was used: the default camera flies otherwise
+        assert trained_hfov != SimConfig.hfov_deg
+        fly = lambda **kw: evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, **kw)  # noqa: E731
+        by_header, default = fly(), fly(hfov_deg=SimConfig.hfov_deg)
+        assert by_header.mean_reward == local.mean_reward and default.mean_reward != local.mean_reward

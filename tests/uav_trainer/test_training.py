@@ -3,6 +3,7 @@ import math
 import numpy as np
 import torch
 
+from uav_policy import weights as wio
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.learner import LearnerConfig
@@ -55,8 +56,6 @@ def test_training_writes_outputs_and_resumes(tmp_path):
 
 
 def test_the_weight_average_is_written_beside_the_policy_weights(tmp_path):
-    from uav_policy import weights as wio
-
     t = Training(small_cfg(learner=LearnerConfig(batch_size=8, ema_decay=0.99)), tmp_path, log=lambda s: None)
     feed(t, 80)
     while t.learn_once():
@@ -89,6 +88,8 @@ def test_inprocess_training_is_reproducible(tmp_path):
         t = run_inprocess(cfg, str(tmp_path / f"r{k}"), log=lambda s: None)
         weights.append([p.detach().clone() for p in t.learner.online.parameters()])
         assert t.learner.updates == 50 and not math.isnan(t.last_loss)
+        # Every weights file says which camera it was trained with (policy_node and evaluate read it).
+        assert wio.read_file_camera(t.policy_weights_path) == 120.0
     for a, b in zip(*weights, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
@@ -100,7 +101,8 @@ def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monke
     real = ip.procedural_world
     monkeypatch.setattr(ip, "procedural_world", lambda seed: made.append(seed) or real(seed))
     cfg = TrainerConfig(model="cnn", seed=0, total_steps=120, learning_starts=10**6, epsilon_start=1.0)
-    t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True)
+    t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True, hfov_deg=90.0)
+    assert wio.read_file_camera(t.policy_weights_path) == 90.0
     assert t.stats.episodes >= 3 and len(made) == t.stats.episodes + 1  # the first layout plus one per crash
     assert min(made) >= 1000 and len(set(made)) == len(made)  # never the held-out random:0..999
 

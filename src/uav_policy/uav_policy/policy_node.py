@@ -4,7 +4,9 @@ Subscribes depth/image_raw and step_outcome (joined by stamp: an outcome of -Inf
 first frame of a new episode, which restarts the frame stack). For every frame it publishes
 cmd_vel, action (TwistStamped carrying the frame's stamp), q_values, and for SAM the attention
 topics. New weights arrive on the ~/push_weights service (rcl_interfaces/srv/SetParameters with
-one BYTE_ARRAY parameter named 'weights' holding a safetensors blob).
+one BYTE_ARRAY parameter named 'weights' holding a safetensors blob). It also listens to
+depth/camera_info and warns when the camera's field of view is not the one the weights were
+trained with (a network flies worse behind another camera).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
-from sensor_msgs.msg import Image, Range
+from sensor_msgs.msg import CameraInfo, Image, Range
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 from uav_sim import contract
@@ -88,7 +90,9 @@ class PolicyNode(Node):
             sam_readout=readout,
         )
         device = resolve_device(device)
-        net, source = self._initial_network(weights_path, seed)
+        net, source, self.weights_hfov_deg = self._initial_network(weights_path, seed)
+        self.camera_hfov_deg = None  # from depth/camera_info
+        self._camera_warned = None
         self.agent = Agent(net, self.cfg, device, seed)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -102,6 +106,7 @@ class PolicyNode(Node):
         self.joiner = contract.StampJoiner(("frame", "outcome"))
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), q)
         self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), q)
+        self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, 10)
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
         # service needs its own callback group: a suspended async callback holds its group.
         self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
@@ -112,7 +117,9 @@ class PolicyNode(Node):
         self.bad_frames = 0
         self.pushes_rejected = 0
         self.get_logger().info(
-            f"model {model} ({parameter_count(net)} parameters, {source}) on {device}; epsilon {self.epsilon}; "
+            f"model {model} ({parameter_count(net)} parameters, {source}"
+            + (f", trained with a {self.weights_hfov_deg:g} deg camera" if self.weights_hfov_deg is not None else "")
+            + f") on {device}; epsilon {self.epsilon}; "
             + (
                 "attention on attention, attention/overlay, attention/weights"
                 if model == "sam"
@@ -121,18 +128,43 @@ class PolicyNode(Node):
         )
 
     def _initial_network(self, path: str, seed: int):
+        """(network, where it came from, the camera field of view it was trained with or None)."""
         if path:
             try:
-                return wio.load_file(path, self.cfg), f"weights from {path}"
+                return wio.load_file(path, self.cfg), f"weights from {path}", wio.read_file_camera(path)
             except wio.WeightsError as e:
                 raise ParameterError(f"parameter 'weights': {e}") from None
         packaged = wio.packaged_weights(self.cfg.model)
         if packaged is not None:
             try:
-                return wio.load_file(packaged, self.cfg), f"packaged pretrained weights {packaged}"
+                net = wio.load_file(packaged, self.cfg)
+                return net, f"packaged pretrained weights {packaged}", wio.read_file_camera(packaged)
             except wio.WeightsError as e:
                 self.get_logger().warning(f"packaged weights unusable ({e}); using a random initialisation")
-        return build_network(self.cfg, seed=seed), f"no weights given or packaged: seeded random initialisation (seed {seed})"
+        net = build_network(self.cfg, seed=seed)
+        return net, f"no weights given or packaged: seeded random initialisation (seed {seed})", None
+
+    # -- camera -------------------------------------------------------------------------
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        hfov = contract.camera_info_hfov_deg(msg)
+        if hfov is None:
+            self.get_logger().warning("ignoring malformed depth/camera_info (width or fx)", throttle_duration_sec=10.0)
+            return
+        self.camera_hfov_deg = hfov
+        self._check_camera()
+
+    def _check_camera(self) -> None:
+        """Warn once per mismatch between the camera and the camera the weights were trained with."""
+        trained, camera = self.weights_hfov_deg, self.camera_hfov_deg
+        if trained is None or camera is None or abs(trained - camera) <= 0.5:
+            return
+        key = (round(trained, 1), round(camera, 1))
+        if key != self._camera_warned:
+            self._camera_warned = key
+            self.get_logger().warning(
+                f"the weights were trained with a {trained:g} deg camera, but depth/camera_info says {camera:.1f} deg: "
+                f"expect more crashes (run sim_node with hfov_deg:={trained:g})"
+            )
 
     def _on_set_parameters(self, params):
         for p in params:
@@ -241,6 +273,8 @@ class PolicyNode(Node):
             try:
                 net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg))
                 self.agent.swap(net)
+                self.weights_hfov_deg = wio.read_header_camera(blob)
+                self._check_camera()
                 result.successful = True
                 result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms"
             except wio.WeightsError as e:

@@ -1,12 +1,16 @@
 """Weights files and pushes: safetensors only (no pickle), validated before anything is swapped.
 
 A weights blob is a safetensors file whose metadata holds `format` = uav_policy/1 and
-`config` = the NetConfig JSON, so a file made for the other architecture is recognised.
+`config` = the NetConfig JSON, so a file made for the other architecture is recognised, and
+optionally `camera_hfov_deg`: the horizontal field of view of the depth camera the network was
+trained with (a network flies worse behind another camera; policy_node warns, evaluate and the
+figures fly it with that camera). Files without it say nothing about their camera.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
 import tempfile
@@ -20,20 +24,37 @@ from .networks import NetConfig, build_network
 
 FORMAT = "uav_policy/1"
 MAX_BYTES = 64 * 1024 * 1024
+CAMERA_KEY = "camera_hfov_deg"
+HFOV_RANGE_DEG = (10.0, 170.0)  # sim_node's hfov_deg range
 
 
 class WeightsError(ValueError):
     """Weights that cannot be used; the message says what was expected."""
 
 
-def to_bytes(net: torch.nn.Module, cfg: NetConfig) -> bytes:
+def to_bytes(net: torch.nn.Module, cfg: NetConfig, camera_hfov_deg: float | None = None) -> bytes:
+    """The safetensors blob; `camera_hfov_deg` (when known) records the camera the net was trained with."""
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in net.state_dict().items()}
-    return st_save(tensors, metadata={"format": FORMAT, "config": cfg.to_json()})
+    meta = {"format": FORMAT, "config": cfg.to_json()}
+    if camera_hfov_deg is not None:
+        meta[CAMERA_KEY] = repr(_check_hfov(camera_hfov_deg))
+    return st_save(tensors, metadata=meta)
 
 
-def save_file(net: torch.nn.Module, cfg: NetConfig, path: str | os.PathLike) -> None:
+def save_file(net: torch.nn.Module, cfg: NetConfig, path: str | os.PathLike, camera_hfov_deg: float | None = None) -> None:
     """Write atomically: a reader never sees a half-written file."""
-    write_atomic(Path(path), to_bytes(net, cfg))
+    write_atomic(Path(path), to_bytes(net, cfg, camera_hfov_deg))
+
+
+def _check_hfov(value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan
+    lo, hi = HFOV_RANGE_DEG
+    if not lo <= v <= hi:
+        raise WeightsError(f"'{CAMERA_KEY}' must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}")
+    return v
 
 
 def write_atomic(path: Path, data: bytes) -> None:
@@ -51,8 +72,7 @@ def write_atomic(path: Path, data: bytes) -> None:
         raise
 
 
-def read_header_config(blob: bytes) -> NetConfig:
-    """The network config stored in a blob's metadata (without loading the tensors)."""
+def _header_metadata(blob: bytes) -> dict:
     if len(blob) < 8:
         raise WeightsError(f"weights are truncated: {len(blob)} bytes is not a safetensors file")
     (n,) = struct.unpack("<Q", blob[:8])
@@ -61,10 +81,34 @@ def read_header_config(blob: bytes) -> NetConfig:
     try:
         header = json.loads(blob[8 : 8 + n])
         meta = header.get("__metadata__") or {}
+        meta.get("format")  # not a JSON object: AttributeError
     except (ValueError, AttributeError):
         raise WeightsError("weights are corrupt: the safetensors header is not valid JSON") from None
     if meta.get("format") != FORMAT:
         raise WeightsError(f"weights metadata 'format' must be '{FORMAT}', got {meta.get('format')!r}")
+    return meta
+
+
+def read_header_config(blob: bytes) -> NetConfig:
+    """The network config stored in a blob's metadata (without loading the tensors)."""
+    return _config_of(_header_metadata(blob))
+
+
+def read_header_camera(blob: bytes) -> float | None:
+    """The trained camera's horizontal field of view (deg) in a blob's metadata; None when not recorded."""
+    return _camera_of(_header_metadata(blob))
+
+
+def _camera_of(meta: dict) -> float | None:
+    if CAMERA_KEY not in meta:
+        return None
+    try:
+        return _check_hfov(meta[CAMERA_KEY])
+    except WeightsError as e:
+        raise WeightsError(f"weights metadata {e}") from None
+
+
+def _config_of(meta: dict) -> NetConfig:
     try:
         return NetConfig.from_json(meta.get("config", ""))
     except (ValueError, TypeError) as e:
@@ -77,7 +121,9 @@ def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
         raise WeightsError("weights are empty")
     if len(blob) > MAX_BYTES:
         raise WeightsError(f"weights are {len(blob)} bytes, more than the {MAX_BYTES} allowed")
-    cfg = read_header_config(bytes(blob))
+    meta = _header_metadata(bytes(blob))
+    cfg = _config_of(meta)
+    _camera_of(meta)  # a malformed camera entry is refused like any other bad metadata
     if cfg.model != expected.model:
         raise WeightsError(f"weights are for model '{cfg.model}', but this policy runs model '{expected.model}'")
     if cfg != expected:
@@ -114,8 +160,7 @@ def load_file(path: str | os.PathLike, expected: NetConfig) -> torch.nn.Module:
         raise WeightsError(f"{p}: {e}") from None
 
 
-def read_file_config(path: str | os.PathLike) -> NetConfig:
-    """The network config a weights file was made for (its header only; the tensors are not checked)."""
+def _read_file_metadata(path: str | os.PathLike) -> dict:
     p = Path(path).expanduser()
     try:
         with p.open("rb") as f:
@@ -123,9 +168,27 @@ def read_file_config(path: str | os.PathLike) -> NetConfig:
     except OSError as e:
         raise WeightsError(f"cannot read weights file '{p}': {e.strerror}") from None
     try:
-        return read_header_config(blob)
+        meta = _header_metadata(blob)
+        _config_of(meta), _camera_of(meta)
+        return meta
     except WeightsError as e:
         raise WeightsError(f"{p}: {e}") from None
+
+
+def read_file_config(path: str | os.PathLike) -> NetConfig:
+    """The network config a weights file was made for (its header only; the tensors are not checked)."""
+    return _config_of(_read_file_metadata(path))
+
+
+def read_file_camera(path: str | os.PathLike) -> float | None:
+    """The camera field of view (deg) a weights file was trained with; None when the file does not say."""
+    return _camera_of(_read_file_metadata(path))
+
+
+def camera_for(path: str | os.PathLike | None, default: float) -> float:
+    """The field of view to fly weights with: the file's trained camera, else `default`."""
+    hfov = read_file_camera(path) if path else None
+    return default if hfov is None else hfov
 
 
 def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:

@@ -97,6 +97,17 @@ def outcome_collided(msg: Range) -> bool:
     return math.isinf(msg.range) and msg.range < 0
 
 
+def camera_info_hfov_deg(msg) -> float | None:
+    """Horizontal field of view (deg) of a sensor_msgs/CameraInfo: 2 atan((w/2) / fx); None if malformed."""
+    try:
+        width, fx = float(msg.width), float(msg.k[0])
+    except (AttributeError, IndexError, TypeError, ValueError):
+        return None
+    if not (width > 0 and math.isfinite(fx) and fx > 0):
+        return None
+    return math.degrees(2.0 * math.atan(width / 2.0 / fx))
+
+
 class StampJoiner:
     """Joins messages from several streams by exact stamp (a small TimeSynchronizer).
 

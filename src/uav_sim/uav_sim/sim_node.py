@@ -41,7 +41,13 @@ class SimNode(Node):
         cfg = SimConfig(
             image_width=d("image_width", 64, "Depth image width (px)", 8, 1024),
             image_height=d("image_height", 64, "Depth image height (px)", 8, 1024),
-            hfov_deg=d("hfov_deg", 90.0, "Horizontal field of view (deg)", 10.0, 170.0),
+            hfov_deg=d(
+                "hfov_deg",
+                SimConfig.hfov_deg,
+                "Horizontal field of view (deg); the shipped weights were trained at 120, the paper's camera is 90",
+                10.0,
+                170.0,
+            ),
             min_range_m=d("min_range_m", 0.1, "Closest measurable depth (m); also the near clip plane", 0.01, 10.0),
             max_range_m=d("max_range_m", 10.0, "Farthest measurable depth (m); beyond it pixels are +Inf", 0.5, 100.0),
             step_duration_s=d("step_duration_s", 0.5, "Sim time one step (one command) lasts (s)", 0.01, 5.0),

@@ -152,6 +152,30 @@ def readout_args(model: str, weights: str) -> list[str]:
     return [f"sam_readout:={readout}"] if readout != "max" else []
 
 
+def flown_hfov_deg(model: str, weights: str, given: float | None = None) -> float:
+    """The camera field of view a run flies with: `given` (e.g. --sim-arg hfov_deg) when set, else the one
+    the weights file (or, without one, the packaged file policy_node loads) was trained with, else the
+    simulator's default."""
+    from uav_policy import weights as wio
+    from uav_sim.simulator import SimConfig
+
+    if given is not None:
+        return float(given)
+    return wio.camera_for(weights or wio.packaged_weights(model), SimConfig.hfov_deg)
+
+
+def sim_arg_hfov_deg(sim_args) -> float | None:
+    """The hfov_deg among sim_node arguments NAME:=VALUE, if one is given (ValueError if not a number)."""
+    for arg in sim_args:
+        name, _, value = arg.partition(":=")
+        if name == "hfov_deg":
+            try:
+                return float(value)
+            except ValueError:
+                raise ValueError(f"sim_node argument {arg!r}: hfov_deg must be a number") from None
+    return None
+
+
 def evaluate_once(
     model: str,
     weights: str,
@@ -166,7 +190,11 @@ def evaluate_once(
     log_dir: Path | None = None,
     progress=None,
 ) -> EvalResult:
-    """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps."""
+    """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
+
+    Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with."""
+    if sim_arg_hfov_deg(sim_args) is None:
+        sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, weights)}")
     import rclpy
     import rclpy.executors
     from nav_msgs.msg import Odometry
@@ -252,9 +280,11 @@ def evaluate_inprocess(
     seed: int = 0,
     net=None,
     start_yaw_jitter_deg: float = 0.0,
-    hfov_deg: float = 90.0,
+    hfov_deg: float | None = None,
 ) -> EvalResult:
-    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks."""
+    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
+
+    hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default)."""
     from uav_policy import weights as wio
     from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
@@ -264,11 +294,14 @@ def evaluate_inprocess(
     from uav_sim.world import load_world
 
     cfg = wio.config_for(model, weights)
+    path = None
     if net is None:
         path = weights or wio.packaged_weights(model)
         if path is None:
             raise FileNotFoundError(f"no weights given and no packaged {model} weights")
         net = wio.load_file(path, cfg)
+    if hfov_deg is None:  # with `net` and no file: the sim default
+        hfov_deg = wio.camera_for(weights or path, SimConfig.hfov_deg)
     agent = Agent(net, cfg, seed=seed)
     sim = Simulator(load_world(world), SimConfig(seed=seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg))
     stack = FrameStack(cfg.frames)
@@ -517,7 +550,8 @@ def main(argv=None) -> int:
         action="append",
         default=[],
         metavar="NAME:=VALUE",
-        help="extra sim_node parameter, e.g. --sim-arg hfov_deg:=120.0 (repeatable; must match how the policy was trained)",
+        help="extra sim_node parameter, e.g. --sim-arg hfov_deg:=90.0 (repeatable); without hfov_deg every weights "
+        "file flies with the camera it was trained with (its header), else the sim default",
     )
     ap.add_argument("--repeats", type=int, default=1, help="runs per weight file and world (sim seeds --seed + i), pooled")
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
@@ -538,16 +572,14 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.repeats < 1 or a.steps < 1:
         ap.error("--repeats and --steps must be >= 1")
-    hfov_deg = 90.0
+    try:
+        hfov_deg = sim_arg_hfov_deg(a.sim_arg)
+    except ValueError as e:
+        ap.error(f"--sim-arg: {e}")
     if a.inprocess:
         for arg in a.sim_arg:
-            name, _, value = arg.partition(":=")
-            if name != "hfov_deg":
+            if arg.partition(":=")[0] != "hfov_deg":
                 ap.error(f"--inprocess takes only --sim-arg hfov_deg:=X, got {arg!r}")
-            try:
-                hfov_deg = float(value)
-            except ValueError:
-                ap.error(f"--sim-arg {arg!r}: hfov_deg must be a number")
         if a.epsilon != 0.0:
             ap.error("--inprocess flies exploit-only: --epsilon must be 0")
         import torch
@@ -566,6 +598,13 @@ def main(argv=None) -> int:
         protocol = "Every episode starts at the world's start pose (the paper's protocol)."
     if a.sim_arg:
         protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
+    if hfov_deg is None:
+        from uav_sim.simulator import SimConfig
+
+        protocol += (
+            " Camera: each weights file flies with the field of view it was trained with (its header;"
+            f" {SimConfig.hfov_deg:g}° when it has none)."
+        )
     if a.inprocess:
         protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     if a.from_csv:

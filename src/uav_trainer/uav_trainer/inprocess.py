@@ -83,7 +83,7 @@ class Validation:
         better = self.best is None or (crashes, -reward) < (self.best[0], -self.best[1])
         if better:
             self.best = (crashes, reward)
-            wio.save_file(training.learner.online, training.net_cfg, self.path)
+            wio.save_file(training.learner.online, training.net_cfg, self.path, training.camera_hfov_deg)
         self._rows.writerow(
             [training.env_steps, training.learner.updates, crashes, self.steps * len(self.worlds), f"{reward:.4f}", int(better)]
         )
@@ -115,6 +115,7 @@ def run(
     so `random:0..999` stay held out) instead of `world`.
     """
     training = Training(cfg, run_dir, log=log, resume=resume)
+    training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
     sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg)
     layouts = iter(range(1000 + 100_000 * cfg.seed, 10**9))

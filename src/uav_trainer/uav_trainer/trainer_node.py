@@ -20,11 +20,12 @@ from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
-from sensor_msgs.msg import Image, Range
+from sensor_msgs.msg import CameraInfo, Image, Range
 
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
 from uav_policy.networks import SAM_READOUTS
 from uav_policy.push import push_request
+from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim import contract
 from uav_sim.node_runner import run
 from uav_sim.ros_params import ParameterError, declare
@@ -141,6 +142,8 @@ class TrainerNode(Node):
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self.pairing.add("frame", m), q)
         self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self.pairing.add("outcome", m), q)
         self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self.pairing.add("action", m), q)
+        # The camera's field of view goes into every weights file (policy_node warns on a mismatch).
+        self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
         self.param_client = self.create_client(SetParameters, f"{policy}/set_parameters")
@@ -160,6 +163,16 @@ class TrainerNode(Node):
             f"training {self.cfg.model} (seed {self.cfg.seed}) on {device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames"
         )
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        hfov = contract.camera_info_hfov_deg(msg)
+        if hfov is None or not HFOV_RANGE_DEG[0] <= hfov <= HFOV_RANGE_DEG[1]:
+            self.get_logger().warning("ignoring malformed depth/camera_info (width or fx)", throttle_duration_sec=10.0)
+            return
+        hfov = round(hfov, 3)
+        if hfov != self.training.camera_hfov_deg:
+            self.get_logger().info(f"depth camera: {hfov:g} deg horizontal field of view (recorded in the weights files)")
+            self.training.camera_hfov_deg = hfov
 
     # -- learning -----------------------------------------------------------------------
     def _learn_loop(self) -> None:

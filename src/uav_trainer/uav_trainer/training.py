@@ -49,6 +49,9 @@ class TrainerConfig:
     turn_penalty: float = 0.0
     turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
     sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
+    # The depth camera's horizontal field of view, recorded in every weights file written; None:
+    # not known yet (the ROS trainer learns it from depth/camera_info and sets Training.camera_hfov_deg).
+    camera_hfov_deg: float | None = None
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -59,6 +62,7 @@ class Training:
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.net_cfg = NetConfig(model=cfg.model, sam_readout=cfg.sam_readout)
+        self.camera_hfov_deg = cfg.camera_hfov_deg
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), cfg.device)
         self.replay = ReplayMemory(
@@ -212,7 +216,7 @@ class Training:
             self.tb.add_scalar("train/loss", out["loss"], u)
             self.tb.add_scalar("train/q_mean", out["q_mean"], u)
         if u % self.cfg.push_interval_updates == 0:
-            self._pending_push = wio.to_bytes(self.learner.online, self.net_cfg)
+            self._pending_push = wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg)
         if u % self.cfg.checkpoint_interval_updates == 0:
             self.save_checkpoint()
         return True
@@ -222,7 +226,7 @@ class Training:
         return blob
 
     def weights_blob(self) -> bytes:
-        return wio.to_bytes(self.learner.online, self.net_cfg)
+        return wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg)
 
     # -- outputs ------------------------------------------------------------------------
     def counters(self) -> dict:
@@ -240,9 +244,9 @@ class Training:
             counters = self.counters()
             rng = {"replay": checkpoint.rng_state(self.replay.rng)}
         path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng)
-        wio.save_file(self.learner.online, self.net_cfg, self.policy_weights_path)
+        wio.save_file(self.learner.online, self.net_cfg, self.policy_weights_path, self.camera_hfov_deg)
         if self.learner.ema is not None:
-            wio.save_file(self.learner.ema, self.net_cfg, self.ema_weights_path)
+            wio.save_file(self.learner.ema, self.net_cfg, self.ema_weights_path, self.camera_hfov_deg)
         self.plot()
         return path
 
