@@ -169,7 +169,8 @@ def _read_file_metadata(path: str | os.PathLike) -> dict:
         raise WeightsError(f"cannot read weights file '{p}': {e.strerror}") from None
     try:
         meta = _header_metadata(blob)
-        _config_of(meta), _camera_of(meta)
+        _config_of(meta)  # the whole header is checked, whichever part the caller wants
+        _camera_of(meta)
         return meta
     except WeightsError as e:
         raise WeightsError(f"{p}: {e}") from None

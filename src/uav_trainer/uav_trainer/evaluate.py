@@ -152,15 +152,12 @@ def readout_args(model: str, weights: str) -> list[str]:
     return [f"sam_readout:={readout}"] if readout != "max" else []
 
 
-def flown_hfov_deg(model: str, weights: str, given: float | None = None) -> float:
-    """The camera field of view a run flies with: `given` (e.g. --sim-arg hfov_deg) when set, else the one
-    the weights file (or, without one, the packaged file policy_node loads) was trained with, else the
-    simulator's default."""
+def flown_hfov_deg(model: str, weights: str) -> float:
+    """The camera field of view weights fly with when no hfov_deg is given: the one the weights file (or,
+    without one, the packaged file policy_node loads) was trained with, else the simulator's default."""
     from uav_policy import weights as wio
     from uav_sim.simulator import SimConfig
 
-    if given is not None:
-        return float(given)
     return wio.camera_for(weights or wio.packaged_weights(model), SimConfig.hfov_deg)
 
 
