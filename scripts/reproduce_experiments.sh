@@ -135,6 +135,11 @@ done
 T=()
 for m in sam cnn; do for s in $(seq 0 19); do T+=("$m=runs/turn_${m}_seed$s/policy_$m.safetensors"); done; done
 $EVAL "${B120[@]}" --model sam --model cnn --weights "${T[@]}" --out docs/results/behaviour/turn_penalty_20_seeds
+$EVAL --inprocess --model sam --model cnn --weights "${T[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out docs/results/behaviour/turn_penalty_20_seeds_fixed_start
+for t in turn_penalty_20_seeds turn_penalty_20_seeds_fixed_start; do
+  python scripts/compare_models.py docs/results/behaviour/$t/results.csv > docs/results/behaviour/$t/comparison.md
+done
 # Choosing the shipped weights among seeds 0-9 (docs/RESULTS.md, "Shipped weights"): the validation
 # layouts, and the paper's fixed start; the rule picked SAM seed 4 and CNN seed 8. Then package
 # them with their camera and measure the packaged files through the ROS nodes.

@@ -3,6 +3,7 @@
 import csv
 import os
 import subprocess
+import sys
 
 import pytest
 
@@ -154,3 +155,29 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
     for name in ("results.md", "results.csv"):
         assert (tmp_path / "joined" / name).read_text() == (tmp_path / "both" / name).read_text()
     assert "random heading (uniform ±180°), 2 x 30 steps" in (tmp_path / "joined" / "results.md").read_text()
+
+
+def test_compare_models_tells_a_real_difference_from_none(tmp_path):
+    def write(name, sam, cnn):
+        path = tmp_path / name
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["model", "world", "weights", "steps", "crashes", "mean_reward"])
+            for model, crashes in (("sam", sam), ("cnn", cnn)):
+                for i, c in enumerate(crashes):
+                    w.writerow([model, "complex", f"{model}{i}", 1000, c, 2.0 + 0.1 * i])
+        return path
+
+    script = ROOT / "scripts" / "compare_models.py"
+    run = lambda p: subprocess.run([sys.executable, str(script), str(p)], capture_output=True, text=True)  # noqa: E731
+    differ = run(write("differ.csv", [0, 1, 0, 1, 0, 1], [9, 10, 11, 9, 10, 11]))
+    assert differ.returncode == 0, differ.stderr
+    row = next(line for line in differ.stdout.splitlines() if "crashes / 1000" in line)
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:5] == ["0.500 (6)", "10.000 (6)", "-9.500"]
+    assert float(cells[6]) < 0.01  # 6 vs 6 fully separated: exact p = 2 / 924
+    same = run(write("same.csv", [1, 2, 3], [3, 2, 1]))
+    row = next(line for line in same.stdout.splitlines() if "crashes / 1000" in line)
+    assert row.strip("|").split("|")[6].strip() == "1.000"
+    one = run(write("one.csv", [1], [3, 2]))
+    assert one.returncode == 2 and "two or more" in one.stderr
