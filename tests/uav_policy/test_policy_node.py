@@ -57,8 +57,11 @@ def test_policy_answers_each_frame_once_and_explains_it(ros):
     assert {a for a in acts if a <= frames[-1]} <= set(frames)
     assert all(a - frames[-1] <= 1_000_000_000 for a in acts), "an action answered a frame never published"
     answered = set(acts)
-    # Frames newer than the newest action read here may have their answer still in flight.
-    missing = [f for f in frames[5:] if f <= max(acts) and f not in answered]
+    # Frames newer than the newest action read here may have their answer still in flight, and
+    # our reader may match the policy's publisher after the simulator's (discovery order: one CI
+    # run missed the early actions). So: from the first action heard on (300 or more of them), no
+    # frame goes unanswered.
+    missing = [f for f in frames if min(acts) <= f <= max(acts) and f not in answered]
     assert not missing, f"unanswered frames {missing[:5]} (of {len(frames)}; newest action {max(acts)})"
     att = {contract.stamp_ns(m.header.stamp): m for m in w.att}
     frame_msgs = {contract.stamp_ns(m.header.stamp): m for m in w.frames}
