@@ -49,9 +49,6 @@ class TrainerConfig:
     turn_penalty: float = 0.0
     turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
     sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
-    # The depth camera's horizontal field of view, recorded in every weights file written; None:
-    # not known yet (the ROS trainer learns it from depth/camera_info and sets Training.camera_hfov_deg).
-    camera_hfov_deg: float | None = None
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -62,7 +59,9 @@ class Training:
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.net_cfg = NetConfig(model=cfg.model, sam_readout=cfg.sam_readout)
-        self.camera_hfov_deg = cfg.camera_hfov_deg
+        # The depth camera's field of view, recorded in every weights file written; None until the
+        # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
+        self.camera_hfov_deg: float | None = None
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), cfg.device)
         self.replay = ReplayMemory(
@@ -216,7 +215,7 @@ class Training:
             self.tb.add_scalar("train/loss", out["loss"], u)
             self.tb.add_scalar("train/q_mean", out["q_mean"], u)
         if u % self.cfg.push_interval_updates == 0:
-            self._pending_push = wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg)
+            self._pending_push = self.weights_blob()
         if u % self.cfg.checkpoint_interval_updates == 0:
             self.save_checkpoint()
         return True
