@@ -1,23 +1,33 @@
 """Is one model's crash rate lower than the other's? A two-sample comparison over training seeds.
 
     python scripts/compare_models.py docs/results/behaviour/turn_penalty_20_seeds/results.csv [--a sam --b cnn]
+    python scripts/compare_models.py new.csv old.csv --by run --a redraw_sam --b turn_sam
 
 Reads an `evaluate` results.csv (one row per weights file and world). For each world and metric
 (crashes per 1000 steps, mean reward per step) it prints, in Markdown: the mean of each model over
 its weights files (training seeds), the difference a - b with a 95 % bootstrap interval
 (percentile, resampling seeds within each model), and a two-sided permutation p-value for "the
 two models' seeds come from one distribution" (difference of means, model labels shuffled).
-Both are seeded, so the output is reproducible.
+Both are seeded, so the output is reproducible. `--by run` compares two training variants instead
+of two models: a row's group is its weights file's folder without `_seed<N>` (runs/turn_sam_seed3/
+policy_sam.safetensors -> turn_sam).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import re
 import sys
 from collections import defaultdict
+from pathlib import PurePath
 
 import numpy as np
+
+
+def run_name(weights: str) -> str:
+    """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam"""
+    return re.sub(r"_seed\d+$", "", PurePath(weights).parent.name)
 
 
 def compare(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resamples: int) -> tuple[float, float, float, float]:
@@ -40,6 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--b", default="cnn")
     ap.add_argument("--resamples", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--by", choices=("model", "run"), default="model", help="group rows by model or by training run")
     a = ap.parse_args(argv)
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     worlds: list[str] = []
@@ -47,12 +58,13 @@ def main(argv=None) -> int:
         for r in csv.DictReader(open(path)):
             if r["world"] not in worlds:
                 worlds.append(r["world"])
-            values[(r["model"], r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
-            values[(r["model"], r["world"], "reward")].append(float(r["mean_reward"]))
+            group = r["model"] if a.by == "model" else run_name(r["weights"])
+            values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
+            values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
     rng = np.random.default_rng(a.seed)
-    print(f"{a.a.upper()} - {a.b.upper()} over training seeds ({', '.join(a.csv)}); {a.resamples} resamples, seed {a.seed}.")
+    A, B = (a.a.upper(), a.b.upper()) if a.by == "model" else (a.a, a.b)
+    print(f"{A} - {B} over training seeds ({', '.join(a.csv)}); {a.resamples} resamples, seed {a.seed}.")
     print()
-    A, B = a.a.upper(), a.b.upper()
     print(f"| world | metric | {A} mean (n) | {B} mean (n) | difference | 95 % bootstrap CI | permutation p |")
     print("|---|---|---|---|---|---|---|")
     missing = True

@@ -181,3 +181,19 @@ def test_compare_models_tells_a_real_difference_from_none(tmp_path):
     assert row.strip("|").split("|")[6].strip() == "1.000"
     one = run(write("one.csv", [1], [3, 2]))
     assert one.returncode == 2 and "two or more" in one.stderr
+    # --by run: two training variants of one model, told apart by their run folders.
+    rows = [
+        ["sam", "complex", f"runs/{v}_sam_seed{i}/policy_sam.safetensors", 1000, c, 2.0]
+        for v, cs in (("new", [0, 0, 1]), ("old", [4, 5, 6]))
+        for i, c in enumerate(cs)
+    ]
+    path = tmp_path / "runs.csv"
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([["model", "world", "weights", "steps", "crashes", "mean_reward"], *rows])
+    by_run = subprocess.run(
+        [sys.executable, str(script), str(path), "--by", "run", "--a", "new_sam", "--b", "old_sam"],
+        capture_output=True,
+        text=True,
+    )
+    row = next(line for line in by_run.stdout.splitlines() if "crashes / 1000" in line)
+    assert [c.strip() for c in row.strip("|").split("|")][2:5] == ["0.333 (3)", "5.000 (3)", "-4.667"], by_run.stdout

@@ -96,6 +96,36 @@ def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
     assert abs(odom.pose.pose.position.x - (-6.0)) < 1e-6 and abs(odom.pose.pose.position.y) < 1e-6
 
 
+def test_random_each_episode_flies_a_new_layout_after_every_crash(ros):
+    import itertools
+
+    from uav_sim.world import training_layouts
+
+    rec = Recorder(ros)
+    diag = []
+    ros.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, diag.append, 10)
+    proc = ros.start("uav_sim", "sim_node", "-p", "world:=random_each_episode", "-p", "seed:=2")
+    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
+    layouts = list(itertools.islice(training_layouts(2), 3))  # random:201000, 201001, 201002
+    crashes = []
+    for _ in range(80):  # at 1 m per step straight ahead, every room ends within 20 steps
+        n = len(rec.distinct_frames())
+        rec.cmd.publish(twist(vx=2.0))
+        assert ros.spin_until(lambda n=n: len(rec.distinct_frames()) > n, 10)
+        crashes = [contract.stamp_ns(m.header.stamp) for m in rec.by_topic["outcome"] if contract.outcome_collided(m)]
+        if len(set(crashes)) >= 2:
+            break
+    assert len(set(crashes)) >= 2, "two crashes expected"
+    assert ros.spin_until(lambda: set(crashes) <= set(rec.stamps("odom")), 5)
+    first = rec.by_topic["odom"][0].pose.pose.position
+    assert (first.x, first.y) == pytest.approx(layouts[0].start_xyz_m[:2])
+    for k, stamp in enumerate(sorted(set(crashes)), start=1):  # each crash step reports the next layout's start
+        pos = next(m for m in rec.by_topic["odom"] if contract.stamp_ns(m.header.stamp) == stamp).pose.pose.position
+        assert (pos.x, pos.y) == pytest.approx(layouts[k].start_xyz_m[:2], abs=1e-6)
+    assert ros.spin_until(lambda: any(kv.value == "random:201002" for m in diag for kv in m.status[0].values), 5)
+    assert "a new layout every episode, first world 'random:201000'" in ros.log_of(proc)
+
+
 def test_bad_commands_are_rejected_and_the_node_survives(ros):
     rec = Recorder(ros)
     diags = []

@@ -101,6 +101,19 @@ def test_flying_into_a_wall_is_a_collision_and_resets(sims):
     assert crash_index == 3
 
 
+def test_change_world_rebuilds_the_scene_and_keeps_the_counters(sims):
+    sim = sims(load_world("turbulent"))
+    for _ in range(3):
+        sim.step(BodyTwist(vx_mps=1.0))
+    r = sim.change_world(wall_world(2.0))
+    assert (sim.total_steps, sim.episode, r.step_in_episode, r.sim_time_s) == (3, 0, 0, 1.5)
+    assert r.pose.x_m == 0.0 and r.pose.y_m == 0.0
+    # Nothing of turbulent is left (obstacles, walls, particles): the frame is a fresh wall world's.
+    assert np.array_equal(r.depth_m, sims(wall_world(2.0)).observe().depth_m)
+    crashes = [sim.step(BodyTwist(vx_mps=1.0)).collided for _ in range(4)]
+    assert crashes == [False, False, False, True] and sim.collisions == 1  # the new wall collides
+
+
 def test_a_graze_along_a_wall_is_a_brush_not_a_collision(sims):
     # Body half width 0.2 m; fly parallel to a wall whose face is 0.19 m from the centre line.
     wall = Obstacle("box", 0.0, 0.69, 3.0, size_x_m=20.0, size_y_m=1.0)

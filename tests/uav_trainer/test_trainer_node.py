@@ -78,6 +78,8 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     run_dir = tmp_path / "run"
     cmd = [
         str(executable("uav_trainer", "train")),
+        "--recipe",
+        "paper",
         "--model",
         "sam",
         "--steps",
@@ -100,6 +102,8 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:] + trainer_log[-2000:]
     weights = run_dir / "policy_sam.safetensors"
     assert weights.is_file() and (run_dir / "curves.png").is_file()
+    assert wio.read_file_camera(weights) == 90.0, "the paper recipe flies the paper's 90 deg camera"
+    assert "turn_penalty:=0.0" in r.stdout and "(recipe paper" in r.stdout
     untrained = tmp_path / "untrained.safetensors"
     wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), untrained)
     os.environ["ROS_DOMAIN_ID"] = env_domain

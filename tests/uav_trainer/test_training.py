@@ -1,6 +1,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from uav_policy import weights as wio
@@ -94,17 +95,25 @@ def test_inprocess_training_is_reproducible(tmp_path):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
 
-def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monkeypatch):
+@pytest.mark.parametrize("redraw", [False, True])
+def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monkeypatch, redraw):
+    import uav_sim.world as world_module
     import uav_trainer.inprocess as ip
+    from uav_sim.simulator import Simulator
 
-    made = []
-    real = ip.procedural_world
-    monkeypatch.setattr(ip, "procedural_world", lambda seed: made.append(seed) or real(seed))
+    made, start_yaws = [], []
+    real = world_module.procedural_world
+    monkeypatch.setattr(world_module, "procedural_world", lambda seed: made.append(seed) or real(seed))
+    observe = Simulator.observe  # called for every episode's first frame (a new simulator or change_world)
+    monkeypatch.setattr(Simulator, "observe", lambda sim: start_yaws.append(sim.pose.yaw_rad) or observe(sim))
     cfg = TrainerConfig(model="cnn", seed=0, total_steps=120, learning_starts=10**6, epsilon_start=1.0)
-    t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True, hfov_deg=90.0)
+    t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True, hfov_deg=90.0, redraw_heading=redraw)
     assert wio.read_file_camera(t.policy_weights_path) == 90.0
     assert t.stats.episodes >= 3 and len(made) == t.stats.episodes + 1  # the first layout plus one per crash
     assert min(made) >= 1000 and len(set(made)) == len(made)  # never the held-out random:0..999
+    assert len(start_yaws) == len(made)
+    # Without redraw every layout starts at the seed's first heading draw; with it each episode draws anew.
+    assert len(set(start_yaws)) == (len(made) if redraw else 1), start_yaws
 
 
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):

@@ -7,6 +7,7 @@ Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, /clock
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -23,14 +24,19 @@ from .node_runner import run
 from .ros_params import ParameterError, declare
 from .simulator import SimConfig, Simulator, StepResult
 from .vehicle import HOVER, BodyTwist, TwistLimits, twist_error
-from .world import WorldError, load_world
+from .world import EACH_EPISODE, WorldError, load_world, training_layouts
 
 
 class SimNode(Node):
     def __init__(self):
         super().__init__("sim_node")
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-        world_name = d("world", "basic", "World: basic, complex, turbulent, random[:SEED] or a path to a world .yaml file")
+        world_name = d(
+            "world",
+            "basic",
+            f"World: basic, complex, turbulent, random[:SEED], a path to a world .yaml file, or {EACH_EPISODE} "
+            "(training: a new seeded procedural layout every episode, random:1000+100000*seed onward)",
+        )
         self.mode = d(
             "mode",
             "lockstep",
@@ -85,8 +91,9 @@ class SimNode(Node):
         self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
         self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
         self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
+        self.layouts = training_layouts(seed) if world_name == EACH_EPISODE else None
         try:
-            world = load_world(world_name, seed=seed)
+            world = next(self.layouts) if self.layouts else load_world(world_name, seed=seed)
         except WorldError as e:
             raise ParameterError(f"parameter 'world': {e}") from None
         try:
@@ -123,7 +130,8 @@ class SimNode(Node):
             self.create_timer(min(self.republish_s, 0.25), self.on_lockstep_idle)
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
-            f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
+            ("a new layout every episode, first " if self.layouts else "")
+            + f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
             f"snow={world.weather.snow} leaves={world.weather.leaves}), mode {self.mode}, "
             f"{cfg.image_width}x{cfg.image_height} depth, step {cfg.step_duration_s} s"
         )
@@ -167,9 +175,11 @@ class SimNode(Node):
 
     def on_reset(self, _req, resp):
         self.current = self.sim.reset()
+        if self.layouts:
+            self.current = self.sim.change_world(next(self.layouts))
         self.publish(self.current)
         resp.success = True
-        resp.message = f"episode {self.sim.episode} started at the start pose"
+        resp.message = f"episode {self.sim.episode} started at the start pose of '{self.sim.world.name}'"
         return resp
 
     def advance(self, cmd: BodyTwist) -> None:
@@ -177,8 +187,11 @@ class SimNode(Node):
         self.executed = cmd
         self.brushes += result.brushes
         if result.collided:
+            if self.layouts:  # the next episode flies a new layout; the step still reports the crash
+                crash = {k: getattr(result, k) for k in ("collided", "reward", "beta_m", "brushes")}
+                result = dataclasses.replace(self.sim.change_world(next(self.layouts)), **crash)
             self.get_logger().info(
-                f"collision: episode {result.episode - 1} ended; vehicle back at start "
+                f"collision: episode {result.episode - 1} ended; vehicle back at the start of '{self.sim.world.name}' "
                 f"({self.sim.collisions} collisions in {self.sim.total_steps} steps)"
             )
         self.current = result
@@ -238,6 +251,7 @@ class SimNode(Node):
         if self.watchdog_active:
             st.level = DiagnosticStatus.WARN
         vals = {
+            "world": self.sim.world.name,
             "episodes": self.sim.episode,
             "steps": self.sim.total_steps,
             "collisions": self.sim.collisions,

@@ -84,19 +84,13 @@ class Simulator:
         self.config = config
         self.rng = np.random.default_rng(config.seed)
         self.client = p.connect(p.DIRECT)
-        p.setGravity(0, 0, 0, physicsClientId=self.client)
-        self._build_world()
-        hx, hy, hz = config.body_half_extents_m
-        shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=(hx, hy, hz), physicsClientId=self.client)
-        # Mass > 0 so that contacts with the static world are generated; it is moved kinematically.
-        self.body = p.createMultiBody(1.0, shape, -1, (0, 0, 1), physicsClientId=self.client)
         self.camera = DepthCamera(
             self.client,
             CameraIntrinsics(config.image_width, config.image_height, config.hfov_deg),
             config.min_range_m,
             config.max_range_m,
         )
-        self.particles = Particles(self.client, world.weather, config.seed + 1)
+        self._populate()
         self.sim_time_s = 0.0
         self.episode = 0
         self.step_in_episode = 0
@@ -107,6 +101,16 @@ class Simulator:
         self.particles.update(0.0, self.camera_xyz(), self.pose.yaw_rad)
 
     # -- world ------------------------------------------------------------------------
+    def _populate(self) -> None:
+        """Build self.world, the vehicle body and the weather particles in the (empty) client."""
+        p.setGravity(0, 0, 0, physicsClientId=self.client)
+        self._build_world()
+        hx, hy, hz = self.config.body_half_extents_m
+        shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=(hx, hy, hz), physicsClientId=self.client)
+        # Mass > 0 so that contacts with the static world are generated; it is moved kinematically.
+        self.body = p.createMultiBody(1.0, shape, -1, (0, 0, 1), physicsClientId=self.client)
+        self.particles = Particles(self.client, self.world.weather, self.config.seed + 1)
+
     def _static_box(self, center, half, yaw_rad=0.0) -> None:
         c = self.client
         col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
@@ -183,6 +187,18 @@ class Simulator:
         self.step_in_episode = 0
         self.pose = self._start_pose()
         self._place()
+        return self.observe()
+
+    def change_world(self, world: World) -> StepResult:
+        """Move to another world: the current episode restarts at its start pose. Counters, clock
+        and the seeded start-heading draws carry on (for a new layout every episode)."""
+        p.resetSimulation(physicsClientId=self.client)
+        self.world = world
+        self._populate()
+        self.step_in_episode = 0
+        self.pose = self._start_pose()
+        self._place()
+        self.particles.update(0.0, self.camera_xyz(), self.pose.yaw_rad)
         return self.observe()
 
     def step(self, cmd: BodyTwist = HOVER) -> StepResult:

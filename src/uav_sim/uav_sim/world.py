@@ -13,14 +13,17 @@ Format (`format: uav_sim_world/1`), all lengths in metres, angles in degrees:
     weather: {rain: 0, snow: 0, leaves: 0}   # particle counts around the vehicle
 
 Built-in worlds live in the package's `worlds/` folder (installed to share/uav_sim/worlds);
-`random` (or `random:SEED`) makes a seeded procedural layout for held-out testing.
+`random` (or `random:SEED`) makes a seeded procedural layout for held-out testing;
+`random_each_episode` (sim_node) flies a new one every episode, for training.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +31,8 @@ import yaml
 
 FORMAT = "uav_sim_world/1"
 BUILTIN_WORLDS = ("basic", "complex", "turbulent")
+EACH_EPISODE = "random_each_episode"  # sim_node: a new training layout every episode
+TRAINING_LAYOUTS_FROM = 1000  # random:0..999 are never trained on (test and validation layouts)
 
 
 class WorldError(ValueError):
@@ -239,3 +244,10 @@ def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
                 )
             )
     return World(f"random:{seed}", length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
+
+
+def training_layouts(seed: int) -> Iterator[World]:
+    """The procedural layouts a run with this seed trains on, one per episode:
+    random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear."""
+    start = TRAINING_LAYOUTS_FROM + 100_000 * seed
+    return (procedural_world(s) for s in itertools.count(start))

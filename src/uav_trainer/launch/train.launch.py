@@ -1,5 +1,6 @@
-"""Minimal launch file for users with a full ROS 2 install: the same three nodes and parameter files
-as `ros2 run uav_trainer train` (which is what this repository tests; `launch` is not on PyPI).
+"""Minimal launch file for users with a full ROS 2 install: the same three nodes, parameter files and
+default recipe ("shipped") as `ros2 run uav_trainer train` (which is what this repository tests;
+`launch` is not on PyPI).
 
     ros2 launch uav_trainer train.launch.py params_dir:=$PWD/params
 """
@@ -18,13 +19,25 @@ def generate_launch_description():
             Node(
                 package="uav_sim",
                 executable="sim_node",
-                parameters=[PathJoinSubstitution([params, "sim.yaml"]), {"start_yaw_jitter_deg": 180.0, "max_rate_hz": 60.0}],
+                parameters=[
+                    PathJoinSubstitution([params, "sim.yaml"]),
+                    {
+                        "start_yaw_jitter_deg": 180.0,
+                        "max_rate_hz": 60.0,
+                        "world": "random_each_episode",
+                        "hfov_deg": 120.0,
+                    },
+                ],
             ),
             Node(
                 package="uav_policy",
                 executable="policy_node",
                 parameters=[PathJoinSubstitution([params, "policy.yaml"]), {"epsilon": 1.0}],
             ),
-            Node(package="uav_trainer", executable="trainer_node", parameters=[PathJoinSubstitution([params, "trainer.yaml"])]),
+            Node(
+                package="uav_trainer",
+                executable="trainer_node",
+                parameters=[PathJoinSubstitution([params, "trainer.yaml"]), {"turn_penalty": 1.0}],
+            ),
         ]
     )

@@ -24,7 +24,7 @@ from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import SAM_READOUTS
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist
-from uav_sim.world import load_world, procedural_world
+from uav_sim.world import load_world, training_layouts
 
 from .learner import LearnerConfig
 from .training import TrainerConfig, Training
@@ -108,18 +108,22 @@ def run(
     layout_per_episode: bool = False,
     validation=None,
     hfov_deg: float = SimConfig.hfov_deg,
+    redraw_heading: bool = False,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
     With `layout_per_episode`, every episode flies a new procedural layout (seeds 1000 and up,
-    so `random:0..999` stay held out) instead of `world`.
+    so `random:0..999` stay held out) instead of `world`. Each layout then gets a fresh simulator,
+    so every episode starts at the same heading (the seed's first draw): the runs behind the
+    shipped weights were trained so. With `redraw_heading` the one simulator changes world and
+    draws a new heading every episode, like sim_node's `world:=random_each_episode`.
     """
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
     sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg)
-    layouts = iter(range(1000 + 100_000 * cfg.seed, 10**9))
-    sim = Simulator(procedural_world(next(layouts)) if layout_per_episode else load_world(world), sim_cfg)
+    layouts = training_layouts(cfg.seed)
+    sim = Simulator(next(layouts) if layout_per_episode else load_world(world), sim_cfg)
     agent = Agent(training.learner.online, training.net_cfg, cfg.device, seed=cfg.seed)
     stack = FrameStack(training.net_cfg.frames)
     r = sim.observe()
@@ -133,9 +137,13 @@ def run(
             a = PAPER_ACTIONS[action]
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(dt)))
             if r.collided and layout_per_episode:  # the next episode starts in a new layout
-                sim.close()
-                sim = Simulator(procedural_world(next(layouts)), sim_cfg)
-                r = dataclasses.replace(sim.observe(), collided=True, reward=r.reward, beta_m=r.beta_m)
+                if redraw_heading:
+                    new = sim.change_world(next(layouts))
+                else:
+                    sim.close()
+                    sim = Simulator(next(layouts), sim_cfg)
+                    new = sim.observe()
+                r = dataclasses.replace(new, collided=True, reward=r.reward, beta_m=r.beta_m)
             training.add_step(action, r.beta_m, r.collided, r.depth_m)
             state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
             while training.learn_once():
@@ -191,6 +199,13 @@ def main() -> int:
         default=0,
         help="model selection: every N env steps after the epsilon decay, fly the held-out validation layouts "
         f"({', '.join(VALIDATION_WORLDS)}) and keep the best network as policy_<model>_best.safetensors (0 = off)",
+    )
+    ap.add_argument(
+        "--redraw-heading",
+        action="store_true",
+        help="experiment, with --layout-per-episode: draw a new start heading every episode, as sim_node's "
+        "world:=random_each_episode does (default: every layout starts at the seed's first heading draw, "
+        "as for the shipped weights)",
     )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
@@ -252,6 +267,7 @@ def main() -> int:
         layout_per_episode=a.layout_per_episode,
         validation=validation,
         hfov_deg=a.hfov_deg,
+        redraw_heading=a.redraw_heading,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0
