@@ -3,6 +3,7 @@
 import math
 import time
 
+import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
@@ -104,7 +105,9 @@ def test_random_each_episode_flies_a_new_layout_after_every_crash(ros):
     rec = Recorder(ros)
     diag = []
     ros.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, diag.append, 10)
-    proc = ros.start("uav_sim", "sim_node", "-p", "world:=random_each_episode", "-p", "seed:=2")
+    proc = ros.start(
+        "uav_sim", "sim_node", "-p", "world:=random_each_episode", "-p", "seed:=2", "-p", "start_yaw_jitter_deg:=90.0"
+    )
     assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
     layouts = list(itertools.islice(training_layouts(2), 3))  # random:201000, 201001, 201002
     crashes = []
@@ -117,11 +120,15 @@ def test_random_each_episode_flies_a_new_layout_after_every_crash(ros):
             break
     assert len(set(crashes)) >= 2, "two crashes expected"
     assert ros.spin_until(lambda: set(crashes) <= set(rec.stamps("odom")), 5)
-    first = rec.by_topic["odom"][0].pose.pose.position
-    assert (first.x, first.y) == pytest.approx(layouts[0].start_xyz_m[:2])
+    # Every layout starts at the run's first heading draw (the seed's), as the shipped weights were trained.
+    yaw = math.radians(90.0 * np.random.default_rng(2).uniform(-1, 1))
+    first = rec.by_topic["odom"][0].pose.pose
+    assert (first.position.x, first.position.y) == pytest.approx(layouts[0].start_xyz_m[:2])
+    assert 2 * math.atan2(first.orientation.z, first.orientation.w) == pytest.approx(yaw)
     for k, stamp in enumerate(sorted(set(crashes)), start=1):  # each crash step reports the next layout's start
-        pos = next(m for m in rec.by_topic["odom"] if contract.stamp_ns(m.header.stamp) == stamp).pose.pose.position
-        assert (pos.x, pos.y) == pytest.approx(layouts[k].start_xyz_m[:2], abs=1e-6)
+        pose = next(m for m in rec.by_topic["odom"] if contract.stamp_ns(m.header.stamp) == stamp).pose.pose
+        assert (pose.position.x, pose.position.y) == pytest.approx(layouts[k].start_xyz_m[:2], abs=1e-6)
+        assert 2 * math.atan2(pose.orientation.z, pose.orientation.w) == pytest.approx(yaw)
     assert ros.spin_until(lambda: any(kv.value == "random:201002" for m in diag for kv in m.status[0].values), 5)
     assert "a new layout every episode, first world 'random:201000'" in ros.log_of(proc)
 

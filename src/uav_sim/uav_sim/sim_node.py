@@ -91,6 +91,12 @@ class SimNode(Node):
         self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
         self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
         self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
+        self.redraw_heading = d(
+            "redraw_start_heading",
+            False,
+            f"world:={EACH_EPISODE} only: draw a new start_yaw_jitter_deg heading for every layout (default: every "
+            "layout starts at the run's first draw, as the shipped weights were trained; redrawing trained worse)",
+        )
         self.layouts = training_layouts(seed) if world_name == EACH_EPISODE else None
         try:
             world = next(self.layouts) if self.layouts else load_world(world_name, seed=seed)
@@ -176,7 +182,7 @@ class SimNode(Node):
     def on_reset(self, _req, resp):
         self.current = self.sim.reset()
         if self.layouts:
-            self.current = self.sim.change_world(next(self.layouts))
+            self.current = self.sim.change_world(next(self.layouts), self.redraw_heading)
         self.publish(self.current)
         resp.success = True
         resp.message = f"episode {self.sim.episode} started at the start pose of '{self.sim.world.name}'"
@@ -189,7 +195,7 @@ class SimNode(Node):
         if result.collided:
             if self.layouts:  # the next episode flies a new layout; the step still reports the crash
                 crash = {k: getattr(result, k) for k in ("collided", "reward", "beta_m", "brushes")}
-                result = dataclasses.replace(self.sim.change_world(next(self.layouts)), **crash)
+                result = dataclasses.replace(self.sim.change_world(next(self.layouts), self.redraw_heading), **crash)
             self.get_logger().info(
                 f"collision: episode {result.episode - 1} ended; vehicle back at the start of '{self.sim.world.name}' "
                 f"({self.sim.collisions} collisions in {self.sim.total_steps} steps)"

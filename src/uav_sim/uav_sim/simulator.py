@@ -189,9 +189,13 @@ class Simulator:
         self._place()
         return self.observe()
 
-    def change_world(self, world: World) -> StepResult:
-        """Move to another world: the current episode restarts at its start pose. Counters, clock
-        and the seeded start-heading draws carry on (for a new layout every episode)."""
+    def change_world(self, world: World, redraw_heading: bool = True) -> StepResult:
+        """Move to another world: the current episode restarts at its start pose; counters and clock
+        carry on. With `redraw_heading` the start-heading jitter is the seeded sequence's next draw;
+        without it the sequence restarts, so every world starts at the run's first draw (as if a new
+        Simulator had been made: how the shipped weights were trained)."""
+        if not redraw_heading:
+            self.rng = np.random.default_rng(self.config.seed)
         p.resetSimulation(physicsClientId=self.client)
         self.world = world
         self._populate()

@@ -113,10 +113,10 @@ def run(
     """Train until the budget; `on_step(training)` may return True to stop early.
 
     With `layout_per_episode`, every episode flies a new procedural layout (seeds 1000 and up,
-    so `random:0..999` stay held out) instead of `world`. Each layout then gets a fresh simulator,
-    so every episode starts at the same heading (the seed's first draw): the runs behind the
-    shipped weights were trained so. With `redraw_heading` the one simulator changes world and
-    draws a new heading every episode, like sim_node's `world:=random_each_episode`.
+    so `random:0..999` stay held out) instead of `world`, and every episode starts at the same
+    heading (the seed's first draw), as for the shipped weights; `redraw_heading` draws a new one
+    every episode (it trained worse: docs/RESULTS.md, round 5). sim_node's
+    `world:=random_each_episode` does the same, with `redraw_start_heading`.
     """
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
@@ -137,12 +137,7 @@ def run(
             a = PAPER_ACTIONS[action]
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(dt)))
             if r.collided and layout_per_episode:  # the next episode starts in a new layout
-                if redraw_heading:
-                    new = sim.change_world(next(layouts))
-                else:
-                    sim.close()
-                    sim = Simulator(next(layouts), sim_cfg)
-                    new = sim.observe()
+                new = sim.change_world(next(layouts), redraw_heading=redraw_heading)
                 r = dataclasses.replace(new, collided=True, reward=r.reward, beta_m=r.beta_m)
             training.add_step(action, r.beta_m, r.collided, r.depth_m)
             state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
@@ -203,9 +198,8 @@ def main() -> int:
     ap.add_argument(
         "--redraw-heading",
         action="store_true",
-        help="experiment, with --layout-per-episode: draw a new start heading every episode, as sim_node's "
-        "world:=random_each_episode does (default: every layout starts at the seed's first heading draw, "
-        "as for the shipped weights)",
+        help="experiment, with --layout-per-episode: draw a new start heading every episode (default: every "
+        "layout starts at the seed's first heading draw, as for the shipped weights; redrawing trained worse)",
     )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
