@@ -8,7 +8,8 @@
 # penalty), a third (five and ten seeds with the turn penalty; SAM with the flatten readout) with
 # turning share and area covered, and a fourth (twenty seeds; choosing, packaging and measuring the
 # shipped weights, and the attention figures); then re-measures every ROS table without ROS
-# (scripts/crosscheck_eval.py). About 8 h 30 min on 2 cores.
+# (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode) and the
+# main job on its defaults. About 9 h 30 min on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -167,3 +168,33 @@ python $X docs/results/clearance/results.csv "${VARIED[@]}"
 python $X docs/results/validation_selection/results.csv "${VARIED[@]}"
 python $X docs/results/shipped/fixed_start/results.csv --hfov-deg 120
 python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
+# Round 5: a new start heading every training episode (--redraw-heading), SAM seeds 0-9, against
+# round 4, where every layout starts at the seed's first heading draw. Then the main job (ROS)
+# on its defaults (--recipe shipped), seed 0; evaluated in-process (equal to the ROS rows, tested).
+for s in 0 2 4 6 8; do
+  train redraw sam "$s" --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
+  train redraw sam $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
+  wait
+done
+R=(runs/redraw_sam_seed{0..9}/policy_sam.safetensors)
+R5=docs/results/round5_redraw_heading
+$EVAL --inprocess --model sam --weights "${R[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --sim-arg hfov_deg:=120.0 --out $R5/varied_start
+$EVAL --inprocess --model sam --weights "${R[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out $R5/fixed_start
+python scripts/compare_models.py $R5/varied_start/results.csv docs/results/behaviour/turn_penalty_20_seeds/results.csv \
+  --by run --a redraw_sam --b turn_sam > $R5/varied_start/comparison.md
+python scripts/compare_models.py $R5/fixed_start/results.csv \
+  docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a redraw_sam --b turn_sam \
+  > $R5/fixed_start/comparison.md
+install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_sam_seed0
+$EVAL --inprocess --model sam --weights runs/main_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
+  --steps 1000 "${VARIED[@]}" --out docs/results/main_job/varied_start
+$EVAL --inprocess --model sam --weights runs/main_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
+  --steps 1000 --out docs/results/main_job/fixed_start
+# The same main job with a new start heading for every layout (as round 5), seed 0.
+install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_redraw_sam_seed0 --sim-arg redraw_start_heading:=true
+$EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
+  --steps 1000 "${VARIED[@]}" --out docs/results/main_job_redraw/varied_start
+$EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
+  --steps 1000 --out docs/results/main_job_redraw/fixed_start

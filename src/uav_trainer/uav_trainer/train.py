@@ -81,7 +81,8 @@ def main(argv=None) -> int:
     logs = run_dir / "logs"
     procs = Processes(log_dir=logs)
     p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
-    # Training starts from a random heading each episode so that episodes differ.
+    # A random start heading: drawn anew each episode in a fixed world; with random_each_episode one
+    # draw per run, where every layout starts (as the shipped weights were trained).
     sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", *recipe["sim"], *a.sim_arg]
     procs.start(
         "sim", "uav_sim", "sim_node", params_args(params, "sim") + p("", [f"world:={world}", f"seed:={a.seed}", *sim_extra])
