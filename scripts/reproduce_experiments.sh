@@ -9,7 +9,7 @@
 # turning share and area covered, and a fourth (twenty seeds; choosing, packaging and measuring the
 # shipped weights, and the attention figures); then re-measures every ROS table without ROS
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode) and the
-# main job on its defaults. About 9 h 30 min on 2 cores.
+# main job on its defaults. About 9 h 50 min on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -170,7 +170,7 @@ python $X docs/results/shipped/fixed_start/results.csv --hfov-deg 120
 python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
 # Round 5: a new start heading every training episode (--redraw-heading), SAM seeds 0-9, against
 # round 4, where every layout starts at the seed's first heading draw. Then the main job (ROS)
-# on its defaults (--recipe shipped), seed 0; evaluated in-process (equal to the ROS rows, tested).
+# on its defaults (--recipe shipped), seeds 0-2; evaluated in-process (equal to the ROS rows, tested).
 for s in 0 2 4 6 8; do
   train redraw sam "$s" --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
   train redraw sam $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
@@ -187,11 +187,14 @@ python scripts/compare_models.py $R5/varied_start/results.csv docs/results/behav
 python scripts/compare_models.py $R5/fixed_start/results.csv \
   docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a redraw_sam --b turn_sam \
   > $R5/fixed_start/comparison.md
-install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_sam_seed0
-$EVAL --inprocess --model sam --weights runs/main_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
-  --steps 1000 "${VARIED[@]}" --out docs/results/main_job/varied_start
-$EVAL --inprocess --model sam --weights runs/main_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
-  --steps 1000 --out docs/results/main_job/fixed_start
+for s in 0 1 2; do
+  install/uav_trainer/lib/uav_trainer/train --model sam --seed $s --run-dir runs/main_sam_seed$s
+done
+M=(runs/main_sam_seed{0,1,2}/policy_sam.safetensors)
+$EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --out docs/results/main_job/varied_start
+$EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbulent --steps 1000 \
+  --out docs/results/main_job/fixed_start
 # The same main job with a new start heading for every layout (as round 5), seed 0.
 install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_redraw_sam_seed0 --sim-arg redraw_start_heading:=true
 $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
