@@ -116,6 +116,28 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
 
 
+def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
+    """Without options, train sets up what the packaged weights were trained with."""
+    run_dir = tmp_path / "run"
+    cmd = [
+        str(executable("uav_trainer", "train")),
+        "--steps",
+        "60",
+        "--run-dir",
+        str(run_dir),
+        "--params-dir",
+        str(ROOT / "params"),
+    ]
+    env = dict(os.environ, ROS_DOMAIN_ID="74", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    logs = {n: (run_dir / "logs" / f"{n}.log").read_text() for n in ("sim", "trainer")}
+    assert r.returncode == 0, r.stderr[-2000:] + logs["trainer"][-2000:]
+    assert "(recipe shipped: hfov_deg:=120.0 turn_penalty:=1.0) in 'random_each_episode'" in r.stdout
+    assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
+    assert "reward: the paper's - 1 per turning step" in logs["trainer"]
+    assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 120.0
+
+
 def test_trainer_rejects_bad_parameters():
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "replay_ratio:=-1.0")
     assert r.returncode == 2 and "replay_ratio" in r.stderr

@@ -187,3 +187,11 @@ def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
     varied = evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight(), start_yaw_jitter_deg=180.0)
     assert fixed.crashes >= 3 and fixed.crash_sites == 1
     assert varied.crash_sites > 1
+
+
+def test_the_reward_is_described_with_its_extensions():
+    from uav_trainer.training import reward_description
+
+    assert reward_description(TrainerConfig()) == "the paper's"
+    both = TrainerConfig(turn_penalty=1.0, clearance_m=1.5, clearance_weight=4.0)
+    assert reward_description(both) == "the paper's - 1 per turning step - clearance penalty (up to 4 within 1.5 m)"

@@ -32,7 +32,7 @@ from uav_sim.ros_params import ParameterError, declare
 
 from .learner import LearnerConfig
 from .pairing import TransitionAssembler
-from .training import TrainerConfig, Training
+from .training import TrainerConfig, Training, reward_description
 
 
 class TrainerNode(Node):
@@ -161,7 +161,8 @@ class TrainerNode(Node):
         self._closed = False
         self.get_logger().info(
             f"training {self.cfg.model} (seed {self.cfg.seed}) on {device} into {self.training.dir}; "
-            f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames"
+            f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
+            f"reward: {reward_description(self.cfg)}"
         )
 
     def _on_camera_info(self, msg: CameraInfo) -> None:

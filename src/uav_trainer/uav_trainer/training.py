@@ -52,6 +52,16 @@ class TrainerConfig:
     learner: LearnerConfig = LearnerConfig()
 
 
+def reward_description(cfg: TrainerConfig) -> str:
+    """The training reward in words, for logs: the paper's, and any extension switched on."""
+    parts = ["the paper's"]
+    if cfg.turn_penalty > 0.0:
+        parts.append(f"- {cfg.turn_penalty:g} per turning step")
+    if cfg.clearance_m > 0.0:
+        parts.append(f"- clearance penalty (up to {cfg.clearance_weight:g} within {cfg.clearance_m:g} m)")
+    return " ".join(parts)
+
+
 class Training:
     def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
         self.cfg = cfg
