@@ -73,40 +73,28 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert f"{t['env_steps']} env steps" in ros.log_of(again)
 
 
+def run_train(run_dir, domain: str, *args: str, timeout_s: float = 400):
+    """The installed `train` launcher with the repository's params; (process result, node logs)."""
+    cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params"), *args]
+    env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout_s)
+    logs = {n: (run_dir / "logs" / f"{n}.log").read_text() for n in ("sim", "trainer")}
+    assert r.returncode == 0, r.stderr[-2000:] + logs["trainer"][-2000:]
+    return r, logs
+
+
 def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     """The main job on a small world: the trained greedy policy must beat epsilon = 1 clearly."""
     run_dir = tmp_path / "run"
-    cmd = [
-        str(executable("uav_trainer", "train")),
-        "--recipe",
-        "paper",
-        "--model",
-        "sam",
-        "--steps",
-        "4000",
-        "--world",
-        SMALL_WORLD,
-        "--run-dir",
-        str(run_dir),
-        "--params-dir",
-        str(ROOT / "params"),
-        "--trainer-arg",
-        "learning_starts:=500",
-        "--trainer-arg",
-        "epsilon_decay_steps:=2500",
-    ]
-    env_domain = "73"
-    env = dict(os.environ, ROS_DOMAIN_ID=env_domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
-    trainer_log = (run_dir / "logs" / "trainer.log").read_text()
-    assert r.returncode == 0, r.stderr[-2000:] + trainer_log[-2000:]
+    args = ("--recipe", "paper", "--model", "sam", "--steps", "4000", "--world", SMALL_WORLD)
+    r, _ = run_train(run_dir, "73", *args, "--trainer-arg", "learning_starts:=500", "--trainer-arg", "epsilon_decay_steps:=2500")
     weights = run_dir / "policy_sam.safetensors"
     assert weights.is_file() and (run_dir / "curves.png").is_file()
     assert wio.read_file_camera(weights) == 90.0, "the paper recipe flies the paper's 90 deg camera"
     assert "turn_penalty:=0.0" in r.stdout and "(recipe paper" in r.stdout
     untrained = tmp_path / "untrained.safetensors"
     wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), untrained)
-    os.environ["ROS_DOMAIN_ID"] = env_domain
+    os.environ["ROS_DOMAIN_ID"] = "73"
     trained = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=0.0)
     baseline = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=1.0)
     before = evaluate_once("sam", str(untrained), SMALL_WORLD, 500, epsilon=0.0)
@@ -119,19 +107,7 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
 def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
     """Without options, train sets up what the packaged weights were trained with."""
     run_dir = tmp_path / "run"
-    cmd = [
-        str(executable("uav_trainer", "train")),
-        "--steps",
-        "60",
-        "--run-dir",
-        str(run_dir),
-        "--params-dir",
-        str(ROOT / "params"),
-    ]
-    env = dict(os.environ, ROS_DOMAIN_ID="74", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
-    logs = {n: (run_dir / "logs" / f"{n}.log").read_text() for n in ("sim", "trainer")}
-    assert r.returncode == 0, r.stderr[-2000:] + logs["trainer"][-2000:]
+    r, logs = run_train(run_dir, "74", "--steps", "60", timeout_s=300)
     assert "(recipe shipped: hfov_deg:=120.0 turn_penalty:=1.0) in 'random_each_episode'" in r.stdout
     assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
     assert "reward: the paper's - 1 per turning step" in logs["trainer"]
