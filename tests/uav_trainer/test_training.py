@@ -104,8 +104,9 @@ def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monke
     made, start_yaws = [], []
     real = world_module.procedural_world
     monkeypatch.setattr(world_module, "procedural_world", lambda seed: made.append(seed) or real(seed))
-    observe = Simulator.observe  # called for every episode's first frame (a new simulator or change_world)
+    observe, enter = Simulator.observe, Simulator._enter  # the first episode's frame; every later layout
     monkeypatch.setattr(Simulator, "observe", lambda sim: start_yaws.append(sim.pose.yaw_rad) or observe(sim))
+    monkeypatch.setattr(Simulator, "_enter", lambda sim, *a: enter(sim, *a) or start_yaws.append(sim.pose.yaw_rad))
     cfg = TrainerConfig(model="cnn", seed=0, total_steps=120, learning_starts=10**6, epsilon_start=1.0)
     t = ip.run(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True, hfov_deg=90.0, redraw_heading=redraw)
     assert wio.read_file_camera(t.policy_weights_path) == 90.0

@@ -7,7 +7,6 @@ Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, /clock
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 
@@ -91,19 +90,19 @@ class SimNode(Node):
         self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
         self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
         self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
-        self.redraw_heading = d(
+        redraw_heading = d(
             "redraw_start_heading",
             False,
             f"world:={EACH_EPISODE} only: draw a new start_yaw_jitter_deg heading for every layout (default: every "
             "layout starts at the run's first draw, as the shipped weights were trained; redrawing trained worse)",
         )
-        self.layouts = training_layouts(seed) if world_name == EACH_EPISODE else None
+        layouts = training_layouts(seed) if world_name == EACH_EPISODE else None
         try:
-            world = next(self.layouts) if self.layouts else load_world(world_name, seed=seed)
+            world = next(layouts) if layouts else load_world(world_name, seed=seed)
         except WorldError as e:
             raise ParameterError(f"parameter 'world': {e}") from None
         try:
-            self.sim = Simulator(world, cfg)
+            self.sim = Simulator(world, cfg, next_worlds=layouts, redraw_heading=redraw_heading)
         except ValueError as e:
             raise ParameterError(str(e)) from None
         self.cfg = cfg
@@ -136,7 +135,7 @@ class SimNode(Node):
             self.create_timer(min(self.republish_s, 0.25), self.on_lockstep_idle)
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
-            ("a new layout every episode, first " if self.layouts else "")
+            ("a new layout every episode, first " if layouts else "")
             + f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
             f"snow={world.weather.snow} leaves={world.weather.leaves}), mode {self.mode}, "
             f"{cfg.image_width}x{cfg.image_height} depth, step {cfg.step_duration_s} s"
@@ -181,8 +180,6 @@ class SimNode(Node):
 
     def on_reset(self, _req, resp):
         self.current = self.sim.reset()
-        if self.layouts:
-            self.current = self.sim.change_world(next(self.layouts), self.redraw_heading)
         self.publish(self.current)
         resp.success = True
         resp.message = f"episode {self.sim.episode} started at the start pose of '{self.sim.world.name}'"
@@ -193,9 +190,6 @@ class SimNode(Node):
         self.executed = cmd
         self.brushes += result.brushes
         if result.collided:
-            if self.layouts:  # the next episode flies a new layout; the step still reports the crash
-                crash = {k: getattr(result, k) for k in ("collided", "reward", "beta_m", "brushes")}
-                result = dataclasses.replace(self.sim.change_world(next(self.layouts), self.redraw_heading), **crash)
             self.get_logger().info(
                 f"collision: episode {result.episode - 1} ended; vehicle back at the start of '{self.sim.world.name}' "
                 f"({self.sim.collisions} collisions in {self.sim.total_steps} steps)"

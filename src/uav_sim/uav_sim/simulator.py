@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterator
 
 import numpy as np
 import pybullet as p
@@ -78,10 +79,19 @@ class StepResult:
 class Simulator:
     """A quadrotor with a depth camera in a world; several can share one process."""
 
-    def __init__(self, world: World, config: SimConfig = SimConfig()):
+    def __init__(
+        self,
+        world: World,
+        config: SimConfig = SimConfig(),
+        next_worlds: Iterator[World] | None = None,
+        redraw_heading: bool = False,
+    ):
+        """With `next_worlds`, every new episode (after a collision or reset) flies the next world
+        from it, starting at the run's first heading draw unless `redraw_heading` (see change_world)."""
         config.validate()
         self.world = world
         self.config = config
+        self.next_worlds, self.redraw_heading = next_worlds, redraw_heading
         self.rng = np.random.default_rng(config.seed)
         self.client = p.connect(p.DIRECT)
         self.camera = DepthCamera(
@@ -182,11 +192,12 @@ class Simulator:
         )
 
     def reset(self) -> StepResult:
-        """End the episode without a collision and return to the start pose."""
+        """End the episode without a collision and return to the start pose (of the next world, with next_worlds)."""
         self.episode += 1
         self.step_in_episode = 0
         self.pose = self._start_pose()
         self._place()
+        self._next_world()
         return self.observe()
 
     def change_world(self, world: World, redraw_heading: bool = True) -> StepResult:
@@ -194,6 +205,14 @@ class Simulator:
         carry on. With `redraw_heading` the start-heading jitter is the seeded sequence's next draw;
         without it the sequence restarts, so every world starts at the run's first draw (as if a new
         Simulator had been made: how the shipped weights were trained)."""
+        self._enter(world, redraw_heading)
+        return self.observe()
+
+    def _next_world(self) -> None:
+        if self.next_worlds is not None:
+            self._enter(next(self.next_worlds), self.redraw_heading)
+
+    def _enter(self, world: World, redraw_heading: bool) -> None:
         if not redraw_heading:
             self.rng = np.random.default_rng(self.config.seed)
         p.resetSimulation(physicsClientId=self.client)
@@ -203,7 +222,6 @@ class Simulator:
         self.pose = self._start_pose()
         self._place()
         self.particles.update(0.0, self.camera_xyz(), self.pose.yaw_rad)
-        return self.observe()
 
     def step(self, cmd: BodyTwist = HOVER) -> StepResult:
         """Fly `cmd` for one step; raises ValueError for a command outside the limits."""
@@ -233,6 +251,7 @@ class Simulator:
             self.step_in_episode = 0
             self.pose = self._start_pose()
             self._place()
+            self._next_world()  # the crash's outcome is reported from the next episode's first frame
         else:
             self.step_in_episode += 1
         self.particles.update(cfg.step_duration_s, self.camera_xyz(), self.pose.yaw_rad)

@@ -122,8 +122,11 @@ def run(
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
     sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg)
-    layouts = training_layouts(cfg.seed)
-    sim = Simulator(next(layouts) if layout_per_episode else load_world(world), sim_cfg)
+    if layout_per_episode:
+        layouts = training_layouts(cfg.seed)
+        sim = Simulator(next(layouts), sim_cfg, next_worlds=layouts, redraw_heading=redraw_heading)
+    else:
+        sim = Simulator(load_world(world), sim_cfg)
     agent = Agent(training.learner.online, training.net_cfg, cfg.device, seed=cfg.seed)
     stack = FrameStack(training.net_cfg.frames)
     r = sim.observe()
@@ -136,9 +139,6 @@ def run(
             action = agent.act(state, training.epsilon())[0]
             a = PAPER_ACTIONS[action]
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(dt)))
-            if r.collided and layout_per_episode:  # the next episode starts in a new layout
-                new = sim.change_world(next(layouts), redraw_heading=redraw_heading)
-                r = dataclasses.replace(new, collided=True, reward=r.reward, beta_m=r.beta_m)
             training.add_step(action, r.beta_m, r.collided, r.depth_m)
             state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
             while training.learn_once():
