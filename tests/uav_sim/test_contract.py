@@ -73,3 +73,16 @@ def test_camera_info_field_of_view():
     info.k[0] = 0.0  # an uncalibrated camera (REP 104: K all zero) gives no field of view
     assert contract.camera_info_hfov_deg(info) is None
     assert contract.camera_info_hfov_deg(CameraInfo()) is None
+
+
+def test_step_outcome_marks_how_an_episode_began():
+    stamp = contract.stamp_from_seconds(1.0)
+
+    def outcome(**kw):
+        return contract.make_outcome(2.5, stamp=stamp, frame_id="cam", min_range_m=0.1, max_range_m=10.0, fov_rad=0.4, **kw)
+
+    flying, crash, cut = outcome(collided=False), outcome(collided=True), outcome(collided=False, truncated=True)
+    assert flying.range == 2.5 and crash.range == -math.inf and math.isnan(cut.range)
+    assert [contract.outcome_collided(m) for m in (flying, crash, cut)] == [False, True, False]
+    assert [contract.outcome_truncated(m) for m in (flying, crash, cut)] == [False, False, True]
+    assert [contract.outcome_new_episode(m) for m in (flying, crash, cut)] == [False, True, True]

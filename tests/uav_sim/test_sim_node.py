@@ -97,6 +97,24 @@ def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
     assert abs(odom.pose.pose.position.x - (-6.0)) < 1e-6 and abs(odom.pose.pose.position.y) < 1e-6
 
 
+def test_time_limit_ends_episodes_with_a_nan_outcome(ros):
+    rec = Recorder(ros)
+    proc = ros.start("uav_sim", "sim_node", "-p", "max_episode_steps:=3", "-p", "lockstep_republish_s:=0.3")
+    assert ros.spin_until(lambda: rec.by_topic["depth"] and rec.cmd.get_subscription_count() > 0, 20), ros.log_of(proc)
+    for _ in range(7):  # basic: 14 m of open room ahead; 0.5 m per step
+        n = len(rec.distinct_frames())
+        rec.cmd.publish(twist(vx=1.0))
+        assert ros.spin_until(lambda n=n: len(rec.distinct_frames()) > n, 10)
+    assert ros.spin_until(lambda: min(len(set(rec.stamps(k))) for k in ("odom", "outcome")) >= 8, 5)
+    by_stamp = {contract.stamp_ns(m.header.stamp): m for m in rec.by_topic["outcome"]}
+    odom = {contract.stamp_ns(m.header.stamp): m.pose.pose.position.x for m in rec.by_topic["odom"]}
+    stamps = sorted(by_stamp)[:8]
+    assert [contract.outcome_truncated(by_stamp[s]) for s in stamps] == [False, False, False, True] + [False] * 2 + [True, False]
+    assert not any(contract.outcome_collided(by_stamp[s]) for s in stamps)
+    assert [odom[s] for s in stamps] == pytest.approx([-6.0, -5.5, -5.0, -6.0, -5.5, -5.0, -6.0, -5.5])
+    assert "time limit: episode 0 ended after 3 steps" in ros.log_of(proc)
+
+
 def test_random_each_episode_flies_a_new_layout_after_every_crash(ros):
     import itertools
 
@@ -187,6 +205,8 @@ def test_bad_parameters_fail_at_start_with_a_clear_message(tmp_path):
     assert r.returncode == 2 and "parameter 'mode'" in r.stderr
     r = run_to_exit("uav_sim", "sim_node", "-p", "max_range_m:=1000.0")
     assert r.returncode == 2 and "max_range_m" in r.stderr
+    r = run_to_exit("uav_sim", "sim_node", "-p", "max_episode_steps:=-1")
+    assert r.returncode == 2 and "max_episode_steps" in r.stderr
 
 
 def test_params_file_is_accepted(ros):

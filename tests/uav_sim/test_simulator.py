@@ -101,6 +101,35 @@ def test_flying_into_a_wall_is_a_collision_and_resets(sims):
     assert crash_index == 3
 
 
+def test_time_limit_ends_an_episode_without_a_collision(sims):
+    sim = sims(wall_world(20.0), max_episode_steps=3)
+    results = [sim.step(BodyTwist(vx_mps=1.0)) for _ in range(7)]
+    assert [r.truncated for r in results] == [False, False, True, False, False, True, False]
+    assert not any(r.collided for r in results) and sim.collisions == 0
+    cut = results[2]
+    assert (cut.episode, cut.step_in_episode, cut.pose.x_m) == (1, 0, 0.0)  # back at the start
+    assert np.array_equal(cut.depth_m, sims(wall_world(20.0)).observe().depth_m)  # the new episode's first frame
+    assert results[3].pose.x_m == pytest.approx(0.5) and sim.total_steps == 7
+    # A collision before the limit is a collision, and restarts the count.
+    sim = sims(wall_world(2.0), max_episode_steps=10)
+    outcomes = [sim.step(BodyTwist(vx_mps=1.0)) for _ in range(14)]
+    assert [i for i, r in enumerate(outcomes) if r.collided] == [3, 7, 11]
+    assert not any(r.truncated for r in outcomes)
+    # reset() is also an episode end without a collision.
+    r = sim.reset()
+    assert r.truncated and not r.collided and r.step_in_episode == 0
+
+
+def test_time_limit_moves_on_to_the_next_layout(sims):
+    worlds = iter([load_world("basic"), load_world("complex")])
+    sim = Simulator(wall_world(20.0), SimConfig(max_episode_steps=2), next_worlds=worlds)
+    try:
+        names = [(sim.step(BodyTwist(vx_mps=1.0)).truncated, sim.world.name) for _ in range(4)]
+    finally:
+        sim.close()
+    assert names == [(False, "wall"), (True, "basic"), (False, "basic"), (True, "complex")]
+
+
 def test_change_world_rebuilds_the_scene_and_keeps_the_counters(sims):
     sim = sims(load_world("turbulent"))
     for _ in range(3):
@@ -159,3 +188,5 @@ def test_invalid_command_raises_and_config_is_validated(sims):
         sim.step(BodyTwist(vx_mps=float("nan")))
     with pytest.raises(ValueError, match="step_duration_s"):
         Simulator(wall_world(5.0), SimConfig(step_duration_s=0.0))
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        Simulator(wall_world(5.0), SimConfig(max_episode_steps=-1))

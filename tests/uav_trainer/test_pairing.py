@@ -24,17 +24,20 @@ class Sink:
     def add_step(self, action, beta, collided, frame):
         self.events.append(("step", action, step_reward(beta, collided), collided, frame))
 
+    def add_truncated(self, frame):
+        self.events.append(("truncated", frame))
 
-def simulate(n_steps, seed=0):
+
+def simulate(n_steps, seed=0, max_episode_steps=0):
     """Ground truth and the messages sim_node and policy_node would publish for it."""
-    sim = Simulator(load_world("basic"), SimConfig(seed=seed, start_yaw_jitter_deg=180))
+    sim = Simulator(load_world("basic"), SimConfig(seed=seed, start_yaw_jitter_deg=180, max_episode_steps=max_episode_steps))
     rng = np.random.default_rng(seed)
     r = sim.observe()
     msgs, truth = [], []
     for k in range(n_steps + 1):
         stamp = contract.stamp_from_seconds(r.sim_time_s)
         msgs.append(("frame", contract.depth_to_image(r.depth_m, stamp, "cam")))
-        msgs.append(("outcome", contract.make_outcome(r.beta_m, r.collided, stamp, "cam", 0.1, 10.0, 0.3)))
+        msgs.append(("outcome", contract.make_outcome(r.beta_m, r.collided, stamp, "cam", 0.1, 10.0, 0.3, r.truncated)))
         if k == n_steps:
             break
         a = int(rng.integers(4))
@@ -45,7 +48,7 @@ def simulate(n_steps, seed=0):
         ts.twist.angular.z = act.yaw_rate_radps(0.5)
         msgs.append(("action", ts))
         r = sim.step(BodyTwist(act.linear_x_mps, yaw_rate_radps=act.yaw_rate_radps(0.5)))
-        truth.append((a, r.reward, r.collided, r.depth_m))
+        truth.append((a, r.reward, r.collided, r.depth_m, r.truncated))
     sim.close()
     return msgs, truth
 
@@ -76,7 +79,7 @@ def test_thousands_of_steps_pair_exactly_in_any_interleaving():
     assert sink.events[0][0] == "first" and len(sink.events) == 1 + len(steps)
     # The newest transition waits for the policy's answer to the frame it leads to (never sent here).
     assert len(steps) == len(truth) - 1 == 2999, "no transition lost"
-    for k, (e, (a, rew, col, depth)) in enumerate(zip(steps, truth[:-1], strict=True)):
+    for k, (e, (a, rew, col, depth, _)) in enumerate(zip(steps, truth[:-1], strict=True)):
         assert (e[1], e[3]) == (a, col), f"step {k}: action/done mis-paired"
         assert abs(e[2] - rew) < 1e-4, f"step {k}: reward mis-paired"
         np.testing.assert_array_equal(e[4], depth, err_msg=f"step {k}: next frame mis-paired")
@@ -103,6 +106,25 @@ def test_faults_are_counted_and_never_paired_wrongly():
     # and the newest, 199, which waits for an answer to frame 200. No others.
     assert len(steps) == 200 - 6
     expected = [t for k, t in enumerate(truth) if k not in (49, 50, 120, 159, 160, 199)]
-    for e, (a, rew, col, depth) in zip(steps, expected, strict=True):
+    for e, (a, rew, col, depth, _) in zip(steps, expected, strict=True):
         assert (e[1], e[3]) == (a, col) and abs(e[2] - rew) < 1e-4
         np.testing.assert_array_equal(e[4], depth)
+
+
+def test_a_time_limit_stores_no_transition_and_starts_a_new_chain():
+    msgs, truth = simulate(400, seed=3, max_episode_steps=7)
+    cuts = [k for k, t in enumerate(truth[:-1]) if t[4]]
+    assert len(cuts) > 10 and sum(t[2] for t in truth) > 0, "both ends of episodes should occur"
+    sink = Sink()
+    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64))
+    for stream, m in shuffled_across_streams(msgs, np.random.default_rng(4)):
+        asm.add(stream, m)
+    assert [e[0] for e in sink.events].count("truncated") == len(cuts)
+    events = sink.events[1:]  # after the first frame: one event per step but the pending newest
+    assert len(events) == len(truth) - 1
+    for k, (e, (a, rew, col, depth, cut)) in enumerate(zip(events, truth[:-1], strict=True)):
+        assert e[0] == ("truncated" if cut else "step"), f"step {k}"
+        np.testing.assert_array_equal(e[-1], depth)  # after a cut: the new episode's first frame
+        if not cut:
+            assert (e[1], e[3]) == (a, col) and abs(e[2] - rew) < 1e-4
+    assert all(v == 0 for v in asm.report().values())

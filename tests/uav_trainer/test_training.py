@@ -117,6 +117,18 @@ def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monke
     assert len(set(start_yaws)) == (len(made) if redraw else 1), start_yaws
 
 
+def test_inprocess_time_limit_cuts_long_episodes(tmp_path):
+    import csv
+
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=80, learning_starts=10**6, epsilon_start=1.0)
+    t = run_inprocess(cfg, str(tmp_path), log=lambda s: None, layout_per_episode=True, hfov_deg=90.0, max_episode_steps=4)
+    rows = list(csv.DictReader(open(tmp_path / "episodes.csv")))
+    cut = [int(r["length"]) for r in rows if r["end"] == "time_limit"]
+    crashed = [int(r["length"]) for r in rows if r["end"] == "crash"]
+    assert cut and set(cut) == {4} and all(n <= 4 for n in crashed)
+    assert t.env_steps == 80 and t.collisions == len(crashed)
+
+
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
     import csv
 
@@ -173,6 +185,26 @@ def test_turn_penalty_applies_to_turning_actions_only_when_asked(tmp_path):
     assert shaped.add_step(1, 8.0, True, frame) == -10.0  # a crash costs the same either way
     paper.close()
     shaped.close()
+
+
+def test_a_time_limit_ends_the_episode_and_stores_no_transition(tmp_path):
+    frames = [np.full((64, 64), k + 1.0, dtype=np.float32) for k in range(6)]
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    t.add_first(frames[0])
+    for k in (1, 2):
+        t.add_step(0, 8.0, False, frames[k])
+    t.add_truncated(frames[3])  # the step from frames[2] was cut: frames[3] starts the next episode
+    for k in (4, 5):
+        t.add_step(3, 8.0, False, frames[k])
+    assert (t.env_steps, t.stats.episodes, t.collisions) == (5, 1, 0)
+    batch = t.replay.sample(200)
+    pairs = {(float(s[-1, 0, 0]), float(n[-1, 0, 0])) for s, n in zip(batch["state"], batch["next_state"], strict=True)}
+    assert pairs == {(1.0, 2.0), (2.0, 3.0), (4.0, 5.0), (5.0, 6.0)}  # nothing from frame 3 into frame 4's episode
+    assert not batch["done"].any()
+    t.close()
+    rows = (tmp_path / "episodes.csv").read_text().splitlines()
+    assert rows[0] == "episode,env_step,length,reward,end" and len(rows) == 2
+    assert rows[1].startswith("1,3,3,") and rows[1].endswith(",time_limit")  # two learnt steps and the cut one
 
 
 def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():

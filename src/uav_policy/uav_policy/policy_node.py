@@ -1,7 +1,8 @@
 """policy_node: flies the quadrotor with D3QN-SAM or D3QN-CNN and publishes what it attends to.
 
-Subscribes depth/image_raw and step_outcome (joined by stamp: an outcome of -Inf marks the
-first frame of a new episode, which restarts the frame stack). For every frame it publishes
+Subscribes depth/image_raw and step_outcome (joined by stamp: an outcome of -Inf (a collision)
+or NaN (a time limit or reset) marks the first frame of a new episode, which restarts the frame
+stack). For every frame it publishes
 cmd_vel, action (TwistStamped carrying the frame's stamp), q_values, and for SAM the attention
 topics. New weights arrive on the ~/push_weights service (rcl_interfaces/srv/SetParameters with
 one BYTE_ARRAY parameter named 'weights' holding a safetensors blob). It also listens to
@@ -196,7 +197,7 @@ class PolicyNode(Node):
             self.get_logger().warning(f"ignoring malformed depth frame: {e}", throttle_duration_sec=2.0)
             return
         net_in = fit_to_network(depth, self.cfg.height, self.cfg.width)
-        if contract.outcome_collided(outcome) or self.stack.empty:
+        if contract.outcome_new_episode(outcome) or self.stack.empty:
             state = self.stack.reset(net_in)
         else:
             state = self.stack.push(net_in)

@@ -5,7 +5,9 @@ Pairing without custom messages: every message of one simulator step carries the
 stamp of the frame it answered. `step_outcome` (sensor_msgs/Range) carries, with the frame's
 stamp, beta (the centre-window minimum depth, m) or -Inf when the step that produced this
 frame ended in a collision (REP 117 "too close"), which also means the frame is the first
-of a new episode.
+of a new episode. NaN (no valid reading) marks the first frame of a new episode that began
+without a collision: the time limit (`max_episode_steps`) or `~/reset`; the step that led
+to it has no outcome to learn from.
 """
 
 from __future__ import annotations
@@ -80,7 +82,14 @@ def image_to_depth(msg: Image) -> np.ndarray:
 
 
 def make_outcome(
-    beta_m: float, collided: bool, stamp: Time, frame_id: str, min_range_m: float, max_range_m: float, fov_rad: float
+    beta_m: float,
+    collided: bool,
+    stamp: Time,
+    frame_id: str,
+    min_range_m: float,
+    max_range_m: float,
+    fov_rad: float,
+    truncated: bool = False,
 ) -> Range:
     msg = Range()
     msg.header.stamp = stamp
@@ -89,12 +98,21 @@ def make_outcome(
     msg.field_of_view = float(fov_rad)
     msg.min_range = float(min_range_m)
     msg.max_range = float(max_range_m)
-    msg.range = -math.inf if collided else float(beta_m)
+    msg.range = -math.inf if collided else math.nan if truncated else float(beta_m)
     return msg
 
 
 def outcome_collided(msg: Range) -> bool:
     return math.isinf(msg.range) and msg.range < 0
+
+
+def outcome_truncated(msg: Range) -> bool:
+    """The frame starts a new episode that began without a collision (time limit or reset)."""
+    return math.isnan(msg.range)
+
+
+def outcome_new_episode(msg: Range) -> bool:
+    return outcome_collided(msg) or outcome_truncated(msg)
 
 
 def camera_info_hfov_deg(msg) -> float | None:

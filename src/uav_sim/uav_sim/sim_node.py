@@ -65,6 +65,14 @@ class SimNode(Node):
                 0.2,
             ),
             start_yaw_jitter_deg=d("start_yaw_jitter_deg", 0.0, "Uniform random yaw added to the start pose (deg)", 0.0, 180.0),
+            max_episode_steps=d(
+                "max_episode_steps",
+                0,
+                "Training: an episode that survives this many steps ends (a time limit, not a crash; step_outcome "
+                "NaN) and the next starts; 0 = episodes end only in collisions",
+                0,
+                10**9,
+            ),
             limits=TwistLimits(
                 max_speed_mps=d("max_speed_mps", 3.0, "Largest |linear.x| and |linear.y| accepted (m/s)", 0.1, 20.0),
                 max_climb_mps=d("max_climb_mps", 1.0, "Largest |linear.z| accepted (m/s)", 0.0, 5.0),
@@ -194,6 +202,11 @@ class SimNode(Node):
                 f"collision: episode {result.episode - 1} ended; vehicle back at the start of '{self.sim.world.name}' "
                 f"({self.sim.collisions} collisions in {self.sim.total_steps} steps)"
             )
+        elif result.truncated:
+            self.get_logger().info(
+                f"time limit: episode {result.episode - 1} ended after {self.cfg.max_episode_steps} steps; vehicle back "
+                f"at the start of '{self.sim.world.name}'"
+            )
         self.current = result
         self.publish(result)
 
@@ -211,6 +224,7 @@ class SimNode(Node):
                 cfg.min_range_m,
                 cfg.max_range_m,
                 math.radians(cfg.hfov_deg) * 0.2,
+                truncated=r.truncated,
             )
         )
         self.pub_odom.publish(self.odometry(r, stamp))

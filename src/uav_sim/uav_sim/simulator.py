@@ -42,6 +42,9 @@ class SimConfig:
     body_half_extents_m: tuple[float, float, float] = (0.2, 0.2, 0.06)
     camera_forward_offset_m: float = 0.22
     start_yaw_jitter_deg: float = 0.0
+    # > 0: an episode that reaches this many steps without a collision ends (a time limit, not a
+    # crash: StepResult.truncated) and the next starts, for training; 0 = episodes end only in crashes.
+    max_episode_steps: int = 0
     limits: TwistLimits = TwistLimits()
     seed: int = 0
 
@@ -57,6 +60,7 @@ class SimConfig:
             ("physics_rate_hz", 1.0 <= self.physics_rate_hz <= 1000.0, "in [1, 1000] Hz"),
             ("collision_penetration_m", 0.0 <= self.collision_penetration_m <= 0.2, "in [0, 0.2] m"),
             ("start_yaw_jitter_deg", 0.0 <= self.start_yaw_jitter_deg <= 180.0, "in [0, 180] degrees"),
+            ("max_episode_steps", self.max_episode_steps >= 0, "an integer >= 0 (0 = no time limit)"),
         ]
         for name, ok, valid in checks:
             if not ok:
@@ -74,6 +78,9 @@ class StepResult:
     step_in_episode: int
     sim_time_s: float
     pose: Pose
+    # The episode ended without a collision (time limit or reset): depth_m is the new episode's
+    # first frame and the step's own outcome is not reported (no transition should be learnt from it).
+    truncated: bool = False
 
 
 class Simulator:
@@ -192,13 +199,17 @@ class Simulator:
         )
 
     def reset(self) -> StepResult:
-        """End the episode without a collision and return to the start pose (of the next world, with next_worlds)."""
+        """End the episode without a collision and return to the start pose (of the next world, with
+        next_worlds); the result is marked `truncated`."""
+        self._new_episode()
+        return dataclasses.replace(self.observe(), truncated=True)
+
+    def _new_episode(self) -> None:
         self.episode += 1
         self.step_in_episode = 0
         self.pose = self._start_pose()
         self._place()
         self._next_world()
-        return self.observe()
 
     def change_world(self, world: World, redraw_heading: bool = True) -> StepResult:
         """Move to another world: the current episode restarts at its start pose; counters and clock
@@ -245,15 +256,15 @@ class Simulator:
                 brushes += 1
         self.sim_time_s += cfg.step_duration_s
         self.total_steps += 1
+        truncated = False
         if collided:
             self.collisions += 1
-            self.episode += 1
-            self.step_in_episode = 0
-            self.pose = self._start_pose()
-            self._place()
-            self._next_world()  # the crash's outcome is reported from the next episode's first frame
+            self._new_episode()  # the crash's outcome is reported from the next episode's first frame
         else:
             self.step_in_episode += 1
+            if 0 < cfg.max_episode_steps <= self.step_in_episode:
+                truncated = True
+                self._new_episode()
         self.particles.update(cfg.step_duration_s, self.camera_xyz(), self.pose.yaw_rad)
         depth = self.render()
         beta = center_window_min_depth(depth, cfg.max_range_m)
@@ -267,6 +278,7 @@ class Simulator:
             self.step_in_episode,
             self.sim_time_s,
             dataclasses.replace(self.pose),
+            truncated,
         )
 
     def close(self) -> None:

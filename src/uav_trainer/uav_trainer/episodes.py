@@ -19,11 +19,11 @@ class EpisodeStats:
     def __post_init__(self):
         self._recent = deque(maxlen=self.window)
 
-    def step(self, reward: float, collided: bool, env_step: int) -> tuple[int, float] | None:
-        """Account one transition; returns (length, reward) when it ended an episode."""
+    def step(self, reward: float, ended: bool, env_step: int) -> tuple[int, float] | None:
+        """Account one step; returns (length, reward) when it ended an episode (a collision or a time limit)."""
         self.length += 1
         self.reward += reward
-        if not collided:
+        if not ended:
             return None
         done = (self.length, self.reward)
         self.history.append((env_step, *done))

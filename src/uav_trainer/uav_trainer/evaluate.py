@@ -127,16 +127,17 @@ class StepMonitor:
         self.gaps += delta != self.step_ns
         self.last_stamp = stamp
         out = j["outcome"]
-        collided = contract.outcome_collided(out)
-        beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
-        self.reward += step_reward(beta, collided)
+        collided, truncated = contract.outcome_collided(out), contract.outcome_truncated(out)
+        if not truncated:  # a time limit's step has no outcome (evaluation sets none)
+            beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
+            self.reward += step_reward(beta, collided)
         self.steps += 1
         if collided:
             self.crashes += 1  # the vehicle is back at the start: no distance for this jump
             self.sites.add(crash_site(self.last_xy))
-        else:
+        elif not truncated:
             self.distance += math.hypot(xy[0] - self.last_xy[0], xy[1] - self.last_xy[1])
-        self.behaviour.step(p.x, p.y, yaw, collided)
+        self.behaviour.step(p.x, p.y, yaw, collided or truncated)
         self.last_xy = xy
 
     @property

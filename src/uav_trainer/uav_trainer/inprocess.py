@@ -109,6 +109,7 @@ def run(
     validation=None,
     hfov_deg: float = SimConfig.hfov_deg,
     redraw_heading: bool = False,
+    max_episode_steps: int = 0,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -117,11 +118,17 @@ def run(
     heading (the seed's first draw), as for the shipped weights; `redraw_heading` draws a new one
     every episode (it trained worse: docs/RESULTS.md, round 5). sim_node's
     `world:=random_each_episode` does the same, with `redraw_start_heading`.
+
+    `max_episode_steps` > 0 ends an episode that survives that long (a time limit, learnt from as
+    a cut, not a crash: Training.add_truncated) so that training keeps meeting new layouts and
+    starts once the policy has learnt to survive.
     """
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
-    sim_cfg = SimConfig(seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg)
+    sim_cfg = SimConfig(
+        seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg, max_episode_steps=max_episode_steps
+    )
     if layout_per_episode:
         layouts = training_layouts(cfg.seed)
         sim = Simulator(next(layouts), sim_cfg, next_worlds=layouts, redraw_heading=redraw_heading)
@@ -139,8 +146,11 @@ def run(
             action = agent.act(state, training.epsilon())[0]
             a = PAPER_ACTIONS[action]
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(dt)))
-            training.add_step(action, r.beta_m, r.collided, r.depth_m)
-            state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
+            if r.truncated:
+                training.add_truncated(r.depth_m)
+            else:
+                training.add_step(action, r.beta_m, r.collided, r.depth_m)
+            state = stack.reset(r.depth_m) if r.collided or r.truncated else stack.push(r.depth_m)
             while training.learn_once():
                 pass
             if validator is not None:
@@ -200,6 +210,13 @@ def main() -> int:
         action="store_true",
         help="experiment, with --layout-per-episode: draw a new start heading every episode (default: every "
         "layout starts at the seed's first heading draw, as for the shipped weights; redrawing trained worse)",
+    )
+    ap.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=0,
+        help="experiment: end an episode that survives this many steps (a time limit, not a crash) and start "
+        "the next (with --layout-per-episode: in a new layout); 0 = episodes end only in crashes (the paper)",
     )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
@@ -262,6 +279,7 @@ def main() -> int:
         validation=validation,
         hfov_deg=a.hfov_deg,
         redraw_heading=a.redraw_heading,
+        max_episode_steps=a.max_episode_steps,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0

@@ -6,7 +6,9 @@ when their stamps are exactly one step apart; r_k and done_k come from outcome k
 outcome of the step that produced frame k+1). Anything else - a gap, an action that matches
 no known action, a malformed frame - starts a new chain and is counted. A transition is stored
 once the policy has answered the frame it leads to (record k+1 needs action k+1), so the
-newest transition of a run is always still pending when the run stops.
+newest transition of a run is always still pending when the run stops. A NaN outcome (the
+episode hit the simulator's time limit, or was reset) stores no transition: the frame it comes
+with starts the next episode's chain.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ class _Prev:
 
 
 class TransitionAssembler:
-    """Feed messages with `add(stream, msg)`; completed steps go to `sink.add_first/add_step`."""
+    """Feed messages with `add(stream, msg)`; completed steps go to `sink.add_first/add_step/add_truncated`."""
 
     STREAMS = ("frame", "outcome", "action")
 
@@ -53,12 +55,16 @@ class TransitionAssembler:
         if action is None:
             self.counts["unmatched_actions"] += 1
         prev, out = self.prev, rec["outcome"]
+        truncated = contract.outcome_truncated(out)  # a new episode without a collision: nothing to learn
         if prev is not None and prev.action is not None and stamp - prev.stamp == self.step_ns:
-            collided = contract.outcome_collided(out)
-            beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
-            self.sink.add_step(prev.action, beta, collided, frame)
+            if truncated:
+                self.sink.add_truncated(frame)
+            else:
+                collided = contract.outcome_collided(out)
+                beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
+                self.sink.add_step(prev.action, beta, collided, frame)
         else:
-            if prev is not None:
+            if prev is not None and not truncated:  # ~/reset republishes at the same stamp: not a break
                 self.counts["chain_breaks"] += 1
             self.sink.add_first(frame)
         self.prev = _Prev(stamp, action)

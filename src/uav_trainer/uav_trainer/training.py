@@ -128,11 +128,14 @@ class Training:
                     "updates_per_s",
                 ]
             )
-        new = not (self.dir / "episodes.csv").exists()
-        self._episodes = open(self.dir / "episodes.csv", "a", newline="")
+        path = self.dir / "episodes.csv"
+        header = path.read_text().splitlines()[:1] if path.exists() else []
+        # `end`: crash or time_limit. A run resumed from before that column keeps its four.
+        self._episode_end_column = not header or header[0].endswith(",end")
+        self._episodes = open(path, "a", newline="")
         self._episodes_csv = csv.writer(self._episodes)
-        if new:
-            self._episodes_csv.writerow(["episode", "env_step", "length", "reward"])
+        if not header:
+            self._episodes_csv.writerow(["episode", "env_step", "length", "reward", "end"])
         try:
             from torch.utils.tensorboard import SummaryWriter
 
@@ -181,13 +184,28 @@ class Training:
             self.reward_sum += reward
             self.collisions += int(collided)
             ended = self.stats.step(reward, collided, self.env_steps)
-        if ended:
-            self._episodes_csv.writerow([self.stats.episodes, self.env_steps, ended[0], f"{ended[1]:.3f}"])
-            self._episodes.flush()
-            if self.tb:
-                self.tb.add_scalar("episode/length", ended[0], self.env_steps)
-                self.tb.add_scalar("episode/reward", ended[1], self.env_steps)
+        self._log_episode(ended, "crash")
         return reward
+
+    def add_truncated(self, first_frame: np.ndarray) -> None:
+        """A step that ended its episode without a collision (the simulator's time limit): nothing is
+        learnt from it, because its next frame is already the new episode's first (`first_frame`),
+        which starts a new chain. Counted as an environment step with reward 0 in the episode stats."""
+        with self.lock:
+            self.replay.add_first(first_frame)
+            self.env_steps += 1
+            ended = self.stats.step(0.0, True, self.env_steps)
+        self._log_episode(ended, "time_limit")
+
+    def _log_episode(self, ended: tuple[int, float] | None, end: str) -> None:
+        if not ended:
+            return
+        row = [self.stats.episodes, self.env_steps, ended[0], f"{ended[1]:.3f}"]
+        self._episodes_csv.writerow(row + [end] if self._episode_end_column else row)
+        self._episodes.flush()
+        if self.tb:
+            self.tb.add_scalar("episode/length", ended[0], self.env_steps)
+            self.tb.add_scalar("episode/reward", ended[1], self.env_steps)
 
     @property
     def budget_done(self) -> bool:
