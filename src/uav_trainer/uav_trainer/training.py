@@ -129,9 +129,12 @@ class Training:
                 ]
             )
         path = self.dir / "episodes.csv"
-        header = path.read_text().splitlines()[:1] if path.exists() else []
+        header = ""
+        if path.exists():
+            with open(path) as f:
+                header = f.readline().strip()
         # `end`: crash or time_limit. A run resumed from before that column keeps its four.
-        self._episode_end_column = not header or header[0].endswith(",end")
+        self._episode_end_column = not header or header.endswith(",end")
         self._episodes = open(path, "a", newline="")
         self._episodes_csv = csv.writer(self._episodes)
         if not header:
