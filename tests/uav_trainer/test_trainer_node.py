@@ -1,5 +1,6 @@
 """Integration: the installed sim_node, policy_node and trainer_node (and the train launcher) over ROS."""
 
+import csv
 import os
 import subprocess
 
@@ -107,11 +108,17 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
 def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
     """Without options, train sets up what the packaged weights were trained with."""
     run_dir = tmp_path / "run"
-    r, logs = run_train(run_dir, "74", "--steps", "60", timeout_s=300)
+    # With a time limit (not part of the recipe): the trainer must count cut episodes, never as crashes.
+    r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=300)
     assert "(recipe shipped: hfov_deg:=120.0 turn_penalty:=1.0) in 'random_each_episode'" in r.stdout
     assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
     assert "reward: the paper's - 1 per turning step" in logs["trainer"]
     assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 120.0
+    rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
+    assert {r["end"] for r in rows} <= {"crash", "time_limit"} and any(r["end"] == "time_limit" for r in rows)
+    assert all(int(r["length"]) <= 4 for r in rows)
+    # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
+    assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
 
 
 def test_trainer_rejects_bad_parameters():
