@@ -8,8 +8,9 @@
 # penalty), a third (five and ten seeds with the turn penalty; SAM with the flatten readout) with
 # turning share and area covered, and a fourth (twenty seeds; choosing, packaging and measuring the
 # shipped weights, and the attention figures); then re-measures every ROS table without ROS
-# (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode) and the
-# main job on its defaults. About 9 h 50 min on 2 cores.
+# (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
+# main job on its defaults, and a sixth round (a time limit on training episodes). About 11 h
+# 50 min on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -201,3 +202,31 @@ $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.sa
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_redraw/varied_start
 $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 --out docs/results/main_job_redraw/fixed_start
+# Round 6: round 4's setting with a 300-step time limit on training episodes (--max-episode-steps
+# 300): SAM seeds 0-19, CNN seeds 0-9; compared with each other and with round 4.
+for s in 0 2 4 6 8 10 12 14 16 18; do
+  train tl300 sam "$s" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 &
+  train tl300 sam $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 &
+  wait
+done
+for s in 0 2 4 6 8; do
+  train tl300 cnn "$s" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 &
+  train tl300 cnn $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 &
+  wait
+done
+T6=()
+for s in $(seq 0 19); do T6+=("sam=runs/tl300_sam_seed$s/policy_sam.safetensors"); done
+for s in $(seq 0 9); do T6+=("cnn=runs/tl300_cnn_seed$s/policy_cnn.safetensors"); done
+R6=docs/results/round6_time_limit
+$EVAL --inprocess --model sam --model cnn --weights "${T6[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --sim-arg hfov_deg:=120.0 --out $R6/varied_start
+$EVAL --inprocess --model sam --model cnn --weights "${T6[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out $R6/fixed_start
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R6/$p/results.csv > $R6/$p/comparison.md
+done
+python scripts/compare_models.py $R6/varied_start/results.csv docs/results/behaviour/turn_penalty_20_seeds/results.csv \
+  --by run --a tl300_sam --b turn_sam > $R6/varied_start/comparison_round4.md
+python scripts/compare_models.py $R6/fixed_start/results.csv \
+  docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a tl300_sam --b turn_sam \
+  > $R6/fixed_start/comparison_round4.md
