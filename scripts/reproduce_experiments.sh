@@ -230,3 +230,8 @@ python scripts/compare_models.py $R6/varied_start/results.csv docs/results/behav
 python scripts/compare_models.py $R6/fixed_start/results.csv \
   docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a tl300_sam --b turn_sam \
   > $R6/fixed_start/comparison_round4.md
+install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_tl300_sam_seed0 --sim-arg max_episode_steps:=300
+$EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
+  --steps 1000 "${VARIED[@]}" --out docs/results/main_job_time_limit/varied_start
+$EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
+  --steps 1000 --out docs/results/main_job_time_limit/fixed_start
