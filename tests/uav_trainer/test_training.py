@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -127,6 +128,24 @@ def test_inprocess_time_limit_cuts_long_episodes(tmp_path):
     crashed = [int(r["length"]) for r in rows if r["end"] == "crash"]
     assert cut and set(cut) == {4} and all(n <= 4 for n in crashed)
     assert t.env_steps == 80 and t.collisions == len(crashed)
+
+
+def test_weight_snapshots_equal_the_shorter_run(tmp_path):
+    cfg = TrainerConfig(model="sam", seed=5, total_steps=300, learning_starts=100, replay_ratio=0.25)
+    short = run_inprocess(dataclasses.replace(cfg, total_steps=200), str(tmp_path / "short"), log=lambda s: None)
+    logged = []
+    long = run_inprocess(cfg, str(tmp_path / "long"), log=logged.append, save_weights_at=(200, 150))
+    assert sorted(p.name for p in (tmp_path / "long").glob("policy_sam_step*.safetensors")) == [
+        "policy_sam_step150.safetensors",
+        "policy_sam_step200.safetensors",
+    ]
+    assert sum("weights snapshot" in line for line in logged) == 2
+    # The first 200 steps of a 300-step run are the 200-step run, bit for bit.
+    assert (tmp_path / "long" / "policy_sam_step200.safetensors").read_bytes() == short.policy_weights_path.read_bytes()
+    assert long.policy_weights_path.read_bytes() != short.policy_weights_path.read_bytes()
+    with pytest.raises(ValueError, match="save_weights_at"):
+        run_inprocess(cfg, str(tmp_path / "bad"), log=lambda s: None, save_weights_at=(301,))
+    assert not (tmp_path / "bad").exists()
 
 
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):

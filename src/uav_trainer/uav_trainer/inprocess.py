@@ -110,6 +110,7 @@ def run(
     hfov_deg: float = SimConfig.hfov_deg,
     redraw_heading: bool = False,
     max_episode_steps: int = 0,
+    save_weights_at=(),
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -122,7 +123,14 @@ def run(
     `max_episode_steps` > 0 ends an episode that survives that long (a time limit, learnt from as
     a cut, not a crash: Training.add_truncated) so that training keeps meeting new layouts and
     starts once the policy has learnt to survive.
+
+    `save_weights_at` lists env steps at which the online network is also written to
+    policy_<model>_step<N>.safetensors (snapshots along one run, e.g. to measure longer training
+    without retraining the shorter budget: the first N steps of a longer run are the N-step run).
     """
+    snapshots = sorted(set(int(n) for n in save_weights_at))
+    if any(n < 1 or n > cfg.total_steps for n in snapshots):
+        raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {snapshots}")
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
@@ -155,6 +163,10 @@ def run(
                 pass
             if validator is not None:
                 validator(training)
+            if training.env_steps in snapshots:
+                path = training.dir / f"policy_{cfg.model}_step{training.env_steps}.safetensors"
+                wio.save_file(training.learner.online, training.net_cfg, path, training.camera_hfov_deg)
+                log(f"step {training.env_steps}: weights snapshot {path}")
             if on_step is not None and on_step(training):
                 break
             if training.env_steps % log_every == 0:
@@ -218,6 +230,14 @@ def main() -> int:
         help="experiment: end an episode that survives this many steps (a time limit, not a crash) and start "
         "the next (with --layout-per-episode: in a new layout); 0 = episodes end only in crashes (the paper)",
     )
+    ap.add_argument(
+        "--save-weights-at",
+        type=int,
+        nargs="+",
+        default=(),
+        metavar="STEP",
+        help="also write the network at these env steps to policy_<model>_step<STEP>.safetensors",
+    )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
     ap.add_argument(
@@ -244,6 +264,8 @@ def main() -> int:
         help="SAM only: max pools the nodes (the paper's design); flatten keeps every node's place (an extension)",
     )
     a = ap.parse_args()
+    if any(not 1 <= n <= a.steps for n in a.save_weights_at):
+        ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
         model=a.model,
@@ -280,6 +302,7 @@ def main() -> int:
         hfov_deg=a.hfov_deg,
         redraw_heading=a.redraw_heading,
         max_episode_steps=a.max_episode_steps,
+        save_weights_at=a.save_weights_at,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0
