@@ -2,6 +2,7 @@
 
     python scripts/compare_models.py docs/results/behaviour/turn_penalty_20_seeds/results.csv [--a sam --b cnn]
     python scripts/compare_models.py new.csv old.csv --by run --a redraw_sam --b turn_sam
+    python scripts/compare_models.py long.csv short.csv --by run --paired --a tl300long_sam --b tl300_sam
 
 Reads an `evaluate` results.csv (one row per weights file and world). For each world and metric
 (crashes per 1000 steps, mean reward per step) it prints, in Markdown: the mean of each model over
@@ -10,7 +11,11 @@ its weights files (training seeds), the difference a - b with a 95 % bootstrap i
 two models' seeds come from one distribution" (difference of means, model labels shuffled).
 Both are seeded, so the output is reproducible. `--by run` compares two training variants instead
 of two models: a row's group is its weights file's folder without `_seed<N>` (runs/turn_sam_seed3/
-policy_sam.safetensors -> turn_sam).
+policy_sam.safetensors -> turn_sam; a snapshot policy_sam_step40000.safetensors -> turn_sam_step40000).
+`--paired` (with `--by run`) compares the same training seeds in both groups: the difference is the
+mean over seeds of a - b, its interval resamples seeds, and the p-value flips the signs of the
+per-seed differences (a sign-flip permutation test), which is stronger than the unpaired test when
+seeds differ more from each other than the variants do. Only seeds present in both groups count.
 """
 
 from __future__ import annotations
@@ -26,8 +31,16 @@ import numpy as np
 
 
 def run_name(weights: str) -> str:
-    """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam"""
-    return re.sub(r"_seed\d+$", "", PurePath(weights).parent.name)
+    """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam; .../policy_sam_step40000.safetensors -> turn_sam_step40000"""
+    path = PurePath(weights)
+    step = re.search(r"_step(\d+)\.safetensors$", path.name)
+    return re.sub(r"_seed\d+$", "", path.parent.name) + (f"_step{step.group(1)}" if step else "")
+
+
+def seed_of(weights: str) -> int | None:
+    """runs/turn_sam_seed3/policy_sam.safetensors -> 3 (None without a _seed<N> folder)"""
+    m = re.search(r"_seed(\d+)$", PurePath(weights).parent.name)
+    return int(m.group(1)) if m else None
 
 
 def compare(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resamples: int) -> tuple[float, float, float, float]:
@@ -43,6 +56,16 @@ def compare(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resamples: i
     return diff, float(lo), float(hi), float(p)
 
 
+def compare_paired(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resamples: int) -> tuple[float, float, float, float]:
+    """The same for paired values (a[i] and b[i] from one training seed): bootstrap over seeds, sign-flip test."""
+    d = a - b
+    diff = float(d.mean())
+    lo, hi = np.percentile(rng.choice(d, (resamples, d.size)).mean(1), [2.5, 97.5])
+    flipped = (rng.choice((-1.0, 1.0), (resamples, d.size)) * d).mean(1)
+    p = (1 + np.count_nonzero(np.abs(flipped) >= abs(diff) - 1e-12)) / (1 + resamples)
+    return diff, float(lo), float(hi), float(p)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("csv", nargs="+", help="evaluate results.csv file(s); rows are joined")
@@ -51,8 +74,12 @@ def main(argv=None) -> int:
     ap.add_argument("--resamples", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--by", choices=("model", "run"), default="model", help="group rows by model or by training run")
+    ap.add_argument("--paired", action="store_true", help="with --by run: pair the two groups' rows by training seed")
     a = ap.parse_args(argv)
+    if a.paired and a.by != "run":
+        ap.error("--paired needs --by run (two variants trained on the same seeds)")
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
+    seeds: dict[tuple[str, str, str], list[int | None]] = defaultdict(list)
     worlds: list[str] = []
     for path in a.csv:
         for r in csv.DictReader(open(path)):
@@ -61,9 +88,12 @@ def main(argv=None) -> int:
             group = r["model"] if a.by == "model" else run_name(r["weights"])
             values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
             values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
+            for metric in ("crashes", "reward"):
+                seeds[(group, r["world"], metric)].append(seed_of(r["weights"]))
     rng = np.random.default_rng(a.seed)
     A, B = (a.a.upper(), a.b.upper()) if a.by == "model" else (a.a, a.b)
-    print(f"{A} - {B} over training seeds ({', '.join(a.csv)}); {a.resamples} resamples, seed {a.seed}.")
+    how = "paired by training seed, sign-flip test" if a.paired else "unpaired"
+    print(f"{A} - {B} over training seeds ({', '.join(a.csv)}); {how}; {a.resamples} resamples, seed {a.seed}.")
     print()
     print(f"| world | metric | {A} mean (n) | {B} mean (n) | difference | 95 % bootstrap CI | permutation p |")
     print("|---|---|---|---|---|---|---|")
@@ -71,16 +101,24 @@ def main(argv=None) -> int:
     for world in worlds:
         for metric, unit in (("crashes", "crashes / 1000 steps"), ("reward", "reward / step")):
             x, y = (np.array(values[(m, world, metric)]) for m in (a.a, a.b))
+            if a.paired:  # the seeds both groups have; each must appear once per group and world
+                sx, sy = (seeds[(m, world, metric)] for m in (a.a, a.b))
+                if None in sx + sy or len(set(sx)) != len(sx) or len(set(sy)) != len(sy):
+                    print(f"--paired: {world}: every weights file needs a distinct _seed<N> folder per group", file=sys.stderr)
+                    return 2
+                common = sorted(set(sx) & set(sy))
+                x = np.array([x[sx.index(k)] for k in common])
+                y = np.array([y[sy.index(k)] for k in common])
             if x.size < 2 or y.size < 2:
                 continue
             missing = False
-            diff, lo, hi, p = compare(x, y, rng, a.resamples)
+            diff, lo, hi, p = (compare_paired if a.paired else compare)(x, y, rng, a.resamples)
             print(
                 f"| {world} | {unit} | {x.mean():.3f} ({x.size}) | {y.mean():.3f} ({y.size}) | {diff:+.3f} | "
                 f"{lo:+.3f} to {hi:+.3f} | {p:.3f} |"
             )
     if missing:
-        print(f"no world has two or more weights files of both {a.a} and {a.b}", file=sys.stderr)
+        print(f"no world has two or more weights files {'(seeds) ' if a.paired else ''}of both {a.a} and {a.b}", file=sys.stderr)
         return 2
     return 0
 

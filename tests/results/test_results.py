@@ -197,3 +197,32 @@ def test_compare_models_tells_a_real_difference_from_none(tmp_path):
     )
     row = next(line for line in by_run.stdout.splitlines() if "crashes / 1000" in line)
     assert [c.strip() for c in row.strip("|").split("|")][2:5] == ["0.333 (3)", "5.000 (3)", "-4.667"], by_run.stdout
+
+
+def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
+    """Seeds far apart from each other, each improved by 1 crash: unpaired cannot tell, paired can."""
+    script = ROOT / "scripts" / "compare_models.py"
+    base = [0, 10, 20, 30, 40, 50, 60, 70]
+    rows = [["sam", "complex", f"runs/short_sam_seed{i}/policy_sam.safetensors", 1000, c, 2.0] for i, c in enumerate(base)]
+    rows += [["sam", "complex", f"runs/long_sam_seed{i}/policy_sam_step60.safetensors", 1000, c - 1, 2.0] for i, c in enumerate(base)]
+    rows.append(["sam", "complex", "runs/short_sam_seed99/policy_sam.safetensors", 1000, 500, 2.0])  # no partner: left out
+    path = tmp_path / "paired.csv"
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([["model", "world", "weights", "steps", "crashes", "mean_reward"], *rows])
+
+    def row(*extra):
+        out = subprocess.run(
+            [sys.executable, str(script), str(path), "--by", "run", "--a", "long_sam_step60", "--b", "short_sam", *extra],
+            capture_output=True,
+            text=True,
+        )
+        assert out.returncode == 0, out.stderr
+        return [c.strip() for c in next(x for x in out.stdout.splitlines() if "crashes / 1000" in x).strip("|").split("|")]
+
+    unpaired, paired = row(), row("--paired")
+    assert float(unpaired[6]) > 0.5
+    assert paired[2:5] == ["34.000 (8)", "35.000 (8)", "-1.000"] and paired[5] == "-1.000 to -1.000"
+    assert float(paired[6]) < 0.01  # 8 equal signs: exact p = 2 / 256
+    bad = subprocess.run([sys.executable, str(script), str(path), "--paired"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--by run" in bad.stderr
+
