@@ -25,6 +25,20 @@ def test_round_trip_file(tmp_path):
     assert not list(tmp_path.glob(".*tmp")), "atomic write leaves no temp files"
 
 
+def test_equal_networks_give_equal_bytes():
+    """safetensors writes its header in hash-map order; to_bytes sorts it, so files can be compared with cmp."""
+    net = build_network(SAM, seed=3)
+    blobs = {wio.to_bytes(net, SAM, 120.0) for _ in range(20)}
+    assert len(blobs) == 1
+    (only,) = blobs
+    (n,) = struct.unpack("<Q", only[:8])
+    assert n % 8 == 0 and list(json.loads(only[8 : 8 + n])["__metadata__"]) == ["camera_hfov_deg", "config", "format"]
+    back = wio.load_bytes(only, SAM)
+    for a, b in zip(net.state_dict().values(), back.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    assert wio.read_header_camera(only) == 120.0
+
+
 def test_rejects_the_other_architecture():
     with pytest.raises(wio.WeightsError, match="model 'cnn'.*runs model 'sam'"):
         wio.load_bytes(blob("cnn"), SAM)

@@ -38,7 +38,18 @@ def to_bytes(net: torch.nn.Module, cfg: NetConfig, camera_hfov_deg: float | None
     meta = {"format": FORMAT, "config": cfg.to_json()}
     if camera_hfov_deg is not None:
         meta[CAMERA_KEY] = repr(_check_hfov(camera_hfov_deg))
-    return st_save(tensors, metadata=meta)
+    return _canonical(st_save(tensors, metadata=meta))
+
+
+def _canonical(blob: bytes) -> bytes:
+    """The same file with its JSON header's keys sorted: safetensors writes the header in hash-map
+    order, which changes from call to call, so equal networks gave different bytes. Sorted, equal
+    weights give equal files (a seeded run is reproducible byte for byte; `cmp` compares two).
+    The header stays padded with spaces to 8 bytes, as safetensors writes it."""
+    (n,) = struct.unpack("<Q", blob[:8])
+    header = json.dumps(json.loads(blob[8 : 8 + n]), sort_keys=True, separators=(",", ":")).encode()
+    header += b" " * (-len(header) % 8)
+    return struct.pack("<Q", len(header)) + header + blob[8 + n :]
 
 
 def save_file(net: torch.nn.Module, cfg: NetConfig, path: str | os.PathLike, camera_hfov_deg: float | None = None) -> None:
