@@ -10,7 +10,7 @@
 # shipped weights, and the attention figures); then re-measures every ROS table without ROS
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
-# (the same trained to 60 000 steps). About 14 h 10 min on 2 cores.
+# (the same trained longer, and a confirmation on fresh seeds). About 14 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -235,52 +235,56 @@ $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.saf
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_time_limit/varied_start
 $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 --out docs/results/main_job_time_limit/fixed_start
-# Round 7: round 6's setting trained to 60 000 steps, with weight snapshots at 30 000 (equal to
-# round 6's final weights, checked byte for byte), 40 000 and 50 000; SAM and CNN seeds 0-9.
-for m in sam cnn; do
-  for s in 0 2 4 6 8; do
-    for k in "$s" $((s + 1)); do
-      train tl300long "$m" "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --steps 60000 \
-        --save-weights-at 30000 40000 50000 &
-    done
-    wait
+# Round 7: round 6's setting trained to 60 000 steps (SAM seeds 0-9), with weight snapshots at
+# 30 000 (round 6's final weights: checked), 40 000 and 50 000; then a confirmation of the
+# 40 000-step budget on fresh seeds: SAM seeds 10-19 trained to 40 000 (snapshot at 30 000).
+for s in 0 2 4 6 8; do
+  for k in "$s" $((s + 1)); do
+    train tl300long sam "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --steps 60000 \
+      --save-weights-at 30000 40000 50000 &
   done
-  for s in $(seq 0 9); do
-    cmp runs/tl300long_${m}_seed$s/policy_${m}_step30000.safetensors runs/tl300_${m}_seed$s/policy_$m.safetensors
+  wait
+done
+for s in 10 12 14 16 18; do
+  for k in "$s" $((s + 1)); do
+    train tl300at40k sam "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --steps 40000 \
+      --save-weights-at 30000 &
   done
+  wait
+done
+for s in $(seq 0 19); do
+  d=runs/tl300long_sam_seed$s
+  [ "$s" -lt 10 ] || d=runs/tl300at40k_sam_seed$s
+  cmp $d/policy_sam_step30000.safetensors runs/tl300_sam_seed$s/policy_sam.safetensors
 done
 R7=docs/results/round7_longer_training
 for step in 40000 50000 60000; do
-  T7=()
-  for m in sam cnn; do
-    for s in $(seq 0 9); do
-      f=runs/tl300long_${m}_seed$s/policy_$m.safetensors
-      [ "$step" = 60000 ] || f=runs/tl300long_${m}_seed$s/policy_${m}_step$step.safetensors
-      T7+=("$m=$f")
-    done
+  W=()
+  for s in $(seq 0 9); do
+    f=runs/tl300long_sam_seed$s/policy_sam.safetensors
+    [ "$step" = 60000 ] || f=runs/tl300long_sam_seed$s/policy_sam_step$step.safetensors
+    W+=("$f")
   done
-  $EVAL --inprocess --model sam --model cnn --weights "${T7[@]}" --worlds basic complex turbulent --steps 1000 \
-    "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --out $R7/step$step/varied_start
-  $EVAL --inprocess --model sam --model cnn --weights "${T7[@]}" --worlds basic complex turbulent --steps 1000 \
+  $EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+    --sim-arg hfov_deg:=120.0 --out $R7/step$step/varied_start
+  $EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
     --sim-arg hfov_deg:=120.0 --out $R7/step$step/fixed_start
 done
-for step in 40000 50000 60000; do
-  for p in varied_start fixed_start; do
-    python scripts/compare_models.py $R7/step$step/$p/results.csv > $R7/step$step/$p/comparison.md
-  done
-done
-# Longer against 30 000 steps (round 6's final weights are the same networks), paired by seed.
-for m in sam cnn; do
-  for p in varied_start fixed_start; do
-    {
-      python scripts/compare_models.py $R7/step40000/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-        --by run --paired --a tl300long_${m}_step40000 --b tl300_$m
-      echo
-      python scripts/compare_models.py $R7/step50000/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-        --by run --paired --a tl300long_${m}_step50000 --b tl300_$m
-      echo
-      python scripts/compare_models.py $R7/step60000/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-        --by run --paired --a tl300long_$m --b tl300_$m
-    } > $R7/${m}_against_30000_$p.md
-  done
+W=()
+for s in $(seq 10 19); do W+=("runs/tl300at40k_sam_seed$s/policy_sam.safetensors"); done
+$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --sim-arg hfov_deg:=120.0 --out $R7/confirm_step40000_seeds10_19/varied_start
+$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out $R7/confirm_step40000_seeds10_19/fixed_start
+for p in varied_start fixed_start; do
+  for step in 40000 50000 60000; do
+    a=tl300long_sam_step$step
+    [ "$step" = 60000 ] && a=tl300long_sam
+    python scripts/compare_models.py $R7/step$step/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+      --by run --paired --a $a --b tl300_sam
+    echo
+  done > $R7/sam_against_30000_$p.md
+  python scripts/compare_models.py $R7/confirm_step40000_seeds10_19/$p/results.csv \
+    docs/results/round6_time_limit/$p/results.csv --by run --paired --a tl300at40k_sam --b tl300_sam \
+    > $R7/confirm_step40000_seeds10_19/$p/against_30000.md
 done
