@@ -204,7 +204,8 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
     script = ROOT / "scripts" / "compare_models.py"
     base = [0, 10, 20, 30, 40, 50, 60, 70]
     rows = [["sam", "complex", f"runs/short_sam_seed{i}/policy_sam.safetensors", 1000, c, 2.0] for i, c in enumerate(base)]
-    rows += [["sam", "complex", f"runs/long_sam_seed{i}/policy_sam_step60.safetensors", 1000, c - 1, 2.0] for i, c in enumerate(base)]
+    long = "runs/long_sam_seed{}/policy_sam_step60.safetensors"
+    rows += [["sam", "complex", long.format(i), 1000, c - 1, 2.0] for i, c in enumerate(base)]
     rows.append(["sam", "complex", "runs/short_sam_seed99/policy_sam.safetensors", 1000, 500, 2.0])  # no partner: left out
     path = tmp_path / "paired.csv"
     with open(path, "w", newline="") as f:
@@ -225,4 +226,3 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
     assert float(paired[6]) < 0.01  # 8 equal signs: exact p = 2 / 256
     bad = subprocess.run([sys.executable, str(script), str(path), "--paired"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--by run" in bad.stderr
-
