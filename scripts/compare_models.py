@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     if a.paired and a.by != "run":
         ap.error("--paired needs --by run (two variants trained on the same seeds)")
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
-    seeds: dict[tuple[str, str, str], list[int | None]] = defaultdict(list)
+    seeds: dict[tuple[str, str], list[int | None]] = defaultdict(list)  # in the order of values' rows
     worlds: list[str] = []
     for path in a.csv:
         for r in csv.DictReader(open(path)):
@@ -88,8 +88,7 @@ def main(argv=None) -> int:
             group = r["model"] if a.by == "model" else run_name(r["weights"])
             values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
             values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
-            for metric in ("crashes", "reward"):
-                seeds[(group, r["world"], metric)].append(seed_of(r["weights"]))
+            seeds[(group, r["world"])].append(seed_of(r["weights"]))
     rng = np.random.default_rng(a.seed)
     A, B = (a.a.upper(), a.b.upper()) if a.by == "model" else (a.a, a.b)
     how = "paired by training seed, sign-flip test" if a.paired else "unpaired"
@@ -102,7 +101,7 @@ def main(argv=None) -> int:
         for metric, unit in (("crashes", "crashes / 1000 steps"), ("reward", "reward / step")):
             x, y = (np.array(values[(m, world, metric)]) for m in (a.a, a.b))
             if a.paired:  # the seeds both groups have; each must appear once per group and world
-                sx, sy = (seeds[(m, world, metric)] for m in (a.a, a.b))
+                sx, sy = (seeds[(m, world)] for m in (a.a, a.b))
                 if None in sx + sy or len(set(sx)) != len(sx) or len(set(sy)) != len(sy):
                     print(f"--paired: {world}: every weights file needs a distinct _seed<N> folder per group", file=sys.stderr)
                     return 2

@@ -17,7 +17,6 @@ import time
 
 import torch
 
-from uav_policy import weights as wio
 from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
@@ -83,7 +82,7 @@ class Validation:
         better = self.best is None or (crashes, -reward) < (self.best[0], -self.best[1])
         if better:
             self.best = (crashes, reward)
-            wio.save_file(training.learner.online, training.net_cfg, self.path, training.camera_hfov_deg)
+            training.save_weights(self.path)
         self._rows.writerow(
             [training.env_steps, training.learner.updates, crashes, self.steps * len(self.worlds), f"{reward:.4f}", int(better)]
         )
@@ -128,9 +127,9 @@ def run(
     policy_<model>_step<N>.safetensors (snapshots along one run, e.g. to measure longer training
     without retraining the shorter budget: the first N steps of a longer run are the N-step run).
     """
-    snapshots = sorted(set(int(n) for n in save_weights_at))
+    snapshots = frozenset(int(n) for n in save_weights_at)
     if any(n < 1 or n > cfg.total_steps for n in snapshots):
-        raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {snapshots}")
+        raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {sorted(snapshots)}")
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
@@ -165,7 +164,7 @@ def run(
                 validator(training)
             if training.env_steps in snapshots:
                 path = training.dir / f"policy_{cfg.model}_step{training.env_steps}.safetensors"
-                wio.save_file(training.learner.online, training.net_cfg, path, training.camera_hfov_deg)
+                training.save_weights(path)
                 log(f"step {training.env_steps}: weights snapshot {path}")
             if on_step is not None and on_step(training):
                 break

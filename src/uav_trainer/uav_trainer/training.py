@@ -274,11 +274,15 @@ class Training:
             counters = self.counters()
             rng = {"replay": checkpoint.rng_state(self.replay.rng)}
         path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng)
-        wio.save_file(self.learner.online, self.net_cfg, self.policy_weights_path, self.camera_hfov_deg)
+        self.save_weights(self.policy_weights_path)
         if self.learner.ema is not None:
-            wio.save_file(self.learner.ema, self.net_cfg, self.ema_weights_path, self.camera_hfov_deg)
+            self.save_weights(self.ema_weights_path, self.learner.ema)
         self.plot()
         return path
+
+    def save_weights(self, path, net=None) -> None:
+        """Write `net` (default: the online network) as a policy weights file, atomically, with this run's camera."""
+        wio.save_file(self.learner.online if net is None else net, self.net_cfg, path, self.camera_hfov_deg)
 
     def metrics_row(self) -> dict:
         now = time.monotonic()
