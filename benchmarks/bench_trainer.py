@@ -1,4 +1,5 @@
-"""Trainer figures: environment steps/s and learner updates/s while training over ROS (capped and
+"""Trainer figures: the cost of one batch-32 learner update by network input size (ratio against
+64 px, measured in the same run), environment steps/s and learner updates/s while training over ROS (capped and
 uncapped lockstep), and wall-clock on this machine from scratch until the SAM policy flies 1000
 exploit steps in Basic with 0 crashes (in-process trainer, evaluated every --eval-every steps;
 evaluation time is included in the wall-clock).
@@ -16,13 +17,38 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from uav_policy.networks import NetConfig
 from uav_trainer.evaluate import evaluate_inprocess
 from uav_trainer.inprocess import run as run_inprocess
+from uav_trainer.learner import Learner, LearnerConfig
 from uav_trainer.training import TrainerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def update_ms(model: str, size: int, n: int = 30) -> float:
+    """Median wall-clock of one Double DQN update (batch 32, targets included) at a size x size input."""
+    cfg = LearnerConfig()
+    learner = Learner(NetConfig(model=model, height=size, width=size), cfg)
+    rng = np.random.default_rng(0)
+    frames = lambda: rng.uniform(0, 10, (cfg.batch_size, 5, size, size)).astype(np.float32)  # noqa: E731
+    batch = {
+        "state": frames(),
+        "next_state": frames(),
+        "action": rng.integers(0, 4, cfg.batch_size),
+        "reward": rng.uniform(-10, 5, cfg.batch_size).astype(np.float32),
+        "done": np.zeros(cfg.batch_size, dtype=np.float32),
+    }
+    times = []
+    for i in range(n + 3):
+        t = time.perf_counter()
+        learner.update(batch)
+        if i >= 3:  # warm-up
+            times.append(time.perf_counter() - t)
+    return float(np.median(times) * 1e3)
 
 
 def ros_throughput(steps: int, max_rate_hz: float, domain: int) -> tuple[float, float]:
@@ -85,7 +111,18 @@ def main() -> int:
     ap.add_argument("--max-steps", type=int, default=60000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-ros", action="store_true")
+    ap.add_argument("--input-sizes", type=int, nargs="+", default=[64, 84], metavar="PX", help="update cost at these inputs")
+    ap.add_argument("--updates-only", action="store_true", help="print the update costs and stop")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads for the update costs")
     a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    for model in ("sam", "cnn"):
+        base = update_ms(model, 64)
+        for size in a.input_sizes:
+            ms = base if size == 64 else update_ms(model, size)
+            print(f"[{model}] batch-32 update at {size}x{size} input ({a.threads} thread): {ms:.1f} ms, {ms / base:.2f}x 64x64")
+    if a.updates_only:
+        return 0
     if not a.skip_ros:
         for cap in (0.0, 60.0):
             env_rate, upd_rate = ros_throughput(a.ros_steps, cap, 70 + os.getpid() % 10)

@@ -10,7 +10,8 @@
 # shipped weights, and the attention figures); then re-measures every ROS table without ROS
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
-# (the same trained longer, and a confirmation on fresh seeds). About 14 h on 2 cores.
+# (the same trained longer, and a confirmation on fresh seeds), and an eighth (an 84 x 84 input).
+# About 15 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -287,4 +288,24 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R7/confirm_step40000_seeds10_19/$p/results.csv \
     docs/results/round6_time_limit/$p/results.csv --by run --paired --a tl300at40k_sam --b tl300_sam \
     > $R7/confirm_step40000_seeds10_19/$p/against_30000.md
+done
+
+# Round 8: round 6's setting with an 84 x 84 network input and camera (--input-size 84: SAM sees
+# 10 x 10 nodes instead of 8 x 8), SAM seeds 0-9; compared with round 6's SAM (unpaired: other networks).
+for s in 0 2 4 6 8; do
+  for k in "$s" $((s + 1)); do
+    train in84 sam "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --input-size 84 &
+  done
+  wait
+done
+W=()
+for s in $(seq 0 9); do W+=("runs/in84_sam_seed$s/policy_sam.safetensors"); done
+R8=docs/results/round8_input84
+$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --sim-arg hfov_deg:=120.0 --out $R8/varied_start
+$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out $R8/fixed_start
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R8/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a in84_sam --b tl300_sam > $R8/$p/against_64.md
 done

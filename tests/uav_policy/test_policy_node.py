@@ -181,6 +181,10 @@ def test_policy_start_up_errors(tmp_path):
     cnn.write_bytes(forcing_action_cnn())
     r = run_to_exit("uav_policy", "policy_node", "-p", "model:=sam", "-p", f"weights:={cnn}")
     assert r.returncode == 2 and "model 'cnn'" in r.stderr and "runs model 'sam'" in r.stderr
+    big, cfg84 = tmp_path / "sam84.safetensors", NetConfig(model="sam", height=84, width=84)
+    wio.save_file(build_network(cfg84, seed=0), cfg84, big)
+    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={big}")
+    assert r.returncode == 2 and "parameter 'weights'" in r.stderr and "set input_height:=84 input_width:=84" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
     assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")

@@ -148,6 +148,20 @@ def test_weight_snapshots_equal_the_shorter_run(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):
+    from uav_trainer.evaluate import evaluate_inprocess
+
+    cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, input_size_px=48)
+    t = run_inprocess(cfg, str(tmp_path), log=lambda s: None, hfov_deg=90.0)
+    assert t.learner.updates > 0  # the replay memory took the camera's 48 x 48 frames
+    made = wio.read_file_config(t.policy_weights_path)
+    assert (made.height, made.width) == (48, 48) and t.learner.online.grid_hw == (6, 6)
+    assert wio.config_for("sam", t.policy_weights_path) == made
+    # The evaluation renders at the file's input size: a 64 x 64 camera would not fit the network.
+    r = evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1)
+    assert r.steps == 20
+
+
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
     import csv
 

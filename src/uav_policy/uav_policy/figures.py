@@ -31,8 +31,12 @@ def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
     cfg = wio.config_for(model, weights)
     net = wio.load_file(weights, cfg) if weights else build_network(cfg, seed=seed)
     agent = Agent(net, cfg, seed=seed)
-    # The camera the weights were trained with (their header), else the simulator's default.
-    sim = Simulator(load_world(world), SimConfig(seed=seed, hfov_deg=wio.camera_for(weights, SimConfig.hfov_deg)))
+    # The camera the weights were trained with (their header), else the simulator's default; the
+    # image at the network's input size.
+    sim_cfg = SimConfig(
+        seed=seed, hfov_deg=wio.camera_for(weights, SimConfig.hfov_deg), image_width=cfg.width, image_height=cfg.height
+    )
+    sim = Simulator(load_world(world), sim_cfg)
     stack = FrameStack(cfg.frames)
     r = sim.observe()
     state = stack.reset(r.depth_m)

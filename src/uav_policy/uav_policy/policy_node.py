@@ -134,7 +134,7 @@ class PolicyNode(Node):
             try:
                 return wio.load_file(path, self.cfg), f"weights from {path}", wio.read_file_camera(path)
             except wio.WeightsError as e:
-                raise ParameterError(f"parameter 'weights': {e}") from None
+                raise ParameterError(f"parameter 'weights': {e}{self._size_hint(path)}") from None
         packaged = wio.packaged_weights(self.cfg.model)
         if packaged is not None:
             try:
@@ -144,6 +144,19 @@ class PolicyNode(Node):
                 self.get_logger().warning(f"packaged weights unusable ({e}); using a random initialisation")
         net = build_network(self.cfg, seed=seed)
         return net, f"no weights given or packaged: seeded random initialisation (seed {seed})", None
+
+    def _size_hint(self, path: str) -> str:
+        """What to set when a weights file was made for another input size ('' otherwise)."""
+        try:
+            made = wio.read_file_config(path)
+        except wio.WeightsError:
+            return ""
+        if (made.height, made.width) == (self.cfg.height, self.cfg.width):
+            return ""
+        return (
+            f"; the file takes {made.width}x{made.height} frames: set input_height:={made.height} "
+            f"input_width:={made.width} (and sim_node's image_width/image_height to match)"
+        )
 
     # -- camera -------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:

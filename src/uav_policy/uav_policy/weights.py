@@ -204,9 +204,12 @@ def camera_for(path: str | os.PathLike | None, default: float) -> float:
 
 
 def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
-    """The default architecture of `model` with the SAM readout `path` was made for (default without a path)."""
-    readout = read_file_config(path).sam_readout if path else NetConfig.sam_readout
-    return NetConfig(model=model, sam_readout=readout)
+    """The default architecture of `model` with the SAM readout and input size `path` was made for (the
+    defaults without a path). Other fields stay `model`'s defaults, so a file made otherwise still fails to load."""
+    if not path:
+        return NetConfig(model=model)
+    made = read_file_config(path)
+    return NetConfig(model=model, sam_readout=made.sam_readout, height=made.height, width=made.width)
 
 
 def packaged_weights(model: str) -> Path | None:

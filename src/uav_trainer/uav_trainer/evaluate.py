@@ -145,12 +145,26 @@ class StepMonitor:
         return self.steps >= self.target
 
 
-def readout_args(model: str, weights: str) -> list[str]:
-    """policy_node parameters for a weights file whose SAM readout is not the default."""
+def architecture_args(model: str, weights: str) -> list[str]:
+    """policy_node parameters for a weights file whose SAM readout or input size is not the default."""
+    from uav_policy import weights as wio
+    from uav_policy.networks import NetConfig
+
+    cfg = wio.config_for(model, weights)
+    args = [f"sam_readout:={cfg.sam_readout}"] if cfg.sam_readout != NetConfig.sam_readout else []
+    if (cfg.height, cfg.width) != (NetConfig.height, NetConfig.width):
+        args += [f"input_height:={cfg.height}", f"input_width:={cfg.width}"]
+    return args
+
+
+def image_size_args(model: str, weights: str, sim_args) -> list[str]:
+    """sim_node parameters that render at the input size of `weights`, unless `sim_args` set a size."""
     from uav_policy import weights as wio
 
-    readout = wio.config_for(model, weights).sam_readout
-    return [f"sam_readout:={readout}"] if readout != "max" else []
+    if not weights or any(a.partition(":=")[0] in ("image_width", "image_height") for a in sim_args):
+        return []
+    cfg = wio.config_for(model, weights)
+    return [f"image_width:={cfg.width}", f"image_height:={cfg.height}"]
 
 
 def flown_hfov_deg(model: str, weights: str) -> float:
@@ -190,9 +204,11 @@ def evaluate_once(
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
 
-    Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with."""
+    Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, and
+    without image_width/image_height it renders at their input size."""
     if sim_arg_hfov_deg(sim_args) is None:
         sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, weights)}")
+    sim_args = (*sim_args, *image_size_args(model, weights, sim_args))
     import rclpy
     import rclpy.executors
     from nav_msgs.msg import Odometry
@@ -228,7 +244,7 @@ def evaluate_once(
                 raise RuntimeError(f"sim_node exited with code {sim.returncode} before its first frame")
             if time.monotonic() > ready_by:
                 raise TimeoutError("no first frame from sim_node within 60 s")
-        wargs = [f"weights:={weights}", *readout_args(model, weights)] if weights else []
+        wargs = [f"weights:={weights}", *architecture_args(model, weights)] if weights else []
         procs.start(
             "policy",
             "uav_policy",
@@ -279,10 +295,13 @@ def evaluate_inprocess(
     net=None,
     start_yaw_jitter_deg: float = 0.0,
     hfov_deg: float | None = None,
+    net_cfg=None,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
-    hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default)."""
+    hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
+    `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
+    camera renders at its input size."""
     from uav_policy import weights as wio
     from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
@@ -291,7 +310,7 @@ def evaluate_inprocess(
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
-    cfg = wio.config_for(model, weights)
+    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
     path = None
     if net is None:
         path = weights or wio.packaged_weights(model)
@@ -301,7 +320,14 @@ def evaluate_inprocess(
     if hfov_deg is None:  # with `net` and no file: the sim default
         hfov_deg = wio.camera_for(weights or path, SimConfig.hfov_deg)
     agent = Agent(net, cfg, seed=seed)
-    sim = Simulator(load_world(world), SimConfig(seed=seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg))
+    sim_cfg = SimConfig(
+        seed=seed,
+        start_yaw_jitter_deg=start_yaw_jitter_deg,
+        hfov_deg=hfov_deg,
+        image_width=cfg.width,
+        image_height=cfg.height,
+    )
+    sim = Simulator(load_world(world), sim_cfg)
     stack = FrameStack(cfg.frames)
     r = sim.observe()
     state = stack.reset(r.depth_m)

@@ -72,6 +72,7 @@ class Validation:
                 self.steps,
                 seed=i,
                 net=net,
+                net_cfg=training.net_cfg,
                 start_yaw_jitter_deg=180.0,
                 hfov_deg=self.hfov_deg,
             )
@@ -134,7 +135,12 @@ def run(
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     validator = validation(training) if validation is not None else None
     sim_cfg = SimConfig(
-        seed=cfg.seed, start_yaw_jitter_deg=start_yaw_jitter_deg, hfov_deg=hfov_deg, max_episode_steps=max_episode_steps
+        seed=cfg.seed,
+        start_yaw_jitter_deg=start_yaw_jitter_deg,
+        hfov_deg=hfov_deg,
+        max_episode_steps=max_episode_steps,
+        image_width=cfg.input_size_px,  # the camera renders at the network's input size
+        image_height=cfg.input_size_px,
     )
     if layout_per_episode:
         layouts = training_layouts(cfg.seed)
@@ -240,6 +246,13 @@ def main() -> int:
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
     ap.add_argument(
+        "--input-size",
+        type=int,
+        default=TrainerConfig.input_size_px,
+        metavar="PX",
+        help="experiment: square network input and depth image size in px (84: SAM sees 10 x 10 nodes instead of 8 x 8)",
+    )
+    ap.add_argument(
         "--turn-penalty",
         type=float,
         default=TrainerConfig.turn_penalty,
@@ -265,6 +278,8 @@ def main() -> int:
     a = ap.parse_args()
     if any(not 1 <= n <= a.steps for n in a.save_weights_at):
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
+    if not 8 <= a.input_size <= 512:
+        ap.error(f"--input-size must lie in [8, 512] px (policy_node's input_height/input_width range), got {a.input_size}")
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
         model=a.model,
@@ -278,6 +293,7 @@ def main() -> int:
         turn_penalty=a.turn_penalty,
         turning_actions=turning_indices(PAPER_ACTIONS),
         sam_readout=a.sam_readout,
+        input_size_px=a.input_size,
         learner=dataclasses.replace(
             LearnerConfig(),
             learning_rate=a.learning_rate,

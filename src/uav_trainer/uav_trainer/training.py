@@ -49,6 +49,9 @@ class TrainerConfig:
     turn_penalty: float = 0.0
     turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
     sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
+    # Square network input (px); the paper does not give one. 64 (the default) gives SAM 8 x 8 nodes,
+    # 84 (an experiment: Atari's size) 10 x 10. The camera must render at the same size.
+    input_size_px: int = 64
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -68,7 +71,7 @@ class Training:
         self.log = log
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.net_cfg = NetConfig(model=cfg.model, sam_readout=cfg.sam_readout)
+        self.net_cfg = NetConfig(model=cfg.model, sam_readout=cfg.sam_readout, height=cfg.input_size_px, width=cfg.input_size_px)
         # The depth camera's field of view, recorded in every weights file written; None until the
         # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
         self.camera_hfov_deg: float | None = None
