@@ -291,21 +291,29 @@ for p in varied_start fixed_start; do
 done
 
 # Round 8: round 6's setting with an 84 x 84 network input and camera (--input-size 84: SAM sees
-# 10 x 10 nodes instead of 8 x 8), SAM seeds 0-9; compared with round 6's SAM (unpaired: other networks).
-for s in 0 2 4 6 8; do
-  for k in "$s" $((s + 1)); do
-    train in84 sam "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --input-size 84 &
+# 10 x 10 nodes instead of 8 x 8), SAM and CNN seeds 0-9; compared with each other and with round
+# 6 (unpaired: other networks).
+for m in sam cnn; do
+  for s in 0 2 4 6 8; do
+    for k in "$s" $((s + 1)); do
+      train in84 "$m" "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --input-size 84 &
+    done
+    wait
   done
-  wait
 done
 W=()
-for s in $(seq 0 9); do W+=("runs/in84_sam_seed$s/policy_sam.safetensors"); done
+for m in sam cnn; do
+  for s in $(seq 0 9); do W+=("$m=runs/in84_${m}_seed$s/policy_$m.safetensors"); done
+done
 R8=docs/results/round8_input84
-$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
-  --sim-arg hfov_deg:=120.0 --out $R8/varied_start
-$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --out $R8/varied_start
+$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
   --sim-arg hfov_deg:=120.0 --out $R8/fixed_start
 for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R8/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-    --by run --a in84_sam --b tl300_sam > $R8/$p/against_64.md
+  python scripts/compare_models.py $R8/$p/results.csv > $R8/$p/comparison.md
+  for m in sam cnn; do
+    python scripts/compare_models.py $R8/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+      --by run --a in84_$m --b tl300_$m > $R8/$p/${m}_against_64.md
+  done
 done
