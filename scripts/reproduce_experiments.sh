@@ -236,6 +236,15 @@ $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.saf
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_time_limit/varied_start
 $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 --out docs/results/main_job_time_limit/fixed_start
+# Round 6's SAM crashes with random starts, one row each (the same flights as the table above).
+T6S=()
+for s in $(seq 0 19); do T6S+=("runs/tl300_sam_seed$s/policy_sam.safetensors"); done
+for w in basic complex; do
+  $EVAL --inprocess --model sam --weights "${T6S[@]}" --worlds $w --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 \
+    --crash-log --out runs/r6_crashlog_$w
+  mkdir -p $R6/crash_log && cp runs/r6_crashlog_$w/crashes.csv $R6/crash_log/sam_${w}_varied_start.csv
+done
+
 # Round 7: round 6's setting trained to 60 000 steps (SAM seeds 0-9), with weight snapshots at
 # 30 000 (round 6's final weights: checked), 40 000 and 50 000; then a confirmation of the
 # 40 000-step budget on fresh seeds: SAM seeds 10-19 trained to 40 000 (snapshot at 30 000).

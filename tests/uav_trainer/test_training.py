@@ -255,6 +255,31 @@ def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
     assert varied.crash_sites > 1
 
 
+def test_the_crash_log_says_where_when_and_from_which_start(tmp_path):
+    from uav_trainer.evaluate import CRASH_FIELDS, evaluate_inprocess
+    from uav_trainer.evaluate import main as evaluate_main
+
+    class Straight(torch.nn.Module):  # constant Q: the agent always picks action 3 (2 m/s ahead)
+        def forward(self, x):
+            return torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(x.shape[0], 4), None
+
+    fly = lambda log, **kw: evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight(), crash_log=log, **kw)  # noqa: E731
+    fixed, varied = [], []
+    r = fly(fixed)
+    assert len(fixed) == r.crashes >= 3 and all(tuple(row) == CRASH_FIELDS for row in fixed)
+    # From the fixed start every lap is the same: same length, same place, same start heading.
+    assert fixed[0]["episode_step"] == fixed[0]["step"] and {row["episode_step"] for row in fixed} == {fixed[0]["episode_step"]}
+    assert [row["step"] for row in fixed] == [fixed[0]["step"] * (i + 1) for i in range(len(fixed))]
+    assert len({(row["x_m"], row["y_m"]) for row in fixed}) == 1 and {row["start_yaw_deg"] for row in fixed} == {0.0}
+    assert {row["action"] for row in fixed} == {"a3_forward_2mps"}
+    r = fly(varied, start_yaw_jitter_deg=180.0)
+    assert len(varied) == r.crashes and len({row["start_yaw_deg"] for row in varied}) > 1
+    assert sum(row["episode_step"] for row in varied) <= 300
+    with pytest.raises(SystemExit) as e:
+        evaluate_main(["--crash-log", "--out", str(tmp_path)])
+    assert e.value.code == 2  # the ROS measurement has no crash log
+
+
 def test_the_reward_is_described_with_its_extensions():
     from uav_trainer.training import reward_description
 

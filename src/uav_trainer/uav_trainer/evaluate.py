@@ -62,6 +62,23 @@ class EvalResult:
         return self.distance_m / self.crashes if self.crashes else math.inf
 
 
+# One row per crash in crashes.csv (--crash-log): where the crashing step began (pose before it), how
+# many steps the episode had flown, the heading the episode started at, and the action taken.
+CRASH_FIELDS = (
+    "model",
+    "world",
+    "weights",
+    "sim_seed",
+    "step",
+    "episode_step",
+    "x_m",
+    "y_m",
+    "yaw_deg",
+    "start_yaw_deg",
+    "action",
+)
+
+
 def crash_site(xy) -> tuple[float, float]:
     """Where a crashing step began, on a 0.1 m grid: a deterministic policy restarted at the same
     pose crashes at the same site again, so crashes / sites tells repeats from new failures."""
@@ -296,12 +313,13 @@ def evaluate_inprocess(
     start_yaw_jitter_deg: float = 0.0,
     hfov_deg: float | None = None,
     net_cfg=None,
+    crash_log: list | None = None,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
     `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
-    camera renders at its input size."""
+    camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS)."""
     from uav_policy import weights as wio
     from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
@@ -333,20 +351,39 @@ def evaluate_inprocess(
     state = stack.reset(r.depth_m)
     crashes, reward, dist, last, sites = 0, 0.0, 0.0, (r.pose.x_m, r.pose.y_m), set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
+    before, start_yaw, age = r.pose, r.pose.yaw_rad, 0
     try:
-        for _ in range(steps):
+        for step in range(1, steps + 1):
             a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(sim.config.step_duration_s)))
             reward += r.reward
+            age += 1
             if r.collided:
                 crashes += 1
                 sites.add(crash_site(last))
                 state = stack.reset(r.depth_m)
+                if crash_log is not None:
+                    crash_log.append(
+                        dict(
+                            model=model,
+                            world=world,
+                            weights=weights,
+                            sim_seed=seed,
+                            step=step,
+                            episode_step=age,
+                            x_m=round(before.x_m, 3),
+                            y_m=round(before.y_m, 3),
+                            yaw_deg=round(math.degrees(before.yaw_rad), 1),
+                            start_yaw_deg=round(math.degrees(start_yaw), 1),
+                            action=a.name,
+                        )
+                    )
+                start_yaw, age = r.pose.yaw_rad, 0
             else:
                 dist += math.hypot(r.pose.x_m - last[0], r.pose.y_m - last[1])
                 state = stack.push(r.depth_m)
             behaviour.step(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad, r.collided)
-            last = (r.pose.x_m, r.pose.y_m)
+            last, before = (r.pose.x_m, r.pose.y_m), r.pose
     finally:
         sim.close()
     return EvalResult(
@@ -593,7 +630,15 @@ def main(argv=None) -> int:
         help="measure without ROS (same simulator and network, one process): for screening; "
         "takes --sim-arg hfov_deg:=X only, and --epsilon 0",
     )
+    ap.add_argument(
+        "--crash-log",
+        action="store_true",
+        help="with --inprocess: also write crashes.csv, one row per crash (pose and heading before it, steps since "
+        "the episode began, the start heading, the action)",
+    )
     a = ap.parse_args(argv)
+    if a.crash_log and not a.inprocess:
+        ap.error("--crash-log needs --inprocess")
     if a.repeats < 1 or a.steps < 1:
         ap.error("--repeats and --steps must be >= 1")
     try:
@@ -670,7 +715,7 @@ def main(argv=None) -> int:
                 ap.error(f"--weights {model}={weights}: {e}")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    results = []
+    results, crash_rows = [], []
     total = len(runs) * len(a.worlds) * a.steps * a.repeats
     with tqdm(total=total, unit="step", dynamic_ncols=True, disable=None) as bar:
 
@@ -689,7 +734,16 @@ def main(argv=None) -> int:
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
                 )
-            r = evaluate_inprocess(model, weights, world, a.steps, seed, start_yaw_jitter_deg=jitter, hfov_deg=hfov_deg)
+            r = evaluate_inprocess(
+                model,
+                weights,
+                world,
+                a.steps,
+                seed,
+                start_yaw_jitter_deg=jitter,
+                hfov_deg=hfov_deg,
+                crash_log=crash_rows if a.crash_log else None,
+            )
             bar.update(a.steps)
             return r
 
@@ -705,6 +759,12 @@ def main(argv=None) -> int:
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())
     print(f"written: {md} {csv_path}")
+    if a.crash_log:
+        with open(Path(a.out) / "crashes.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=CRASH_FIELDS)
+            w.writeheader()
+            w.writerows(crash_rows)
+        print(f"written: {Path(a.out) / 'crashes.csv'} ({len(crash_rows)} crashes)")
     return 0
 
 
