@@ -349,9 +349,9 @@ def evaluate_inprocess(
     stack = FrameStack(cfg.frames)
     r = sim.observe()
     state = stack.reset(r.depth_m)
-    crashes, reward, dist, last, sites = 0, 0.0, 0.0, (r.pose.x_m, r.pose.y_m), set()
+    crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
-    before, start_yaw, age = r.pose, r.pose.yaw_rad, 0
+    before, start_yaw, age = r.pose, r.pose.yaw_rad, 0  # the pose a step begins at
     try:
         for step in range(1, steps + 1):
             a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
@@ -360,7 +360,7 @@ def evaluate_inprocess(
             age += 1
             if r.collided:
                 crashes += 1
-                sites.add(crash_site(last))
+                sites.add(crash_site((before.x_m, before.y_m)))
                 state = stack.reset(r.depth_m)
                 if crash_log is not None:
                     crash_log.append(
@@ -380,10 +380,10 @@ def evaluate_inprocess(
                     )
                 start_yaw, age = r.pose.yaw_rad, 0
             else:
-                dist += math.hypot(r.pose.x_m - last[0], r.pose.y_m - last[1])
+                dist += math.hypot(r.pose.x_m - before.x_m, r.pose.y_m - before.y_m)
                 state = stack.push(r.depth_m)
             behaviour.step(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad, r.collided)
-            last, before = (r.pose.x_m, r.pose.y_m), r.pose
+            before = r.pose
     finally:
         sim.close()
     return EvalResult(
