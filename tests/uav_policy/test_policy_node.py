@@ -3,6 +3,7 @@
 import signal
 
 import torch
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.srv import SetParameters
@@ -189,3 +190,53 @@ def test_policy_start_up_errors(tmp_path):
     assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")
     assert r.returncode == 2 and "epsilon" in r.stderr
+
+
+def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
+    """A frame that cannot be read gets no answer, and /diagnostics says so (WARN); good frames
+    before and after it are answered."""
+    import numpy as np
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from sensor_msgs.msg import Range
+
+    w = Watch(ros, actions_only=True)
+    diag = []
+    ros.node.create_subscription(
+        DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
+    )
+    pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.STREAM_QOS)
+    pub_out = ros.node.create_publisher(Range, contract.OUTCOME_TOPIC, contract.STREAM_QOS)
+    proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
+    assert ros.spin_until(lambda: pub_img.get_subscription_count() and pub_out.get_subscription_count() and diag, 30), ros.log_of(
+        proc
+    )
+    assert diag[-1].level == DiagnosticStatus.OK and diag[-1].message == "waiting for depth frames"
+
+    def send(sec: int, img: Image) -> None:
+        img.header.stamp.sec = sec
+        pub_out.publish(Range(header=img.header, range=5.0))
+        pub_img.publish(img)
+
+    good = lambda: contract.depth_to_image(np.full((64, 64), 4.0, np.float32), Time(), "cam")  # noqa: E731
+    send(1, good())
+    assert ros.spin_until(lambda: len(w.actions) == 1, 10), ros.log_of(proc)
+    short = good()
+    short.data = short.data[:100]  # says 64x64, carries 25 floats
+    wrong = good()
+    wrong.encoding = "16UC1"
+    send(2, short)
+    send(3, wrong)
+    send(4, good())
+    assert ros.spin_until(lambda: len(w.actions) == 2, 10), ros.log_of(proc)
+    assert w.action_stamps() == [1_000_000_000, 4_000_000_000]  # the malformed frames got no answer
+    values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
+    assert ros.spin_until(lambda: values(diag[-1])["malformed_frames"] == "2", 5), [values(d) for d in diag]
+    warned = next(d for d in diag if values(d)["malformed_frames"] != "0")  # the two may fall into two reports
+    assert warned.level == DiagnosticStatus.WARN and "malformed depth frame(s) ignored" in warned.message, warned.message
+    last = values(diag[-1])
+    assert last["frames_answered"] == "2" and last["model"] == "cnn" and "packaged pretrained weights" in last["weights"]
+    # With no more malformed frames the next report is OK again; the count stays.
+    n = len(diag)
+    assert ros.spin_until(lambda: len(diag) > n + 1, 5)
+    assert diag[-1].level == DiagnosticStatus.OK and values(diag[-1])["malformed_frames"] == "2"
+    assert proc.poll() is None and "ignoring malformed depth frame" in ros.log_of(proc)

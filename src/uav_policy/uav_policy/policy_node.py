@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist, TwistStamped
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParameters
@@ -115,8 +116,12 @@ class PolicyNode(Node):
         self.last_stamp = None
         self.last_cmd, self.last_cmd_unheard = None, False
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
-        self.bad_frames = 0
-        self.pushes_rejected = 0
+        self.source = source
+        self.acted, self.bad_frames, self.pushes_accepted, self.pushes_rejected = 0, 0, 0, 0
+        self.act_s = 0.0  # time spent answering frames since the last report (network and publishing)
+        self._reported = (time.monotonic(), 0, 0)  # (when, acted, bad_frames) at the last report
+        self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
+        self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
             f"model {model} ({parameter_count(net)} parameters, {source}"
             + (f", trained with a {self.weights_hfov_deg:g} deg camera" if self.weights_hfov_deg is not None else "")
@@ -169,16 +174,23 @@ class PolicyNode(Node):
 
     def _check_camera(self) -> None:
         """Warn once per mismatch between the camera and the camera the weights were trained with."""
-        trained, camera = self.weights_hfov_deg, self.camera_hfov_deg
-        if trained is None or camera is None or abs(trained - camera) <= 0.5:
+        key = self._camera_mismatch()
+        if key is None:
             return
-        key = (round(trained, 1), round(camera, 1))
+        trained, camera = self.weights_hfov_deg, self.camera_hfov_deg
         if key != self._camera_warned:
             self._camera_warned = key
             self.get_logger().warning(
                 f"the weights were trained with a {trained:g} deg camera, but depth/camera_info says {camera:.1f} deg: "
                 f"expect more crashes (run sim_node with hfov_deg:={trained:g})"
             )
+
+    def _camera_mismatch(self) -> tuple[float, float] | None:
+        """(trained, camera) field of view, rounded, when they differ by more than 0.5 deg."""
+        trained, camera = self.weights_hfov_deg, self.camera_hfov_deg
+        if trained is None or camera is None or abs(trained - camera) <= 0.5:
+            return None
+        return round(trained, 1), round(camera, 1)
 
     def _on_set_parameters(self, params):
         for p in params:
@@ -202,6 +214,7 @@ class PolicyNode(Node):
             self.pub_cmd.publish(self.last_cmd)
 
     def _act(self, img: Image, outcome: Range) -> None:
+        t0 = time.perf_counter()
         stamp = contract.stamp_ns(img.header.stamp)
         try:
             depth = contract.image_to_depth(img)
@@ -228,6 +241,44 @@ class PolicyNode(Node):
         self.pub_cmd.publish(cmd)
         self.last_stamp, self.last_cmd = stamp, cmd
         self._publish_insight(img, depth, q, w)
+        self.acted += 1
+        self.act_s += time.perf_counter() - t0
+
+    def publish_diagnostics(self) -> None:
+        """1 Hz on /diagnostics: frames answered, malformed frames ignored, weight pushes; WARN while
+        malformed frames arrive or the camera differs from the one the weights were trained with."""
+        now = time.monotonic()
+        when, acted, bad = self._reported
+        new_acts, new_bad = self.acted - acted, self.bad_frames - bad
+        self._reported = (now, self.acted, self.bad_frames)
+        problems = []
+        if new_bad:
+            problems.append(f"{new_bad} malformed depth frame(s) ignored in the last {now - when:.1f} s")
+        mismatch = self._camera_mismatch()
+        if mismatch is not None:
+            problems.append(f"camera {mismatch[1]:g} deg, but the weights were trained with a {mismatch[0]:g} deg camera")
+        st = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
+            name="uav_policy",
+            message="; ".join(problems) or ("acting" if new_acts else "waiting for depth frames"),
+            hardware_id=self.get_fully_qualified_name(),
+        )
+        vals = {
+            "model": self.cfg.model,
+            "weights": self.source,
+            "epsilon": self.epsilon,
+            "frames_answered": self.acted,
+            "malformed_frames": self.bad_frames,
+            "pushes_accepted": self.pushes_accepted,
+            "pushes_rejected": self.pushes_rejected,
+            "answers_per_s": f"{new_acts / max(now - when, 1e-6):.1f}",
+            "ms_per_answer": f"{1e3 * self.act_s / new_acts:.2f}" if new_acts else "-",
+        }
+        self.act_s = 0.0
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in vals.items()]
+        msg = DiagnosticArray(status=[st])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
 
     def _publish_insight(self, img: Image, depth: np.ndarray, q: np.ndarray, w) -> None:
         qmsg = Float32MultiArray(data=q.astype(np.float32).tolist())
@@ -290,6 +341,8 @@ class PolicyNode(Node):
                 self.weights_hfov_deg = wio.read_header_camera(blob)
                 self._check_camera()
                 result.successful = True
+                self.pushes_accepted += 1
+                self.source = f"pushed weights ({len(blob)} bytes)"
                 result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms"
             except wio.WeightsError as e:
                 result.reason = str(e)
