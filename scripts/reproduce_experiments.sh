@@ -10,8 +10,9 @@
 # shipped weights, and the attention figures); then re-measures every ROS table without ROS
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
-# (the same trained longer, and a confirmation on fresh seeds), and an eighth (an 84 x 84 input).
-# About 15 h on 2 cores.
+# (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
+# ninth (half the training episodes start at a random place and heading).
+# About 16 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -324,5 +325,33 @@ for p in varied_start fixed_start; do
   for m in sam cnn; do
     python scripts/compare_models.py $R8/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
       --by run --a in84_$m --b tl300_$m > $R8/$p/${m}_against_64.md
+  done
+done
+
+# Round 9: round 6's setting with half the training episodes starting at a random free place and
+# heading (--random-start-fraction 0.5), SAM and CNN seeds 0-9; compared with each other and with
+# round 6 (unpaired, against all of round 6's seeds), with a crash log of the random-start flights.
+for m in sam cnn; do
+  for s in 0 2 4 6 8; do
+    for k in "$s" $((s + 1)); do
+      train rs50 "$m" "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --random-start-fraction 0.5 &
+    done
+    wait
+  done
+done
+W=()
+for m in sam cnn; do
+  for s in $(seq 0 9); do W+=("$m=runs/rs50_${m}_seed$s/policy_$m.safetensors"); done
+done
+R9=docs/results/round9_random_starts
+$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --crash-log --out $R9/varied_start
+$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out $R9/fixed_start
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R9/$p/results.csv > $R9/$p/comparison.md
+  for m in sam cnn; do
+    python scripts/compare_models.py $R9/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+      --by run --a rs50_$m --b tl300_$m > $R9/$p/${m}_against_round6.md
   done
 done

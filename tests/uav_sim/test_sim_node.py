@@ -207,6 +207,8 @@ def test_bad_parameters_fail_at_start_with_a_clear_message(tmp_path):
     assert r.returncode == 2 and "max_range_m" in r.stderr
     r = run_to_exit("uav_sim", "sim_node", "-p", "max_episode_steps:=-1")
     assert r.returncode == 2 and "max_episode_steps" in r.stderr
+    r = run_to_exit("uav_sim", "sim_node", "-p", "random_start_fraction:=1.5")
+    assert r.returncode == 2 and "random_start_fraction" in r.stderr
 
 
 def test_params_file_is_accepted(ros):

@@ -5,7 +5,7 @@ import pytest
 
 from uav_sim.camera import CameraIntrinsics
 from uav_sim.reward import center_window_min_depth
-from uav_sim.simulator import SimConfig, Simulator
+from uav_sim.simulator import SimConfig, Simulator, obstacle_distance_m
 from uav_sim.vehicle import BodyTwist, Pose, TwistLimits, integrate, twist_error
 from uav_sim.world import Obstacle, Weather, World, load_world
 
@@ -128,6 +128,50 @@ def test_time_limit_moves_on_to_the_next_layout(sims):
     finally:
         sim.close()
     assert names == [(False, "wall"), (True, "basic"), (False, "basic"), (True, "complex")]
+
+
+def test_obstacle_distance_of_a_rotated_box_and_a_cylinder():
+    box = Obstacle("box", 1.0, 2.0, 3.0, size_x_m=2.0, size_y_m=1.0, yaw_deg=90.0)  # long side along y
+    assert obstacle_distance_m(box, 1.0, 2.0) == 0.0  # inside
+    assert obstacle_distance_m(box, 1.0, 4.0) == pytest.approx(1.0)  # 1 m beyond the end of the long side
+    assert obstacle_distance_m(box, 3.5, 2.0) == pytest.approx(2.0)  # 2 m off the long side (half width 0.5)
+    assert obstacle_distance_m(box, 2.5, 6.0) == pytest.approx(math.hypot(1.0, 3.0))  # off a corner
+    cyl = Obstacle("cylinder", 0.0, 0.0, 3.0, radius_m=0.5)
+    assert obstacle_distance_m(cyl, 3.0, 4.0) == pytest.approx(4.5) and obstacle_distance_m(cyl, 0.1, 0.0) == 0.0
+
+
+def test_random_starts_are_clear_of_walls_and_obstacles_and_leave_the_heading_draws_alone():
+    from uav_sim.world import training_layouts
+
+    def episode_starts(fraction, n=60):
+        layouts = training_layouts(3)
+        cfg = SimConfig(random_start_fraction=fraction, max_episode_steps=1, start_yaw_jitter_deg=90.0, seed=3)
+        sim = Simulator(next(layouts), cfg, next_worlds=layouts)
+        try:
+            starts = []
+            for _ in range(n):
+                sim.step()  # one step per episode: every step ends with the next layout's start
+                w, pose = sim.world, sim.pose
+                clearance = min((obstacle_distance_m(o, pose.x_m, pose.y_m) for o in w.obstacles), default=math.inf)
+                wall = min(w.length_m / 2 - abs(pose.x_m), w.width_m / 2 - abs(pose.y_m))
+                starts.append(((pose.x_m, pose.y_m) == w.start_xyz_m[:2], pose.yaw_rad, clearance, wall))
+                assert sim._max_penetration_m() == 0.0
+            return starts, sim.random_starts
+        finally:
+            sim.close()
+
+    plain, none = episode_starts(0.0)
+    assert none == 0 and all(at_start for at_start, *_ in plain)
+    assert len({yaw for _, yaw, _, _ in plain}) == 1  # every layout at the run's first heading draw
+    mixed, count = episode_starts(0.5)
+    random = [s for s in mixed if not s[0]]
+    assert count == len(random) and 15 <= count <= 45, count
+    assert min(min(c, w) for _, _, c, w in random) >= SimConfig.random_start_clearance_m
+    assert len({round(yaw, 6) for _, yaw, _, _ in random}) == len(random)  # each a heading of its own
+    # The other episodes start exactly as without random starts: the layout's start and first heading.
+    assert {yaw for at_start, yaw, _, _ in mixed if at_start} == {plain[0][1]}
+    with pytest.raises(ValueError, match="random_start_fraction"):
+        SimConfig(random_start_fraction=1.5).validate()
 
 
 def test_change_world_rebuilds_the_scene_and_keeps_the_counters(sims):

@@ -130,6 +130,17 @@ def test_inprocess_time_limit_cuts_long_episodes(tmp_path):
     assert t.env_steps == 80 and t.collisions == len(crashed)
 
 
+def test_inprocess_random_starts_begin_episodes_away_from_the_start_pose(tmp_path):
+    import csv
+
+    cfg = TrainerConfig(model="cnn", seed=1, total_steps=60, learning_starts=10**6, epsilon_start=1.0)
+    logged = []
+    run_inprocess(cfg, str(tmp_path), log=logged.append, layout_per_episode=True, max_episode_steps=3, random_start_fraction=1.0)
+    episodes = len(list(csv.DictReader(open(tmp_path / "episodes.csv"))))
+    # Every episode, the first included, began at a random place: the count covers the unfinished last one too.
+    assert f"random starts: {episodes + 1} of {episodes + 1} episodes" in logged, logged[-3:]
+
+
 def test_weight_snapshots_equal_the_shorter_run(tmp_path):
     cfg = TrainerConfig(model="sam", seed=5, total_steps=300, learning_starts=100, replay_ratio=0.25)
     short = run_inprocess(dataclasses.replace(cfg, total_steps=200), str(tmp_path / "short"), log=lambda s: None)

@@ -73,6 +73,21 @@ class SimNode(Node):
                 0,
                 10**9,
             ),
+            random_start_fraction=d(
+                "random_start_fraction",
+                0.0,
+                "Training: the share of episodes that start at a random free place and heading instead of the "
+                "world's start pose; 0 = always the start pose (as the paper and evaluation)",
+                0.0,
+                1.0,
+            ),
+            random_start_clearance_m=d(
+                "random_start_clearance_m",
+                SimConfig.random_start_clearance_m,
+                "Training: a random start keeps at least this distance from walls and obstacles (m)",
+                0.25,
+                5.0,
+            ),
             limits=TwistLimits(
                 max_speed_mps=d("max_speed_mps", 3.0, "Largest |linear.x| and |linear.y| accepted (m/s)", 0.1, 20.0),
                 max_climb_mps=d("max_climb_mps", 1.0, "Largest |linear.z| accepted (m/s)", 0.0, 5.0),

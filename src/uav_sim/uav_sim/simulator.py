@@ -24,7 +24,7 @@ from .camera import CameraIntrinsics, DepthCamera
 from .reward import center_window_min_depth, step_reward
 from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from .weather import Particles
-from .world import World
+from .world import Obstacle, World
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +45,11 @@ class SimConfig:
     # > 0: an episode that reaches this many steps without a collision ends (a time limit, not a
     # crash: StepResult.truncated) and the next starts, for training; 0 = episodes end only in crashes.
     max_episode_steps: int = 0
+    # Training: the share of episodes that start at a random free place in the room (at least
+    # random_start_clearance_m from walls and obstacles) facing a uniformly random heading, instead
+    # of the world's start pose; 0 = always the world's start (evaluation always uses 0).
+    random_start_fraction: float = 0.0
+    random_start_clearance_m: float = 0.7
     limits: TwistLimits = TwistLimits()
     seed: int = 0
 
@@ -61,6 +66,8 @@ class SimConfig:
             ("collision_penetration_m", 0.0 <= self.collision_penetration_m <= 0.2, "in [0, 0.2] m"),
             ("start_yaw_jitter_deg", 0.0 <= self.start_yaw_jitter_deg <= 180.0, "in [0, 180] degrees"),
             ("max_episode_steps", self.max_episode_steps >= 0, "an integer >= 0 (0 = no time limit)"),
+            ("random_start_fraction", 0.0 <= self.random_start_fraction <= 1.0, "in [0, 1]"),
+            ("random_start_clearance_m", 0.25 <= self.random_start_clearance_m <= 5.0, "in [0.25, 5] m"),
         ]
         for name, ok, valid in checks:
             if not ok:
@@ -83,6 +90,17 @@ class StepResult:
     truncated: bool = False
 
 
+def obstacle_distance_m(o: Obstacle, x: float, y: float) -> float:
+    """Horizontal distance from (x, y) to the obstacle's footprint (0 inside it)."""
+    dx, dy = x - o.x_m, y - o.y_m
+    if o.shape != "box":
+        return max(0.0, math.hypot(dx, dy) - o.radius_m)
+    yaw = math.radians(o.yaw_deg)
+    u = abs(dx * math.cos(yaw) + dy * math.sin(yaw)) - o.size_x_m / 2  # in the box's own frame
+    v = abs(-dx * math.sin(yaw) + dy * math.cos(yaw)) - o.size_y_m / 2
+    return math.hypot(max(u, 0.0), max(v, 0.0))
+
+
 class Simulator:
     """A quadrotor with a depth camera in a world; several can share one process."""
 
@@ -100,6 +118,10 @@ class Simulator:
         self.config = config
         self.next_worlds, self.redraw_heading = next_worlds, redraw_heading
         self.rng = np.random.default_rng(config.seed)
+        # Random start places draw from their own sequence, which no world change restarts, so that
+        # with random_start_fraction = 0 the heading draws are exactly as before.
+        self.start_rng = np.random.default_rng([config.seed, 7])
+        self.random_starts = 0
         self.client = p.connect(p.DIRECT)
         self.camera = DepthCamera(
             self.client,
@@ -152,12 +174,31 @@ class Simulator:
                 vis = p.createVisualShape(p.GEOM_CYLINDER, radius=o.radius_m, length=o.height_m, physicsClientId=c)
                 p.createMultiBody(0, col, vis, (o.x_m, o.y_m, o.height_m / 2), physicsClientId=c)
 
-    def _start_pose(self) -> Pose:
+    def _start_pose(self, may_be_random: bool = True) -> Pose:
+        fraction = self.config.random_start_fraction if may_be_random else 0.0
+        if fraction > 0 and self.start_rng.random() < fraction:
+            pose = self._random_free_pose()
+            if pose is not None:
+                self.random_starts += 1
+                return pose
         x, y, z = self.world.start_xyz_m
         yaw = math.radians(self.world.start_yaw_deg)
         if self.config.start_yaw_jitter_deg > 0:
             yaw += math.radians(self.rng.uniform(-1, 1) * self.config.start_yaw_jitter_deg)
         return Pose(x, y, z, yaw)
+
+    def _random_free_pose(self, tries: int = 200) -> Pose | None:
+        """A uniformly random place at least random_start_clearance_m from every wall and obstacle,
+        at the start height and a uniformly random heading; None when `tries` draws find none."""
+        w, c, rng = self.world, self.config.random_start_clearance_m, self.start_rng
+        hx, hy = w.length_m / 2 - c, w.width_m / 2 - c
+        if hx <= 0 or hy <= 0:
+            return None
+        for _ in range(tries):
+            x, y = float(rng.uniform(-hx, hx)), float(rng.uniform(-hy, hy))
+            if all(obstacle_distance_m(o, x, y) >= c for o in w.obstacles):
+                return Pose(x, y, w.start_xyz_m[2], float(rng.uniform(-math.pi, math.pi)))
+        return None
 
     def _place(self) -> None:
         orn = p.getQuaternionFromEuler((0, 0, self.pose.yaw_rad))
@@ -207,7 +248,9 @@ class Simulator:
     def _new_episode(self) -> None:
         self.episode += 1
         self.step_in_episode = 0
-        self.pose = self._start_pose()
+        # With next_worlds, _enter draws the pose for the new world (this draw only keeps the
+        # heading sequence as it always was); a random start is decided there, once.
+        self.pose = self._start_pose(may_be_random=self.next_worlds is None)
         self._place()
         self._next_world()
 

@@ -111,6 +111,7 @@ def run(
     redraw_heading: bool = False,
     max_episode_steps: int = 0,
     save_weights_at=(),
+    random_start_fraction: float = 0.0,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -123,6 +124,9 @@ def run(
     `max_episode_steps` > 0 ends an episode that survives that long (a time limit, learnt from as
     a cut, not a crash: Training.add_truncated) so that training keeps meeting new layouts and
     starts once the policy has learnt to survive.
+
+    `random_start_fraction` > 0 starts that share of episodes at a random free place and heading
+    in the room (SimConfig.random_start_fraction) instead of the layout's start pose.
 
     `save_weights_at` lists env steps at which the online network is also written to
     policy_<model>_step<N>.safetensors (snapshots along one run, e.g. to measure longer training
@@ -139,6 +143,7 @@ def run(
         start_yaw_jitter_deg=start_yaw_jitter_deg,
         hfov_deg=hfov_deg,
         max_episode_steps=max_episode_steps,
+        random_start_fraction=random_start_fraction,
         image_width=cfg.input_size_px,  # the camera renders at the network's input size
         image_height=cfg.input_size_px,
     )
@@ -184,6 +189,8 @@ def run(
                     f"{row['updates_per_s']:5.1f} updates/s"
                 )
     finally:
+        if random_start_fraction > 0:
+            log(f"random starts: {sim.random_starts} of {sim.episode + 1} episodes")
         sim.close()
         if validator is not None:
             validator.close()
@@ -243,6 +250,14 @@ def main() -> int:
         metavar="STEP",
         help="also write the network at these env steps to policy_<model>_step<STEP>.safetensors",
     )
+    ap.add_argument(
+        "--random-start-fraction",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="experiment: start this share of training episodes at a random free place and heading in the room "
+        "instead of the layout's start pose (0 = always the start pose, as the paper)",
+    )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
     ap.add_argument(
@@ -280,6 +295,8 @@ def main() -> int:
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     if not 8 <= a.input_size <= 512:
         ap.error(f"--input-size must lie in [8, 512] px (policy_node's input_height/input_width range), got {a.input_size}")
+    if not 0.0 <= a.random_start_fraction <= 1.0:
+        ap.error(f"--random-start-fraction must lie in [0, 1], got {a.random_start_fraction}")
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
         model=a.model,
@@ -318,6 +335,7 @@ def main() -> int:
         redraw_heading=a.redraw_heading,
         max_episode_steps=a.max_episode_steps,
         save_weights_at=a.save_weights_at,
+        random_start_fraction=a.random_start_fraction,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0
