@@ -11,7 +11,7 @@
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
-# ninth (half the training episodes start at a random place and heading).
+# ninth (half or a fifth of the training episodes start at a random place and heading).
 # About 16 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -29,6 +29,22 @@ train() {  # tag model seed [inprocess args]; the paper's 90 degree camera unles
       --hfov-deg 90 --run-dir "$d" "$@" > "$d.log" 2>&1
     touch "$d/DONE"
   }
+}
+train_ten() {  # tag model [inprocess args]: seeds 0-9, two at a time
+  local tag=$1 model=$2
+  shift 2
+  for s in 0 2 4 6 8; do
+    for k in "$s" $((s + 1)); do train "$tag" "$model" "$k" "$@" & done
+    wait
+  done
+}
+eval_120() {  # folder crash-log(0|1) [evaluate args]: the random-start and the fixed-start tables, 120 degree camera
+  local out=$1 log=()
+  [ "$2" = 1 ] && log=(--crash-log)
+  shift 2
+  $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 \
+    "${log[@]}" --out "$out/varied_start"
+  $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 --sim-arg hfov_deg:=120.0 --out "$out/fixed_start"
 }
 weights() {  # tag -> sam=... cnn=... for every seed
   for m in sam cnn; do for s in $SEEDS; do echo "$m=runs/$1_${m}_seed$s/policy_$m.safetensors"; done; done
@@ -303,23 +319,14 @@ done
 # Round 8: round 6's setting with an 84 x 84 network input and camera (--input-size 84: SAM sees
 # 10 x 10 nodes instead of 8 x 8), SAM and CNN seeds 0-9; compared with each other and with round
 # 6 (unpaired: other networks).
-for m in sam cnn; do
-  for s in 0 2 4 6 8; do
-    for k in "$s" $((s + 1)); do
-      train in84 "$m" "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --input-size 84 &
-    done
-    wait
-  done
-done
+ROUND6=(--hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300)
+for m in sam cnn; do train_ten in84 "$m" "${ROUND6[@]}" --input-size 84; done
 W=()
 for m in sam cnn; do
   for s in $(seq 0 9); do W+=("$m=runs/in84_${m}_seed$s/policy_$m.safetensors"); done
 done
 R8=docs/results/round8_input84
-$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
-  "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --out $R8/varied_start
-$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
-  --sim-arg hfov_deg:=120.0 --out $R8/fixed_start
+eval_120 $R8 0 --model sam --model cnn --weights "${W[@]}"
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R8/$p/results.csv > $R8/$p/comparison.md
   for m in sam cnn; do
@@ -331,27 +338,30 @@ done
 # Round 9: round 6's setting with half the training episodes starting at a random free place and
 # heading (--random-start-fraction 0.5), SAM and CNN seeds 0-9; compared with each other and with
 # round 6 (unpaired, against all of round 6's seeds), with a crash log of the random-start flights.
-for m in sam cnn; do
-  for s in 0 2 4 6 8; do
-    for k in "$s" $((s + 1)); do
-      train rs50 "$m" "$k" --hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300 --random-start-fraction 0.5 &
-    done
-    wait
-  done
-done
+for m in sam cnn; do train_ten rs50 "$m" "${ROUND6[@]}" --random-start-fraction 0.5; done
 W=()
 for m in sam cnn; do
   for s in $(seq 0 9); do W+=("$m=runs/rs50_${m}_seed$s/policy_$m.safetensors"); done
 done
 R9=docs/results/round9_random_starts
-$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
-  "${VARIED[@]}" --sim-arg hfov_deg:=120.0 --crash-log --out $R9/varied_start
-$EVAL --inprocess --model sam --model cnn --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
-  --sim-arg hfov_deg:=120.0 --out $R9/fixed_start
+eval_120 $R9 1 --model sam --model cnn --weights "${W[@]}"
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R9/$p/results.csv > $R9/$p/comparison.md
   for m in sam cnn; do
     python scripts/compare_models.py $R9/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
       --by run --a rs50_$m --b tl300_$m > $R9/$p/${m}_against_round6.md
   done
+done
+
+# Round 9, second part: a fifth of the training episodes from a random place (SAM seeds 0-9);
+# compared with round 6 and with round 9's half.
+train_ten rs20 sam "${ROUND6[@]}" --random-start-fraction 0.2
+W=()
+for s in $(seq 0 9); do W+=("runs/rs20_sam_seed$s/policy_sam.safetensors"); done
+eval_120 $R9/sam_fifth 1 --model sam --weights "${W[@]}"
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R9/sam_fifth/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a rs20_sam --b tl300_sam > $R9/sam_fifth/$p/against_round6.md
+  python scripts/compare_models.py $R9/sam_fifth/$p/results.csv $R9/$p/results.csv \
+    --by run --a rs20_sam --b rs50_sam > $R9/sam_fifth/$p/against_half.md
 done
