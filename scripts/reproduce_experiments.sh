@@ -206,6 +206,26 @@ python scripts/compare_models.py $R5/varied_start/results.csv docs/results/behav
 python scripts/compare_models.py $R5/fixed_start/results.csv \
   docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a redraw_sam --b turn_sam \
   > $R5/fixed_start/comparison.md
+# Round 5's CNN arm: CNN seeds 0-9 with --redraw-heading, against round 4's twenty CNN seeds.
+for s in 0 2 4 6 8; do
+  train redraw cnn "$s" --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
+  train redraw cnn $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
+  wait
+done
+R=(runs/redraw_cnn_seed{0..9}/policy_cnn.safetensors)
+$EVAL --inprocess --model cnn --weights "${R[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --sim-arg hfov_deg:=120.0 --out $R5/cnn/varied_start
+$EVAL --inprocess --model cnn --weights "${R[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=120.0 --out $R5/cnn/fixed_start
+python scripts/compare_models.py $R5/cnn/varied_start/results.csv docs/results/behaviour/turn_penalty_20_seeds/results.csv \
+  --by run --a redraw_cnn --b turn_cnn > $R5/cnn/varied_start/comparison.md
+python scripts/compare_models.py $R5/cnn/fixed_start/results.csv \
+  docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a redraw_cnn --b turn_cnn \
+  > $R5/cnn/fixed_start/comparison.md
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R5/$p/results.csv $R5/cnn/$p/results.csv --by run --a redraw_sam --b redraw_cnn \
+    > $R5/cnn/$p/sam_against_cnn.md
+done
 for s in 0 1 2; do
   install/uav_trainer/lib/uav_trainer/train --model sam --seed $s --run-dir runs/main_sam_seed$s
 done
