@@ -31,7 +31,7 @@ train() {  # tag model seed [inprocess args]; the paper's 90 degree camera unles
   }
 }
 train_ten() {  # tag model [inprocess args]: seeds 0-9, two at a time
-  local tag=$1 model=$2
+  local tag=$1 model=$2 s k
   shift 2
   for s in 0 2 4 6 8; do
     for k in "$s" $((s + 1)); do train "$tag" "$model" "$k" "$@" & done
@@ -340,38 +340,31 @@ done
 # 10 x 10 nodes instead of 8 x 8), SAM and CNN seeds 0-9; compared with each other and with round
 # 6 (unpaired: other networks).
 ROUND6=(--hfov-deg 120 --turn-penalty 1.0 --max-episode-steps 300)
-for m in sam cnn; do train_ten in84 "$m" "${ROUND6[@]}" --input-size 84; done
-W=()
-for m in sam cnn; do
-  for s in $(seq 0 9); do W+=("$m=runs/in84_${m}_seed$s/policy_$m.safetensors"); done
-done
-R8=docs/results/round8_input84
-eval_120 $R8 0 --model sam --model cnn --weights "${W[@]}"
-for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R8/$p/results.csv > $R8/$p/comparison.md
+round_both() {  # tag folder crash-log(0|1) suffix [inprocess args]: SAM and CNN seeds 0-9 in round 6's
+  # setting plus the args, both tables, SAM against CNN (comparison.md) and each model against
+  # round 6 (unpaired: {sam,cnn}_<suffix>.md)
+  local tag=$1 out=$2 log=$3 suffix=$4 m s p w=()
+  shift 4
+  for m in sam cnn; do train_ten "$tag" "$m" "${ROUND6[@]}" "$@"; done
   for m in sam cnn; do
-    python scripts/compare_models.py $R8/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-      --by run --a in84_$m --b tl300_$m > $R8/$p/${m}_against_64.md
+    for s in $(seq 0 9); do w+=("$m=runs/${tag}_${m}_seed$s/policy_$m.safetensors"); done
   done
-done
+  eval_120 "$out" "$log" --model sam --model cnn --weights "${w[@]}"
+  for p in varied_start fixed_start; do
+    python scripts/compare_models.py "$out/$p/results.csv" > "$out/$p/comparison.md"
+    for m in sam cnn; do
+      python scripts/compare_models.py "$out/$p/results.csv" docs/results/round6_time_limit/$p/results.csv \
+        --by run --a "${tag}_$m" --b "tl300_$m" > "$out/$p/${m}_$suffix.md"
+    done
+  done
+}
+round_both in84 docs/results/round8_input84 0 against_64 --input-size 84
 
 # Round 9: round 6's setting with half the training episodes starting at a random free place and
 # heading (--random-start-fraction 0.5), SAM and CNN seeds 0-9; compared with each other and with
 # round 6 (unpaired, against all of round 6's seeds), with a crash log of the random-start flights.
-for m in sam cnn; do train_ten rs50 "$m" "${ROUND6[@]}" --random-start-fraction 0.5; done
-W=()
-for m in sam cnn; do
-  for s in $(seq 0 9); do W+=("$m=runs/rs50_${m}_seed$s/policy_$m.safetensors"); done
-done
 R9=docs/results/round9_random_starts
-eval_120 $R9 1 --model sam --model cnn --weights "${W[@]}"
-for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R9/$p/results.csv > $R9/$p/comparison.md
-  for m in sam cnn; do
-    python scripts/compare_models.py $R9/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-      --by run --a rs50_$m --b tl300_$m > $R9/$p/${m}_against_round6.md
-  done
-done
+round_both rs50 $R9 1 against_round6 --random-start-fraction 0.5
 
 # Round 9, second part: a fifth of the training episodes from a random place (SAM seeds 0-9);
 # compared with round 6 and with round 9's half.
