@@ -190,11 +190,7 @@ python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-de
 # Round 5: a new start heading every training episode (--redraw-heading), SAM seeds 0-9, against
 # round 4, where every layout starts at the seed's first heading draw. Then the main job (ROS)
 # on its defaults (--recipe shipped), seeds 0-2; evaluated in-process (equal to the ROS rows, tested).
-for s in 0 2 4 6 8; do
-  train redraw sam "$s" --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
-  train redraw sam $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
-  wait
-done
+train_ten redraw sam --hfov-deg 120 --turn-penalty 1.0 --redraw-heading
 R=(runs/redraw_sam_seed{0..9}/policy_sam.safetensors)
 R5=docs/results/round5_redraw_heading
 $EVAL --inprocess --model sam --weights "${R[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
@@ -207,11 +203,7 @@ python scripts/compare_models.py $R5/fixed_start/results.csv \
   docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a redraw_sam --b turn_sam \
   > $R5/fixed_start/comparison.md
 # Round 5's CNN arm: CNN seeds 0-9 with --redraw-heading, against round 4's twenty CNN seeds.
-for s in 0 2 4 6 8; do
-  train redraw cnn "$s" --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
-  train redraw cnn $((s + 1)) --hfov-deg 120 --turn-penalty 1.0 --redraw-heading &
-  wait
-done
+train_ten redraw cnn --hfov-deg 120 --turn-penalty 1.0 --redraw-heading
 R=(runs/redraw_cnn_seed{0..9}/policy_cnn.safetensors)
 $EVAL --inprocess --model cnn --weights "${R[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
   --sim-arg hfov_deg:=120.0 --out $R5/cnn/varied_start
