@@ -351,13 +351,13 @@ def evaluate_inprocess(
     state = stack.reset(r.depth_m)
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
-    before, start_yaw, age = r.pose, r.pose.yaw_rad, 0  # the pose a step begins at
+    before, start_yaw = r.pose, r.pose.yaw_rad  # the pose a step begins at; the episode's start heading
     try:
         for step in range(1, steps + 1):
             a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
+            episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
             r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(sim.config.step_duration_s)))
             reward += r.reward
-            age += 1
             if r.collided:
                 crashes += 1
                 sites.add(crash_site((before.x_m, before.y_m)))
@@ -370,7 +370,7 @@ def evaluate_inprocess(
                             weights=weights,
                             sim_seed=seed,
                             step=step,
-                            episode_step=age,
+                            episode_step=episode_step,
                             x_m=round(before.x_m, 3),
                             y_m=round(before.y_m, 3),
                             yaw_deg=round(math.degrees(before.yaw_rad), 1),
@@ -378,7 +378,7 @@ def evaluate_inprocess(
                             action=a.name,
                         )
                     )
-                start_yaw, age = r.pose.yaw_rad, 0
+                start_yaw = r.pose.yaw_rad
             else:
                 dist += math.hypot(r.pose.x_m - before.x_m, r.pose.y_m - before.y_m)
                 state = stack.push(r.depth_m)
