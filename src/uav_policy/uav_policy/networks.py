@@ -28,6 +28,20 @@ from torch import nn
 
 MODELS = ("sam", "cnn")
 SAM_READOUTS = ("max", "flatten")
+# The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
+# on them, so whoever loads a weights file takes them from the file (weights.config_for).
+SIZE_FIELDS = ("conv_channels", "d_model", "heads", "relational_blocks", "mlp_hidden", "cnn_hidden", "head_hidden")
+# Upper bounds on those sizes: a weights file's header cannot make a loader build a network that
+# no file within weights.MAX_BYTES could fill.
+SIZE_LIMITS = {
+    "conv_channels": 512,
+    "d_model": 1024,
+    "heads": 64,
+    "relational_blocks": 16,
+    "mlp_hidden": 4096,
+    "cnn_hidden": 4096,
+    "head_hidden": 4096,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +74,11 @@ class NetConfig:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         if self.sam_readout not in SAM_READOUTS:
             raise ValueError(f"sam_readout must be one of {SAM_READOUTS}, got {self.sam_readout!r}")
+        for name in SIZE_FIELDS:
+            value = getattr(self, name)
+            values = value if name == "conv_channels" else (value,)
+            if not values or any(type(v) is not int or not 1 <= v <= SIZE_LIMITS[name] for v in values):
+                raise ValueError(f"{name} must be integer(s) in [1, {SIZE_LIMITS[name]}], got {value!r}")
         if self.d_model % self.heads:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by heads ({self.heads})")
         if self.frames < 1 or self.actions < 2:

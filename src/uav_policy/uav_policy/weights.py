@@ -9,6 +9,7 @@ figures fly it with that camera). Files without it say nothing about their camer
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -20,7 +21,7 @@ import torch
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
-from .networks import NetConfig, build_network
+from .networks import SIZE_FIELDS, NetConfig, build_network
 
 FORMAT = "uav_policy/1"
 MAX_BYTES = 64 * 1024 * 1024
@@ -143,8 +144,10 @@ def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
         tensors = st_load(bytes(blob))
     except Exception as e:  # safetensors raises SafetensorError and others on corrupt input
         raise WeightsError(f"weights are corrupt or truncated: {e}") from None
-    net = build_network(expected)
-    want = net.state_dict()
+    # The shapes are checked on a network without storage (meta device) first: a hostile header
+    # claiming a huge architecture allocates nothing before its tensors are found not to fit it.
+    with torch.device("meta"):
+        want = build_network(expected).state_dict()
     missing, extra = set(want) - set(tensors), set(tensors) - set(want)
     if missing or extra:
         raise WeightsError(f"weights tensor names differ: missing {sorted(missing)[:5]}, unexpected {sorted(extra)[:5]}")
@@ -155,6 +158,7 @@ def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
             raise WeightsError(f"tensor '{name}' has dtype {t.dtype}, expected {want[name].dtype}")
         if t.is_floating_point() and not torch.isfinite(t).all():
             raise WeightsError(f"tensor '{name}' has non-finite values (NaN or Inf)")
+    net = build_network(expected)
     net.load_state_dict(tensors)
     return net
 
@@ -204,12 +208,18 @@ def camera_for(path: str | os.PathLike | None, default: float) -> float:
 
 
 def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
-    """The default architecture of `model` with the SAM readout and input size `path` was made for (the
-    defaults without a path). Other fields stay `model`'s defaults, so a file made otherwise still fails to load."""
+    """The architecture to load `path` as `model` with: the file's input size, SAM readout and layer
+    sizes (networks.SIZE_FIELDS; the defaults without a path). The model, frame stack, action count
+    and depth range stay the stack's, so a file made for another model or interface still fails to load."""
     if not path:
         return NetConfig(model=model)
     made = read_file_config(path)
-    return NetConfig(model=model, sam_readout=made.sam_readout, height=made.height, width=made.width)
+    return with_sizes_of(NetConfig(model=model, sam_readout=made.sam_readout, height=made.height, width=made.width), made)
+
+
+def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
+    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS): the architecture a file made as `made` is loaded with."""
+    return dataclasses.replace(cfg, **{name: getattr(made, name) for name in SIZE_FIELDS})
 
 
 def packaged_weights(model: str) -> Path | None:

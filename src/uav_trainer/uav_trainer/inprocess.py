@@ -20,7 +20,7 @@ import torch
 from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
-from uav_policy.networks import SAM_READOUTS
+from uav_policy.networks import SAM_READOUTS, NetConfig
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
@@ -290,7 +290,19 @@ def main() -> int:
         default=TrainerConfig.sam_readout,
         help="SAM only: max pools the nodes (the paper's design); flatten keeps every node's place (an extension)",
     )
+    sizes = ap.add_argument_group("SAM's relational module (an experiment; the defaults are the shipped SAM's)")
+    sizes.add_argument("--d-model", type=int, default=TrainerConfig.d_model, help="node feature size, split over the heads")
+    sizes.add_argument("--heads", type=int, default=TrainerConfig.heads, help="attention heads")
+    sizes.add_argument("--relational-blocks", type=int, default=TrainerConfig.relational_blocks, help="relational blocks")
+    sizes.add_argument("--mlp-hidden", type=int, default=TrainerConfig.mlp_hidden, help="width of each block's MLP")
     a = ap.parse_args()
+    size_args = {"d_model": a.d_model, "heads": a.heads, "relational_blocks": a.relational_blocks, "mlp_hidden": a.mlp_hidden}
+    if a.model == "cnn" and any(v != getattr(TrainerConfig, k) for k, v in size_args.items()):
+        ap.error("--d-model, --heads, --relational-blocks and --mlp-hidden size SAM's relational module; the CNN has none")
+    try:
+        NetConfig(**size_args).validate()
+    except ValueError as e:
+        ap.error(f"SAM sizes (--d-model, --heads, --relational-blocks, --mlp-hidden): {e}")
     if any(not 1 <= n <= a.steps for n in a.save_weights_at):
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     if not 8 <= a.input_size <= 512:
@@ -311,6 +323,7 @@ def main() -> int:
         turning_actions=turning_indices(PAPER_ACTIONS),
         sam_readout=a.sam_readout,
         input_size_px=a.input_size,
+        **size_args,
         learner=dataclasses.replace(
             LearnerConfig(),
             learning_rate=a.learning_rate,

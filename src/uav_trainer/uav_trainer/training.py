@@ -52,6 +52,12 @@ class TrainerConfig:
     # Square network input (px); the paper does not give one. 64 (the default) gives SAM 8 x 8 nodes,
     # 84 (an experiment: Atari's size) 10 x 10. The camera must render at the same size.
     input_size_px: int = 64
+    # SAM's relational module (an experiment; the defaults are the shipped networks'): node feature
+    # size, attention heads, relational blocks and the blocks' MLP width.
+    d_model: int = NetConfig.d_model
+    heads: int = NetConfig.heads
+    relational_blocks: int = NetConfig.relational_blocks
+    mlp_hidden: int = NetConfig.mlp_hidden
     learner: LearnerConfig = LearnerConfig()
 
 
@@ -71,7 +77,16 @@ class Training:
         self.log = log
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.net_cfg = NetConfig(model=cfg.model, sam_readout=cfg.sam_readout, height=cfg.input_size_px, width=cfg.input_size_px)
+        self.net_cfg = NetConfig(
+            model=cfg.model,
+            sam_readout=cfg.sam_readout,
+            height=cfg.input_size_px,
+            width=cfg.input_size_px,
+            d_model=cfg.d_model,
+            heads=cfg.heads,
+            relational_blocks=cfg.relational_blocks,
+            mlp_hidden=cfg.mlp_hidden,
+        )
         # The depth camera's field of view, recorded in every weights file written; None until the
         # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
         self.camera_hfov_deg: float | None = None
