@@ -100,6 +100,63 @@ def test_rejects_a_different_sam_architecture():
         wio.load_bytes(b, SAM)
 
 
+def test_loaders_take_the_layer_sizes_from_the_file_and_nothing_else(tmp_path):
+    other = NetConfig(model="sam", d_model=24, heads=2, relational_blocks=2, mlp_hidden=32, sam_readout="flatten")
+    net = build_network(other, seed=4)
+    wio.save_file(net, other, tmp_path / "other.safetensors")
+    assert wio.config_for("sam", tmp_path / "other.safetensors") == other
+    x = torch.rand(2, 5, 64, 64) * 10
+    torch.testing.assert_close(wio.load_file(tmp_path / "other.safetensors", other)(x)[0], net(x)[0])
+    assert wio.with_sizes_of(SAM, other) == NetConfig(model="sam", d_model=24, heads=2, relational_blocks=2, mlp_hidden=32)
+    # The model, frame stack, actions and depth range are the stack's, not the file's.
+    with pytest.raises(wio.WeightsError, match="model 'sam'"):
+        wio.load_file(tmp_path / "other.safetensors", wio.config_for("cnn", tmp_path / "other.safetensors"))
+    six = NetConfig(model="sam", frames=6)
+    wio.save_file(build_network(six), six, tmp_path / "six.safetensors")
+    with pytest.raises(wio.WeightsError, match='"frames": 6'):
+        wio.load_file(tmp_path / "six.safetensors", wio.config_for("sam", tmp_path / "six.safetensors"))
+
+
+def test_a_header_claiming_a_huge_network_is_refused_before_anything_is_allocated(monkeypatch):
+    """The header decides the sizes a loader builds, so the tensors are checked against a network on
+    the meta device (no storage) before a real one is built."""
+    huge = NetConfig(model="sam", d_model=1024, heads=8, relational_blocks=16, mlp_hidden=4096, conv_channels=(512, 512))
+    b = rewrap(tensors_of(blob()), huge)
+    built_on = []
+    real_build = wio.build_network
+
+    def build(cfg, seed=None):
+        built_on.append(torch.empty(0).device.type)
+        return real_build(cfg, seed)
+
+    monkeypatch.setattr(wio, "build_network", build)
+    with pytest.raises(wio.WeightsError, match="names differ|shape"):
+        wio.load_bytes(b, huge)
+    assert built_on == ["meta"]
+    wio.load_bytes(blob(), SAM)  # a good blob: checked on the meta device, then built for real
+    assert built_on[1:] == ["meta", "cpu"]
+
+
+@pytest.mark.parametrize(
+    "sizes, match",
+    [
+        ({"d_model": 0}, "d_model must be integer"),
+        ({"mlp_hidden": 5000}, r"mlp_hidden must be integer\(s\) in \[1, 4096\]"),
+        ({"conv_channels": ()}, "conv_channels"),
+        ({"conv_channels": (16, 1000)}, "conv_channels"),
+        ({"relational_blocks": "2"}, "relational_blocks"),
+        ({"heads": 5}, "divisible by heads"),
+    ],
+)
+def test_layer_sizes_out_of_range_are_refused_in_a_header(sizes, match):
+    cfg = json.loads(SAM.to_json()) | sizes
+    b = st_save(tensors_of(blob()), metadata={"format": wio.FORMAT, "config": json.dumps(cfg)})
+    with pytest.raises(wio.WeightsError, match=match):
+        wio.load_bytes(b, SAM)
+    with pytest.raises(ValueError, match=match):
+        NetConfig(**json.loads(SAM.to_json()) | sizes).validate()
+
+
 def test_the_sam_readout_is_part_of_the_architecture(tmp_path):
     flat = NetConfig(model="sam", sam_readout="flatten")
     wio.save_file(build_network(flat, seed=1), flat, tmp_path / "flat.safetensors")

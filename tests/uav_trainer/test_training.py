@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from uav_policy import weights as wio
+from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.learner import LearnerConfig
@@ -157,6 +158,18 @@ def test_weight_snapshots_equal_the_shorter_run(tmp_path):
     with pytest.raises(ValueError, match="save_weights_at"):
         run_inprocess(cfg, str(tmp_path / "bad"), log=lambda s: None, save_weights_at=(301,))
     assert not (tmp_path / "bad").exists()
+
+
+def test_sam_layer_sizes_reach_the_network_the_weights_file_and_the_evaluation(tmp_path):
+    from uav_trainer.evaluate import evaluate_inprocess
+
+    cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, d_model=24, heads=2, relational_blocks=2)
+    t = run_inprocess(cfg, str(tmp_path), log=lambda s: None, hfov_deg=90.0)
+    assert t.learner.updates > 0 and len(t.learner.online.relational_blocks) == 2
+    made = wio.read_file_config(t.policy_weights_path)
+    assert (made.d_model, made.heads, made.relational_blocks, made.mlp_hidden) == (24, 2, 2, NetConfig.mlp_hidden)
+    r = evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1)  # sizes from the file
+    assert r.steps == 20
 
 
 def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):

@@ -137,18 +137,26 @@ class PolicyNode(Node):
         """(network, where it came from, the camera field of view it was trained with or None)."""
         if path:
             try:
-                return wio.load_file(path, self.cfg), f"weights from {path}", wio.read_file_camera(path)
+                return self._load_file(path), f"weights from {path}", wio.read_file_camera(path)
             except wio.WeightsError as e:
                 raise ParameterError(f"parameter 'weights': {e}{self._size_hint(path)}") from None
         packaged = wio.packaged_weights(self.cfg.model)
         if packaged is not None:
             try:
-                net = wio.load_file(packaged, self.cfg)
+                net = self._load_file(packaged)
                 return net, f"packaged pretrained weights {packaged}", wio.read_file_camera(packaged)
             except wio.WeightsError as e:
                 self.get_logger().warning(f"packaged weights unusable ({e}); using a random initialisation")
         net = build_network(self.cfg, seed=seed)
         return net, f"no weights given or packaged: seeded random initialisation (seed {seed})", None
+
+    def _load_file(self, path) -> torch.nn.Module:
+        """The file's network, with the layer sizes the file was made with (networks.SIZE_FIELDS: no
+        parameter sets them). Everything else must match the parameters. Pushes must then match the file."""
+        cfg = wio.with_sizes_of(self.cfg, wio.read_file_config(path))
+        net = wio.load_file(path, cfg)
+        self.cfg = cfg
+        return net
 
     def _size_hint(self, path: str) -> str:
         """What to set when a weights file was made for another input size ('' otherwise)."""

@@ -122,7 +122,9 @@ def _camera_of(meta: dict) -> float | None:
 
 def _config_of(meta: dict) -> NetConfig:
     try:
-        return NetConfig.from_json(meta.get("config", ""))
+        cfg = NetConfig.from_json(meta.get("config", ""))
+        cfg.validate()  # loaders build what a file says (config_for): out-of-range sizes stop here
+        return cfg
     except (ValueError, TypeError) as e:
         raise WeightsError(f"weights metadata 'config' is invalid: {e}") from None
 
