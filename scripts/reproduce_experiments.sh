@@ -11,8 +11,8 @@
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
-# ninth (half or a fifth of the training episodes start at a random place and heading).
-# About 16 h on 2 cores.
+# ninth (half or a fifth of the training episodes start at a random place and heading) and a tenth
+# (a larger SAM). About 17 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -358,15 +358,31 @@ round_both in84 docs/results/round8_input84 0 against_64 --input-size 84
 R9=docs/results/round9_random_starts
 round_both rs50 $R9 1 against_round6 --random-start-fraction 0.5
 
+sam_ten() {  # tag folder [inprocess args]: SAM seeds 0-9 in round 6's setting plus the args, both
+  # tables with a crash log, each against round 6's SAM and CNN (unpaired: against_round6{,_cnn}.md)
+  local tag=$1 out=$2 p m s f w=()
+  shift 2
+  train_ten "$tag" sam "${ROUND6[@]}" "$@"
+  for s in $(seq 0 9); do w+=("runs/${tag}_sam_seed$s/policy_sam.safetensors"); done
+  eval_120 "$out" 1 --model sam --weights "${w[@]}"
+  for p in varied_start fixed_start; do
+    for m in sam cnn; do
+      f=against_round6
+      [ "$m" = sam ] || f=against_round6_cnn
+      python scripts/compare_models.py "$out/$p/results.csv" docs/results/round6_time_limit/$p/results.csv \
+        --by run --a "${tag}_sam" --b "tl300_$m" > "$out/$p/$f.md"
+    done
+  done
+}
+
 # Round 9, second part: a fifth of the training episodes from a random place (SAM seeds 0-9);
 # compared with round 6 and with round 9's half.
-train_ten rs20 sam "${ROUND6[@]}" --random-start-fraction 0.2
-W=()
-for s in $(seq 0 9); do W+=("runs/rs20_sam_seed$s/policy_sam.safetensors"); done
-eval_120 $R9/sam_fifth 1 --model sam --weights "${W[@]}"
+sam_ten rs20 $R9/sam_fifth --random-start-fraction 0.2
 for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R9/sam_fifth/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-    --by run --a rs20_sam --b tl300_sam > $R9/sam_fifth/$p/against_round6.md
   python scripts/compare_models.py $R9/sam_fifth/$p/results.csv $R9/$p/results.csv \
     --by run --a rs20_sam --b rs50_sam > $R9/sam_fifth/$p/against_half.md
 done
+
+# Round 10: a larger SAM (node features 96, two relational blocks, MLP 192: 191 605 parameters
+# against 53 173) in round 6's setting, seeds 0-9; against round 6's SAM and CNN.
+sam_ten big docs/results/round10_larger_sam --d-model 96 --relational-blocks 2 --mlp-hidden 192

@@ -108,6 +108,10 @@ def test_loaders_take_the_layer_sizes_from_the_file_and_nothing_else(tmp_path):
     x = torch.rand(2, 5, 64, 64) * 10
     torch.testing.assert_close(wio.load_file(tmp_path / "other.safetensors", other)(x)[0], net(x)[0])
     assert wio.with_sizes_of(SAM, other) == NetConfig(model="sam", d_model=24, heads=2, relational_blocks=2, mlp_hidden=32)
+    flat = NetConfig(model="sam", sam_readout="flatten")
+    assert wio.load_file(tmp_path / "other.safetensors", flat, sizes_from_blob=True).cfg == other
+    with pytest.raises(wio.WeightsError, match="architecture"):
+        wio.load_file(tmp_path / "other.safetensors", flat)  # without sizes_from_blob the sizes must match
     # The model, frame stack, actions and depth range are the stack's, not the file's.
     with pytest.raises(wio.WeightsError, match="model 'sam'"):
         wio.load_file(tmp_path / "other.safetensors", wio.config_for("cnn", tmp_path / "other.safetensors"))
@@ -131,10 +135,18 @@ def test_a_header_claiming_a_huge_network_is_refused_before_anything_is_allocate
 
     monkeypatch.setattr(wio, "build_network", build)
     with pytest.raises(wio.WeightsError, match="names differ|shape"):
-        wio.load_bytes(b, huge)
+        wio.load_bytes(b, SAM, sizes_from_blob=True)  # as policy_node loads files and pushes
     assert built_on == ["meta"]
     wio.load_bytes(blob(), SAM)  # a good blob: checked on the meta device, then built for real
     assert built_on[1:] == ["meta", "cpu"]
+
+
+def test_a_file_over_the_size_limit_is_not_read(tmp_path):
+    big = tmp_path / "big.safetensors"
+    with big.open("wb") as f:
+        f.truncate(wio.MAX_BYTES + 1)  # sparse: nothing is written
+    with pytest.raises(wio.WeightsError, match="more than the 67108864 allowed"):
+        wio.load_file(big, SAM)
 
 
 @pytest.mark.parametrize(

@@ -152,10 +152,9 @@ class PolicyNode(Node):
 
     def _load_file(self, path) -> torch.nn.Module:
         """The file's network, with the layer sizes the file was made with (networks.SIZE_FIELDS: no
-        parameter sets them). Everything else must match the parameters. Pushes must then match the file."""
-        cfg = wio.with_sizes_of(self.cfg, wio.read_file_config(path))
-        net = wio.load_file(path, cfg)
-        self.cfg = cfg
+        parameter sets them, and pushes may change them). Everything else must match the parameters."""
+        net = wio.load_file(path, self.cfg, sizes_from_blob=True)
+        self.cfg = net.cfg
         return net
 
     def _size_hint(self, path: str) -> str:
@@ -344,8 +343,10 @@ class PolicyNode(Node):
             raw = params[0].value.byte_array_value
             blob = raw if isinstance(raw, (bytes, bytearray)) else b"".join(raw)
             try:
-                net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg))
+                # The trainer owns the layer sizes: a push may bring others (the interface must match).
+                net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True))
                 self.agent.swap(net)
+                self.cfg = net.cfg
                 self.weights_hfov_deg = wio.read_header_camera(blob)
                 self._check_camera()
                 result.successful = True

@@ -129,8 +129,10 @@ def _config_of(meta: dict) -> NetConfig:
         raise WeightsError(f"weights metadata 'config' is invalid: {e}") from None
 
 
-def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
-    """A new network with the blob's weights, after checking everything; never touches a live net."""
+def load_bytes(blob: bytes, expected: NetConfig, sizes_from_blob: bool = False) -> torch.nn.Module:
+    """A new network with the blob's weights, after checking everything; never touches a live net.
+    `sizes_from_blob`: take the layer sizes (networks.SIZE_FIELDS) from the blob's header instead of
+    `expected`; the network's `cfg` then says which were built."""
     if not isinstance(blob, (bytes, bytearray)) or len(blob) == 0:
         raise WeightsError("weights are empty")
     if len(blob) > MAX_BYTES:
@@ -138,6 +140,8 @@ def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
     meta = _header_metadata(bytes(blob))
     cfg = _config_of(meta)
     _camera_of(meta)  # a malformed camera entry is refused like any other bad metadata
+    if sizes_from_blob:
+        expected = with_sizes_of(expected, cfg)
     if cfg.model != expected.model:
         raise WeightsError(f"weights are for model '{cfg.model}', but this policy runs model '{expected.model}'")
     if cfg != expected:
@@ -165,14 +169,16 @@ def load_bytes(blob: bytes, expected: NetConfig) -> torch.nn.Module:
     return net
 
 
-def load_file(path: str | os.PathLike, expected: NetConfig) -> torch.nn.Module:
+def load_file(path: str | os.PathLike, expected: NetConfig, sizes_from_blob: bool = False) -> torch.nn.Module:
     p = Path(path).expanduser()
     try:
+        if p.stat().st_size > MAX_BYTES:  # not read into memory
+            raise WeightsError(f"{p}: weights are {p.stat().st_size} bytes, more than the {MAX_BYTES} allowed")
         blob = p.read_bytes()
     except OSError as e:
         raise WeightsError(f"cannot read weights file '{p}': {e.strerror}") from None
     try:
-        return load_bytes(blob, expected)
+        return load_bytes(blob, expected, sizes_from_blob)
     except WeightsError as e:
         raise WeightsError(f"{p}: {e}") from None
 

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
-from uav_policy.networks import SAM_READOUTS
+from uav_policy.networks import SAM_READOUTS, SIZE_LIMITS
 from uav_policy.push import push_request
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim import contract
@@ -115,8 +115,25 @@ class TrainerNode(Node):
                 "SAM readout: max (the paper's design) or flatten (an extension); must match policy_node's sam_readout",
                 choices=SAM_READOUTS,
             ),
+            input_size_px=d(
+                "input_size_px", D.input_size_px, "Square network input (px); policy_node's input_height/input_width", 8, 512
+            ),
+            d_model=d("d_model", D.d_model, "SAM: node feature size, split over the heads", 1, SIZE_LIMITS["d_model"]),
+            heads=d("heads", D.heads, "SAM: attention heads", 1, SIZE_LIMITS["heads"]),
+            relational_blocks=d(
+                "relational_blocks", D.relational_blocks, "SAM: relational blocks", 1, SIZE_LIMITS["relational_blocks"]
+            ),
+            mlp_hidden=d("mlp_hidden", D.mlp_hidden, "SAM: width of each block's MLP", 1, SIZE_LIMITS["mlp_hidden"]),
             learner=learner,
         )
+        if self.cfg.d_model % self.cfg.heads:
+            raise ParameterError(
+                f"parameters 'd_model' ({self.cfg.d_model}) and 'heads' ({self.cfg.heads}): d_model must be divisible by heads"
+            )
+        sizes = ("d_model", "heads", "relational_blocks", "mlp_hidden")
+        changed = [k for k in sizes if getattr(self.cfg, k) != getattr(D, k)]
+        if self.cfg.model == "cnn" and changed:
+            raise ParameterError(f"parameters {changed} size SAM's relational module; model 'cnn' has none")
         run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")
         resume = d("resume", True, "Resume from run_dir's latest checkpoint when there is one")
         self.step_ns = int(round(1e9 * d("step_duration_s", 0.5, "Sim step duration (s); must equal sim_node's", 0.01, 5.0)))
