@@ -26,7 +26,7 @@ from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
 
 from .learner import LearnerConfig
-from .training import TrainerConfig, Training
+from .training import SAM_SIZES, TrainerConfig, Training
 
 VALIDATION_WORLDS = ("random:200", "random:201", "random:202", "random:203", "random:204")
 
@@ -296,7 +296,7 @@ def main() -> int:
     sizes.add_argument("--relational-blocks", type=int, default=TrainerConfig.relational_blocks, help="relational blocks")
     sizes.add_argument("--mlp-hidden", type=int, default=TrainerConfig.mlp_hidden, help="width of each block's MLP")
     a = ap.parse_args()
-    size_args = {"d_model": a.d_model, "heads": a.heads, "relational_blocks": a.relational_blocks, "mlp_hidden": a.mlp_hidden}
+    size_args = {name: getattr(a, name) for name in SAM_SIZES}
     if a.model == "cnn" and any(v != getattr(TrainerConfig, k) for k, v in size_args.items()):
         ap.error("--d-model, --heads, --relational-blocks and --mlp-hidden size SAM's relational module; the CNN has none")
     try:

@@ -32,7 +32,7 @@ from uav_sim.ros_params import ParameterError, declare
 
 from .learner import LearnerConfig
 from .pairing import TransitionAssembler
-from .training import TrainerConfig, Training, reward_description
+from .training import SAM_SIZES, TrainerConfig, Training, reward_description
 
 
 class TrainerNode(Node):
@@ -130,8 +130,7 @@ class TrainerNode(Node):
             raise ParameterError(
                 f"parameters 'd_model' ({self.cfg.d_model}) and 'heads' ({self.cfg.heads}): d_model must be divisible by heads"
             )
-        sizes = ("d_model", "heads", "relational_blocks", "mlp_hidden")
-        changed = [k for k in sizes if getattr(self.cfg, k) != getattr(D, k)]
+        changed = [k for k in SAM_SIZES if getattr(self.cfg, k) != getattr(D, k)]
         if self.cfg.model == "cnn" and changed:
             raise ParameterError(f"parameters {changed} size SAM's relational module; model 'cnn' has none")
         run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")

@@ -61,6 +61,10 @@ class TrainerConfig:
     learner: LearnerConfig = LearnerConfig()
 
 
+# TrainerConfig's fields that size SAM's relational module (the NetConfig fields of the same names).
+SAM_SIZES = ("d_model", "heads", "relational_blocks", "mlp_hidden")
+
+
 def reward_description(cfg: TrainerConfig) -> str:
     """The training reward in words, for logs: the paper's, and any extension switched on."""
     parts = ["the paper's"]
@@ -82,10 +86,7 @@ class Training:
             sam_readout=cfg.sam_readout,
             height=cfg.input_size_px,
             width=cfg.input_size_px,
-            d_model=cfg.d_model,
-            heads=cfg.heads,
-            relational_blocks=cfg.relational_blocks,
-            mlp_hidden=cfg.mlp_hidden,
+            **{name: getattr(cfg, name) for name in SAM_SIZES},
         )
         # The depth camera's field of view, recorded in every weights file written; None until the
         # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
