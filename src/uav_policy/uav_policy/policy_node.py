@@ -36,7 +36,7 @@ from .actions import PAPER_ACTIONS, make_actions
 from .agent import Agent
 from .attention import attention_map, overlay
 from .frame_stack import FrameStack, fit_to_network
-from .networks import SAM_READOUTS, NetConfig, build_network, parameter_count
+from .networks import SAM_READOUTS, SIZE_FIELDS, NetConfig, build_network, parameter_count
 
 
 def resolve_device(name: str) -> str:
@@ -346,6 +346,9 @@ class PolicyNode(Node):
                 # The trainer owns the layer sizes: a push may bring others (the interface must match).
                 net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True))
                 self.agent.swap(net)
+                if net.cfg != self.cfg:
+                    sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
+                    self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
                 self.cfg = net.cfg
                 self.weights_hfov_deg = wio.read_header_camera(blob)
                 self._check_camera()

@@ -71,9 +71,20 @@ def main(argv=None) -> int:
         default="max",
         help="SAM readout for policy_node and trainer_node: max (the paper) or flatten (an extension)",
     )
+    ap.add_argument(
+        "--input-size",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="square network input and camera image (px) for all three nodes (default: params/*.yaml's, 64); "
+        "SAM's layer sizes go by --trainer-arg (d_model, heads, relational_blocks, mlp_hidden)",
+    )
     a = ap.parse_args(argv)
     if a.steps <= 0:
         ap.error("--steps must be positive")
+    if a.input_size is not None and not 8 <= a.input_size <= 512:
+        ap.error(f"--input-size must lie in [8, 512] px, got {a.input_size}")
+    size = [] if a.input_size is None else [a.input_size]
     recipe = RECIPES[a.recipe]
     world = a.world or recipe["world"]
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
@@ -83,7 +94,8 @@ def main(argv=None) -> int:
     p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     # A random start heading: drawn anew each episode in a fixed world; with random_each_episode one
     # draw per run, where every layout starts (as the shipped weights were trained).
-    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", *recipe["sim"], *a.sim_arg]
+    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", *recipe["sim"]]
+    sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
     procs.start(
         "sim", "uav_sim", "sim_node", params_args(params, "sim") + p("", [f"world:={world}", f"seed:={a.seed}", *sim_extra])
     )
@@ -92,7 +104,8 @@ def main(argv=None) -> int:
         "uav_policy",
         "policy_node",
         params_args(params, "policy")
-        + p("", [f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0"]),
+        + p("", [f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0"])
+        + p("", [f"input_{side}:={px}" for px in size for side in ("height", "width")]),
     )
     trainer = procs.start(
         "trainer",
@@ -109,6 +122,7 @@ def main(argv=None) -> int:
                 f"run_dir:={run_dir}",
                 f"resume:={'false' if a.no_resume else 'true'}",
                 *recipe["trainer"],
+                *[f"input_size_px:={px}" for px in size],
                 *a.trainer_arg,
             ],
         ),
