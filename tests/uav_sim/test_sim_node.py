@@ -79,6 +79,24 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     assert math.isfinite(outcome.range) and 0.0 < outcome.range <= outcome.max_range
 
 
+def test_the_first_frame_waits_for_the_subscribers_asked_for(ros):
+    rec = Recorder(ros)  # one subscriber on depth and outcome
+    sim = ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3", "-p", "wait_for_subscribers:=2")
+    assert ros.spin_until(lambda: "holding the first frame" in ros.log_of(sim), 20), ros.log_of(sim)
+    ros.spin_for(2.0)
+    rec.cmd.publish(twist(vx=1.0))  # ignored while the frame is held
+    ros.spin_for(1.0)
+    assert not rec.by_topic["depth"] and not rec.by_topic["odom"], "a frame was published before 2 subscribers listened"
+    second = []
+    ros.node.create_subscription(Image, contract.DEPTH_TOPIC, second.append, deep_qos())
+    ros.node.create_subscription(Range, contract.OUTCOME_TOPIC, second.append, deep_qos())
+    assert ros.spin_until(lambda: len(second) >= 2, 20), ros.log_of(sim)
+    assert "2 subscribers on depth and outcome: publishing the first frame" in ros.log_of(sim)
+    assert contract.stamp_ns(rec.by_topic["depth"][0].header.stamp) == 0, "the held command did not step the sim"
+    rec.cmd.publish(twist(vx=1.0))
+    assert ros.spin_until(lambda: len(rec.distinct_frames()) == 2, 10), "stepping works once the frame is out"
+
+
 def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
     rec = Recorder(ros)
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")

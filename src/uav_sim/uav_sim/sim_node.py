@@ -110,6 +110,14 @@ class SimNode(Node):
             0.0,
             100000.0,
         )
+        self.wait_for_subscribers = d(
+            "wait_for_subscribers",
+            0,
+            "lockstep: hold the first frame until depth and outcome each have this many subscribers (the train "
+            "launcher sets 2, policy and trainer, so that the trainer learns from the first step); 0 = at once",
+            0,
+            100,
+        )
         self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
         self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
         self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
@@ -151,7 +159,14 @@ class SimNode(Node):
         self.steps_at_diag = 0
         self.diag_wall = time.monotonic()
         self.current: StepResult = self.sim.observe()
-        self.publish(self.current)
+        # Closed until wait_for_subscribers peers listen (lockstep): no frame, and commands are ignored.
+        self.gate_open, self.gate_ticks = self.mode != "lockstep" or self.wait_for_subscribers == 0, 0
+        if self.gate_open:
+            self.publish(self.current)
+        else:
+            self.get_logger().info(
+                f"holding the first frame until depth and outcome have {self.wait_for_subscribers} subscribers each"
+            )
         if self.mode == "realtime":
             self.create_timer(cfg.step_duration_s, self.on_realtime_tick)
         else:
@@ -172,6 +187,11 @@ class SimNode(Node):
             self.rejected += 1
             self.get_logger().warning(f"rejected cmd_vel ({err}); holding position", throttle_duration_sec=2.0)
             self.cmd = HOVER
+            return
+        if not self.gate_open:
+            self.get_logger().warning(
+                "ignoring cmd_vel: the first frame is held (wait_for_subscribers)", throttle_duration_sec=5.0
+            )
             return
         self.last_cmd_wall = time.monotonic()
         if self.mode == "lockstep":
@@ -197,6 +217,16 @@ class SimNode(Node):
         self.advance(self.cmd)
 
     def on_lockstep_idle(self) -> None:
+        if not self.gate_open:
+            listening = min(self.pub_depth.get_subscription_count(), self.pub_outcome.get_subscription_count())
+            # Open one tick after the count is reached: a subscriber's other topics (the trainer's
+            # action subscription) are matched a moment after its first.
+            self.gate_ticks = self.gate_ticks + 1 if listening >= self.wait_for_subscribers else 0
+            if self.gate_ticks >= 2:
+                self.gate_open = True
+                self.get_logger().info(f"{listening} subscribers on depth and outcome: publishing the first frame")
+                self.publish(self.current)
+            return
         # A frame can be lost while peers are still being discovered: say it again.
         if time.monotonic() - self.last_publish_wall > self.republish_s:
             self.publish(self.current)

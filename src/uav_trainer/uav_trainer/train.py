@@ -94,7 +94,9 @@ def main(argv=None) -> int:
     p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     # A random start heading: drawn anew each episode in a fixed world; with random_each_episode one
     # draw per run, where every layout starts (as the shipped weights were trained).
-    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", *recipe["sim"]]
+    # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
+    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", "wait_for_subscribers:=2"]
+    sim_extra += recipe["sim"]
     sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
     procs.start(
         "sim", "uav_sim", "sim_node", params_args(params, "sim") + p("", [f"world:={world}", f"seed:={a.seed}", *sim_extra])
