@@ -178,25 +178,25 @@ def test_launcher_rejects_a_bad_budget():
 
 
 @pytest.mark.parametrize(
-    ("jitter", "hfov", "trained_hfov", "readout", "size"),
+    ("jitter", "hfov", "trained_hfov", "readout", "size", "sam_sizes"),
     [
-        (0.0, 90.0, None, "max", 64),
-        (180.0, 90.0, None, "max", 64),
-        (180.0, 120.0, None, "max", 64),
-        (0.0, 90.0, None, "flatten", 64),
-        (180.0, None, 90.0, "max", 64),
-        (180.0, 120.0, None, "max", 48),
+        (0.0, 90.0, None, "max", 64, {}),
+        (180.0, 90.0, None, "max", 64, {}),
+        (180.0, 120.0, None, "max", 64, {}),
+        (0.0, 90.0, None, "flatten", 64, {}),
+        (180.0, None, 90.0, "max", 64, {}),
+        (180.0, 120.0, None, "max", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2}),
     ],
 )
-def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, trained_hfov, readout, size):
+def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes):
     """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
-    random start heading, extra sim parameters, the weights' SAM readout and input size and, without
-    an hfov_deg argument, the camera recorded in the weights reach the nodes)."""
+    random start heading, extra sim parameters, the weights' SAM readout, input size and layer sizes
+    and, without an hfov_deg argument, the camera recorded in the weights reach the nodes)."""
     from uav_sim.simulator import SimConfig
     from uav_trainer.evaluate import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
-    cfg = NetConfig(sam_readout=readout, height=size, width=size)
+    cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)
     wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov)
     os.environ["ROS_DOMAIN_ID"] = "74"
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
