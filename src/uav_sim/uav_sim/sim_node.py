@@ -233,7 +233,8 @@ class SimNode(Node):
 
     def on_reset(self, _req, resp):
         self.current = self.sim.reset()
-        self.publish(self.current)
+        if self.gate_open:  # else the frame goes out when the gate opens (an answer now would be ignored)
+            self.publish(self.current)
         resp.success = True
         resp.message = f"episode {self.sim.episode} started at the start pose of '{self.sim.world.name}'"
         return resp

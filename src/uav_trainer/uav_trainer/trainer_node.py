@@ -23,7 +23,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
-from uav_policy.networks import SAM_READOUTS, SIZE_LIMITS
+from uav_policy.networks import SAM_READOUTS, SIZE_LIMITS, parameter_count
 from uav_policy.push import push_request
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim import contract
@@ -176,7 +176,8 @@ class TrainerNode(Node):
         self.create_timer(self.log_interval_s, self._report)
         self._closed = False
         self.get_logger().info(
-            f"training {self.cfg.model} (seed {self.cfg.seed}) on {device} into {self.training.dir}; "
+            f"training {self.cfg.model} ({parameter_count(self.training.learner.online)} parameters, seed {self.cfg.seed}) "
+            f"on {device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
             f"reward: {reward_description(self.cfg)}"
         )
