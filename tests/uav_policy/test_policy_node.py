@@ -148,8 +148,8 @@ def test_layer_sizes_come_from_the_weights_file_and_from_pushes(ros, tmp_path):
     assert r.successful, r.reason
     all_a3 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 2.0 for m in w.actions[-20:])  # noqa: E731
     assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
-    weights.clear()
-    assert ros.spin_until(lambda: len(weights) >= 2, 10) and weights[-1].layout.dim[0].size == 3, "three heads again"
+    # Messages from before the push may still be queued here: wait for a three-head one.
+    assert ros.spin_until(lambda: weights[-1].layout.dim[0].size == 3, 10), "three heads again"
 
 
 def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes_actions(ros):

@@ -85,12 +85,18 @@ def test_the_first_frame_waits_for_the_subscribers_asked_for(ros):
     assert ros.spin_until(lambda: "holding the first frame" in ros.log_of(sim), 20), ros.log_of(sim)
     ros.spin_for(2.0)
     rec.cmd.publish(twist(vx=1.0))  # ignored while the frame is held
+    from std_srvs.srv import Trigger
+
+    reset = ros.node.create_client(Trigger, "/sim_node/reset")
+    assert reset.wait_for_service(timeout_sec=10)
+    fut = reset.call_async(Trigger.Request())
+    assert ros.spin_until(fut.done, 10) and fut.result().success  # a reset publishes nothing either
     ros.spin_for(1.0)
     assert not rec.by_topic["depth"] and not rec.by_topic["odom"], "a frame was published before 2 subscribers listened"
     second = []
     ros.node.create_subscription(Image, contract.DEPTH_TOPIC, second.append, deep_qos())
     ros.node.create_subscription(Range, contract.OUTCOME_TOPIC, second.append, deep_qos())
-    assert ros.spin_until(lambda: len(second) >= 2, 20), ros.log_of(sim)
+    assert ros.spin_until(lambda: len(second) >= 2 and rec.by_topic["depth"], 20), ros.log_of(sim)
     assert "2 subscribers on depth and outcome: publishing the first frame" in ros.log_of(sim)
     assert contract.stamp_ns(rec.by_topic["depth"][0].header.stamp) == 0, "the held command did not step the sim"
     rec.cmd.publish(twist(vx=1.0))
