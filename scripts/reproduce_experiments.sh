@@ -12,7 +12,7 @@
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
 # ninth (half or a fifth of the training episodes start at a random place and heading) and a tenth
-# (a larger SAM). About 17 h on 2 cores.
+# (a larger SAM). About 18 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
