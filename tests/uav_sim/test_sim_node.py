@@ -97,7 +97,7 @@ def test_the_first_frame_waits_for_the_subscribers_asked_for(ros):
     ros.node.create_subscription(Image, contract.DEPTH_TOPIC, second.append, deep_qos())
     ros.node.create_subscription(Range, contract.OUTCOME_TOPIC, second.append, deep_qos())
     assert ros.spin_until(lambda: len(second) >= 2 and rec.by_topic["depth"], 20), ros.log_of(sim)
-    assert "2 subscribers on depth and outcome: publishing the first frame" in ros.log_of(sim)
+    assert ros.spin_until(lambda: "2 subscribers on depth and outcome: publishing the first frame" in ros.log_of(sim), 10)
     assert contract.stamp_ns(rec.by_topic["depth"][0].header.stamp) == 0, "the held command did not step the sim"
     rec.cmd.publish(twist(vx=1.0))
     assert ros.spin_until(lambda: len(rec.distinct_frames()) == 2, 10), "stepping works once the frame is out"
@@ -240,5 +240,5 @@ def test_params_file_is_accepted(ros):
 
     rec = Recorder(ros)
     proc = ros.start("uav_sim", "sim_node", "--params-file", str(ROOT / "params" / "sim.yaml"), "-p", "world:=complex")
-    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
-    assert "world 'complex'" in ros.log_of(proc)
+    # The node logs its start-up line after publishing the first frame: wait for both.
+    assert ros.spin_until(lambda: rec.by_topic["depth"] and "world 'complex'" in ros.log_of(proc), 20), ros.log_of(proc)
