@@ -172,8 +172,9 @@ def load_bytes(blob: bytes, expected: NetConfig, sizes_from_blob: bool = False) 
 def load_file(path: str | os.PathLike, expected: NetConfig, sizes_from_blob: bool = False) -> torch.nn.Module:
     p = Path(path).expanduser()
     try:
-        if p.stat().st_size > MAX_BYTES:  # not read into memory
-            raise WeightsError(f"{p}: weights are {p.stat().st_size} bytes, more than the {MAX_BYTES} allowed")
+        size = p.stat().st_size
+        if size > MAX_BYTES:  # not read into memory
+            raise WeightsError(f"{p}: weights are {size} bytes, more than the {MAX_BYTES} allowed")
         blob = p.read_bytes()
     except OSError as e:
         raise WeightsError(f"cannot read weights file '{p}': {e.strerror}") from None
