@@ -50,6 +50,56 @@ def test_replay_wraparound_never_mixes_overwritten_history():
             assert np.all(np.diff(seq) == 1), f"stack {seq} is not consecutive"
 
 
+def test_n_step_returns_stop_at_crashes_time_limits_and_the_newest_frame():
+    mem = ReplayMemory(capacity=100, frame_shape=(4, 4), frames=5, seed=0)
+    mem.add_first(frame(0))
+    for slot, r, done in [(0, 1, False), (1, 2, False), (2, 3, True), (3, 4, False), (4, 5, False)]:
+        mem.add_transition(0, float(r), done, frame(slot + 1))
+    mem.add_first(frame(6))  # slot 5 ended its episode at a time limit: it has no transition
+    for slot in range(6, 10):
+        mem.add_transition(0, float(slot), False, frame(slot + 1))
+    # Slot -> (return, done, discount, bootstrap slot), gamma 0.5 and n 3, by hand.
+    expected = {
+        0: (1 + 0.5 * 2 + 0.25 * 3, True, 0.125, 3),  # stops at the crash in slot 2
+        1: (2 + 0.5 * 3, True, 0.25, 3),
+        2: (3, True, 0.5, 3),
+        3: (4 + 0.5 * 5, False, 0.25, 5),  # the time limit: bootstraps from the episode's last frame
+        4: (5, False, 0.5, 5),
+        6: (6 + 0.5 * 7 + 0.25 * 8, False, 0.125, 9),
+        7: (7 + 0.5 * 8 + 0.25 * 9, False, 0.125, 10),
+        8: (8 + 0.5 * 9, False, 0.25, 10),  # slot 10 is the newest frame: no transition yet
+        9: (9, False, 0.5, 10),
+    }
+    for i, want in expected.items():
+        assert mem.n_step_return(i, 3, 0.5) == pytest.approx(want), f"slot {i}"
+    batch = mem.sample(200, n_step=3, gamma=0.5)
+    assert set(batch["index"]) == set(expected)
+    for k, i in enumerate(batch["index"]):
+        r, done, discount, boot = expected[i]
+        assert (batch["reward"][k], batch["done"][k], batch["discount"][k]) == pytest.approx((r, float(done), discount))
+        np.testing.assert_array_equal(batch["next_state"][k], mem.stack(boot))
+    # n = 1 is one-step Q-learning: the stored reward, the next slot, gamma from the learner.
+    one = mem.sample(50, n_step=1, gamma=0.5)
+    assert "discount" not in one
+    for k, i in enumerate(one["index"]):
+        assert one["reward"][k] == mem.reward[i]
+        np.testing.assert_array_equal(one["next_state"][k], mem.stack(i + 1))
+    with pytest.raises(ValueError, match="n_step"):
+        mem.sample(4, n_step=0)
+
+
+def test_a_batch_discount_replaces_gamma_in_the_target():
+    batch = small_batch(1)
+    plain = Learner(NetConfig(model="cnn"), LearnerConfig(seed=4, gamma=0.5))
+    per_sample = Learner(NetConfig(model="cnn"), LearnerConfig(seed=4, gamma=0.99))
+    assert plain.update(batch)["loss"] == per_sample.update({**batch, "discount": np.full(8, 0.5, np.float32)})["loss"]
+    # Per-sample discounts: each row's target uses its own.
+    r, done = torch.tensor([1.0, 1.0]), torch.tensor([0.0, 0.0])
+    q = torch.tensor([[2.0, 0.0], [2.0, 0.0]])
+    y = double_dqn_target(r, done, torch.tensor([0.5, 0.25]), q, q)
+    torch.testing.assert_close(y, torch.tensor([2.0, 1.5]))
+
+
 def test_double_dqn_target_hand_computed():
     r = torch.tensor([1.0, -10.0])
     done = torch.tensor([0.0, 1.0])

@@ -84,6 +84,24 @@ def test_non_finite_loss_stops_learning_and_keeps_the_last_good_checkpoint(tmp_p
     t.close()
 
 
+def test_n_step_returns_reach_the_learner_and_out_of_range_values_are_refused(tmp_path):
+    t = Training(small_cfg(n_step=3), tmp_path, log=lambda s: None)
+    asked, sample = [], t.replay.sample
+    t.replay.sample = lambda *a: asked.append(a) or sample(*a)
+    learnt = []
+    update = t.learner.update
+    t.learner.update = lambda batch: learnt.append(batch) or update(batch)
+    feed(t, 80)
+    assert t.learn_once()
+    assert asked == [(8, 3, 0.99)]
+    assert "discount" in learnt[0] and set(learnt[0]["discount"]) <= {np.float32(0.99**k) for k in (1, 2, 3)}
+    t.close()
+    for bad in (0, 21):
+        with pytest.raises(ValueError, match="n_step"):
+            Training(small_cfg(n_step=bad), tmp_path / f"bad{bad}", log=lambda s: None)
+        assert not (tmp_path / f"bad{bad}").exists()
+
+
 def test_inprocess_training_is_reproducible(tmp_path):
     cfg = TrainerConfig(model="sam", seed=5, total_steps=300, learning_starts=100, replay_ratio=0.25)
     weights = []

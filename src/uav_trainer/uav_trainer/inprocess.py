@@ -26,7 +26,7 @@ from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
 
 from .learner import LearnerConfig
-from .training import SAM_SIZES, TrainerConfig, Training
+from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training
 
 VALIDATION_WORLDS = ("random:200", "random:201", "random:202", "random:203", "random:204")
 
@@ -274,6 +274,13 @@ def main() -> int:
         help="experiment: subtract this from the reward of every turning step (0 = the paper's reward)",
     )
     ap.add_argument(
+        "--n-step",
+        type=int,
+        default=TrainerConfig.n_step,
+        metavar="N",
+        help=f"experiment: learn from N-step returns, 1..{MAX_N_STEP} (1 = one-step Q-learning, as the paper)",
+    )
+    ap.add_argument(
         "--ema-decay",
         type=float,
         default=LearnerConfig.ema_decay,
@@ -307,6 +314,8 @@ def main() -> int:
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     if not 8 <= a.input_size <= 512:
         ap.error(f"--input-size must lie in [8, 512] px (policy_node's input_height/input_width range), got {a.input_size}")
+    if not 1 <= a.n_step <= MAX_N_STEP:
+        ap.error(f"--n-step must lie in [1, {MAX_N_STEP}], got {a.n_step}")
     if not 0.0 <= a.random_start_fraction <= 1.0:
         ap.error(f"--random-start-fraction must lie in [0, 1], got {a.random_start_fraction}")
     torch.set_num_threads(a.threads)
@@ -320,6 +329,7 @@ def main() -> int:
         clearance_m=a.clearance_m,
         clearance_weight=a.clearance_weight,
         turn_penalty=a.turn_penalty,
+        n_step=a.n_step,
         turning_actions=turning_indices(PAPER_ACTIONS),
         sam_readout=a.sam_readout,
         input_size_px=a.input_size,

@@ -35,7 +35,8 @@ class LearnerConfig:
 
 
 def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
-    """y = r + gamma * (1 - done) * Q_target(s', argmax_a Q_online(s', a))."""
+    """y = r + gamma * (1 - done) * Q_target(s', argmax_a Q_online(s', a)); gamma may be a per-sample
+    tensor (n-step returns: gamma^m)."""
     best = q_next_online.argmax(dim=1, keepdim=True)
     return reward + gamma * (1.0 - done) * q_next_target.gather(1, best).squeeze(1)
 
@@ -88,10 +89,12 @@ class Learner:
         )
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
-        """One gradient step on a sampled batch; returns loss and mean Q."""
+        """One gradient step on a sampled batch; returns loss and mean Q. A batch with `discount`
+        (n-step returns) bootstraps with it instead of gamma."""
         s, a, r, done, s2 = self._tensors(batch)
+        gamma = torch.from_numpy(batch["discount"]).to(self.device) if "discount" in batch else self.cfg.gamma
         with torch.no_grad():
-            y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
+            y = double_dqn_target(r, done, gamma, self.online(s2)[0], self.target(s2)[0])
         q = self.online(s)[0]
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)

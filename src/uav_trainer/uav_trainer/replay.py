@@ -5,6 +5,13 @@ transition that left it: action, reward, done, and whether that transition exist
 for slot i is frames i-N+1..i, where every frame before the latest episode start inside the
 window is replaced by that start frame - exactly what the policy's FrameStack does at reset.
 The next state of transition i is the stack at slot i+1; `done` masks it after a collision.
+
+With n-step returns (`sample(..., n_step=n)`, an extension: the paper learns from one step) the
+return of transition i sums the discounted rewards of slots i..i+m-1 and bootstraps from the stack
+at slot i+m, where m is n or less: the chain stops early at a collision (done: nothing to
+bootstrap), at a time limit (the episode's last frame has no stored transition) and at the newest
+frame. Returns are computed when sampled, so a transition near the write head gets its full n
+steps once they are stored.
 """
 
 from __future__ import annotations
@@ -86,16 +93,41 @@ class ReplayMemory:
                 break
         return self.frame[idx].astype(np.float32)
 
-    def sample(self, batch: int) -> dict[str, np.ndarray]:
+    def n_step_return(self, i: int, n_step: int, gamma: float) -> tuple[float, bool, float, int]:
+        """(discounted reward sum, done, discount of the bootstrap, bootstrap slot) of transition i."""
+        total, discount, j = 0.0, 1.0, i
+        for _ in range(n_step):
+            total += discount * float(self.reward[j])
+            discount *= gamma
+            if self.done[j]:
+                return total, True, discount, (j + 1) % self.capacity
+            j = (j + 1) % self.capacity
+            if not self.has_transition[j]:  # the chain ends here: bootstrap from this frame
+                break
+        return total, False, discount, j
+
+    def sample(self, batch: int, n_step: int = 1, gamma: float = 0.99) -> dict[str, np.ndarray]:
+        """A batch of transitions. n_step > 1 adds `discount` (gamma^m per transition) and sums
+        rewards over up to n_step steps (module docstring); n_step = 1 is one-step Q-learning."""
+        if n_step < 1:
+            raise ValueError(f"n_step must be at least 1, got {n_step}")
         valid = np.flatnonzero(self._valid())
         if valid.size == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
         picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
-        return {
-            "state": np.stack([self.stack(i) for i in picks]),
-            "action": self.action[picks],
-            "reward": self.reward[picks],
-            "done": self.done[picks].astype(np.float32),
-            "next_state": np.stack([self.stack((i + 1) % self.capacity) for i in picks]),
-            "index": picks,
-        }
+        out = {"state": np.stack([self.stack(i) for i in picks]), "action": self.action[picks], "index": picks}
+        if n_step == 1:
+            out.update(
+                reward=self.reward[picks],
+                done=self.done[picks].astype(np.float32),
+                next_state=np.stack([self.stack((i + 1) % self.capacity) for i in picks]),
+            )
+            return out
+        returns = [self.n_step_return(int(i), n_step, gamma) for i in picks]
+        out.update(
+            reward=np.array([r[0] for r in returns], dtype=np.float32),
+            done=np.array([r[1] for r in returns], dtype=np.float32),
+            discount=np.array([r[2] for r in returns], dtype=np.float32),
+            next_state=np.stack([self.stack(r[3]) for r in returns]),
+        )
+        return out

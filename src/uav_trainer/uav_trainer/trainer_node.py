@@ -32,7 +32,7 @@ from uav_sim.ros_params import ParameterError, declare
 
 from .learner import LearnerConfig
 from .pairing import TransitionAssembler
-from .training import SAM_SIZES, TrainerConfig, Training, reward_description
+from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, reward_description
 
 
 class TrainerNode(Node):
@@ -109,6 +109,13 @@ class TrainerNode(Node):
                 0.0,
                 100.0,
             ),
+            n_step=d(
+                "n_step",
+                D.n_step,
+                "> 1: learn from n-step returns (an extension; 1 = one-step Q-learning, as the paper)",
+                1,
+                MAX_N_STEP,
+            ),
             sam_readout=d(
                 "sam_readout",
                 D.sam_readout,
@@ -179,7 +186,7 @@ class TrainerNode(Node):
             f"training {self.cfg.model} ({parameter_count(self.training.learner.online)} parameters, seed {self.cfg.seed}) "
             f"on {device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
-            f"reward: {reward_description(self.cfg)}"
+            f"reward: {reward_description(self.cfg)}; {self.cfg.n_step}-step returns"
         )
 
     def _on_camera_info(self, msg: CameraInfo) -> None:

@@ -48,6 +48,9 @@ class TrainerConfig:
     # the paper's reward a policy can circle on the spot, crash rarely and cover nothing.
     turn_penalty: float = 0.0
     turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
+    # > 1: learn from n-step returns (an extension; the paper learns from one step): a crash's
+    # penalty reaches the states n steps before it in one update instead of n.
+    n_step: int = 1
     sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
     # Square network input (px); the paper does not give one. 64 (the default) gives SAM 8 x 8 nodes,
     # 84 (an experiment: Atari's size) 10 x 10. The camera must render at the same size.
@@ -60,6 +63,10 @@ class TrainerConfig:
     mlp_hidden: int = NetConfig.mlp_hidden
     learner: LearnerConfig = LearnerConfig()
 
+
+# The longest n-step return accepted (trainer_node's and inprocess's bound): beyond it the bootstrap's
+# gamma^n and the off-policy bias of the stored actions dominate.
+MAX_N_STEP = 20
 
 # TrainerConfig's fields that size SAM's relational module (the NetConfig fields of the same names).
 SAM_SIZES = ("d_model", "heads", "relational_blocks", "mlp_hidden")
@@ -77,6 +84,8 @@ def reward_description(cfg: TrainerConfig) -> str:
 
 class Training:
     def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
+        if not 1 <= cfg.n_step <= MAX_N_STEP:
+            raise ValueError(f"n_step must lie in [1, {MAX_N_STEP}], got {cfg.n_step}")
         self.cfg = cfg
         self.log = log
         self.dir = Path(run_dir)
@@ -249,7 +258,7 @@ class Training:
         if not self.can_learn():
             return False
         with self.lock:
-            batch = self.replay.sample(self.cfg.learner.batch_size)
+            batch = self.replay.sample(self.cfg.learner.batch_size, self.cfg.n_step, self.cfg.learner.gamma)
         try:
             out = self.learner.update(batch)
         except NonFiniteLoss as e:
