@@ -1,8 +1,10 @@
 """Trainer figures: the cost of one batch-32 learner update by network input size (ratio against
-64 px, measured in the same run), environment steps/s and learner updates/s while training over ROS (capped and
-uncapped lockstep), and wall-clock on this machine from scratch until the SAM policy flies 1000
-exploit steps in Basic with 0 crashes (in-process trainer, evaluated every --eval-every steps;
-evaluation time is included in the wall-clock).
+64 px, measured in the same run), the cost of sampling a batch from a full replay memory (batched
+stacking against one stack per slot, and 3-step against 1-step returns), environment steps/s and
+learner updates/s while training over ROS (capped and uncapped lockstep), and wall-clock on this
+machine from scratch until the SAM policy flies 1000 exploit steps in Basic with 0 crashes
+(in-process trainer, evaluated every --eval-every steps; evaluation time is included in the
+wall-clock).
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_trainer.py
 """
@@ -24,6 +26,7 @@ from uav_policy.networks import NetConfig
 from uav_trainer.evaluate import evaluate_inprocess
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.learner import Learner, LearnerConfig
+from uav_trainer.replay import ReplayMemory
 from uav_trainer.training import TrainerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,6 +52,35 @@ def update_ms(model: str, size: int, n: int = 30) -> float:
         if i >= 3:  # warm-up
             times.append(time.perf_counter() - t)
     return float(np.median(times) * 1e3)
+
+
+def sample_ms(n: int = 100) -> dict[str, float]:
+    """Median wall-clock of sampling batch 32 from a full 50 000-frame 64 x 64 replay memory (episodes
+    of 100 steps): as `sample` does it, with one `stack` call per slot (the earlier code), and with
+    3-step returns."""
+    mem = ReplayMemory(50000, (64, 64), 5, seed=0)
+    rng = np.random.default_rng(0)
+    mem.add_first(rng.uniform(0, 10, (64, 64)).astype(np.float32))
+    for k in range(mem.capacity + 100):
+        mem.add_transition(int(k % 4), 1.0, k % 100 == 99, rng.uniform(0, 10, (64, 64)).astype(np.float32))
+
+    def per_slot():
+        picks = mem.sample(32)["index"]
+        return np.stack([mem.stack(i) for i in picks]), np.stack([mem.stack((i + 1) % mem.capacity) for i in picks])
+
+    def median_ms(f):
+        times = []
+        for _ in range(n):
+            t = time.perf_counter()
+            f()
+            times.append(time.perf_counter() - t)
+        return float(np.median(times) * 1e3)
+
+    return {
+        "batched": median_ms(lambda: mem.sample(32)),
+        "per_slot": median_ms(per_slot),
+        "n_step_3": median_ms(lambda: mem.sample(32, n_step=3, gamma=0.99)),
+    }
 
 
 def ros_throughput(steps: int, max_rate_hz: float, domain: int) -> tuple[float, float]:
@@ -121,6 +153,12 @@ def main() -> int:
         for size in a.input_sizes:
             ms = base if size == 64 else update_ms(model, size)
             print(f"[{model}] batch-32 update at {size}x{size} input ({a.threads} thread): {ms:.1f} ms, {ms / base:.2f}x 64x64")
+    ms = sample_ms()
+    print(
+        f"replay sample, batch 32 of a full 50 000-frame memory: {ms['batched']:.2f} ms batched, "
+        f"{ms['per_slot']:.2f} ms one stack per slot ({ms['per_slot'] / ms['batched']:.1f}x); "
+        f"3-step returns {ms['n_step_3']:.2f} ms ({ms['n_step_3'] / ms['batched']:.2f}x 1-step)"
+    )
     if a.updates_only:
         return 0
     if not a.skip_ros:

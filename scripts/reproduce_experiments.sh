@@ -11,8 +11,8 @@
 # (scripts/crosscheck_eval.py); a fifth round (a new start heading every training episode), the
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
-# ninth (half or a fifth of the training episodes start at a random place and heading) and a tenth
-# (a larger SAM). About 18 h on 2 cores.
+# ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
+# (a larger SAM) and an eleventh (n-step returns). About 19 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -386,3 +386,7 @@ done
 # Round 10: a larger SAM (node features 96, two relational blocks, MLP 192: 191 605 parameters
 # against 53 173) in round 6's setting, seeds 0-9; against round 6's SAM and CNN.
 sam_ten big docs/results/round10_larger_sam --d-model 96 --relational-blocks 2 --mlp-hidden 192
+
+# Round 11: n-step returns (--n-step 3: an extension, the paper learns from one step) in round 6's
+# setting, SAM seeds 0-9; against round 6's SAM and CNN.
+sam_ten nstep3 docs/results/round11_n_step --n-step 3

@@ -84,13 +84,19 @@ class ReplayMemory:
 
     def stack(self, i: int) -> np.ndarray:
         """(frames, H, W) float32 state ending at slot i."""
-        idx = [(i - m) % self.capacity for m in range(self.frames - 1, -1, -1)]  # oldest first
-        # Walk back from i: at the latest episode start, everything older is replaced by it.
-        for pos in range(self.frames - 1, 0, -1):
-            if self.start[idx[pos]]:
-                for older in range(pos):
-                    idx[older] = idx[pos]
-                break
+        return self.stacks(np.array([i]))[0]
+
+    def stacks(self, slots: np.ndarray) -> np.ndarray:
+        """(len(slots), frames, H, W) float32 states ending at each slot, gathered in one indexing."""
+        slots = np.asarray(slots, dtype=np.int64)
+        idx = (slots[:, None] - np.arange(self.frames - 1, -1, -1)) % self.capacity  # oldest first
+        # Within each window, at the latest episode start (the oldest position does not count: nothing
+        # is older) every older frame is replaced by that start frame.
+        starts = self.start[idx]
+        starts[:, 0] = False
+        latest = self.frames - 1 - np.argmax(starts[:, ::-1], axis=1)
+        older = starts.any(axis=1)[:, None] & (np.arange(self.frames)[None, :] < latest[:, None])
+        idx = np.where(older, idx[np.arange(len(slots)), latest][:, None], idx)
         return self.frame[idx].astype(np.float32)
 
     def n_step_return(self, i: int, n_step: int, gamma: float) -> tuple[float, bool, float, int]:
@@ -115,12 +121,12 @@ class ReplayMemory:
         if valid.size == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
         picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
-        out = {"state": np.stack([self.stack(i) for i in picks]), "action": self.action[picks], "index": picks}
+        out = {"state": self.stacks(picks), "action": self.action[picks], "index": picks}
         if n_step == 1:
             out.update(
                 reward=self.reward[picks],
                 done=self.done[picks].astype(np.float32),
-                next_state=np.stack([self.stack((i + 1) % self.capacity) for i in picks]),
+                next_state=self.stacks((picks + 1) % self.capacity),
             )
             return out
         returns = [self.n_step_return(int(i), n_step, gamma) for i in picks]
@@ -128,6 +134,6 @@ class ReplayMemory:
             reward=np.array([r[0] for r in returns], dtype=np.float32),
             done=np.array([r[1] for r in returns], dtype=np.float32),
             discount=np.array([r[2] for r in returns], dtype=np.float32),
-            next_state=np.stack([self.stack(r[3]) for r in returns]),
+            next_state=self.stacks(np.array([r[3] for r in returns])),
         )
         return out
