@@ -12,7 +12,7 @@
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
-# (a larger SAM) and an eleventh (n-step returns). About 19 h on 2 cores.
+# (a larger SAM) and an eleventh (n-step returns). About 20 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -388,5 +388,17 @@ done
 sam_ten big docs/results/round10_larger_sam --d-model 96 --relational-blocks 2 --mlp-hidden 192
 
 # Round 11: n-step returns (--n-step 3: an extension, the paper learns from one step) in round 6's
-# setting, SAM seeds 0-9; against round 6's SAM and CNN.
-sam_ten nstep3 docs/results/round11_n_step --n-step 3
+# setting, SAM seeds 0-9 against round 6's SAM and CNN; then CNN seeds 0-9 (tables in cnn/) against
+# round 6's CNN and against the 3-step SAM.
+R11=docs/results/round11_n_step
+sam_ten nstep3 $R11 --n-step 3
+train_ten nstep3 cnn "${ROUND6[@]}" --n-step 3
+r11_cnn=()
+for s in $(seq 0 9); do r11_cnn+=("runs/nstep3_cnn_seed$s/policy_cnn.safetensors"); done
+eval_120 $R11/cnn 1 --model cnn --weights "${r11_cnn[@]}"
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R11/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a nstep3_cnn --b tl300_cnn > $R11/cnn/$p/against_round6.md
+  python scripts/compare_models.py $R11/cnn/$p/results.csv $R11/$p/results.csv \
+    --by run --a nstep3_cnn --b nstep3_sam > $R11/cnn/$p/against_sam.md
+done
