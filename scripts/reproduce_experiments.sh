@@ -358,13 +358,19 @@ round_both in84 docs/results/round8_input84 0 against_64 --input-size 84
 R9=docs/results/round9_random_starts
 round_both rs50 $R9 1 against_round6 --random-start-fraction 0.5
 
-sam_ten() {  # tag folder [inprocess args]: SAM seeds 0-9 in round 6's setting plus the args, both
-  # tables with a crash log, each against round 6's SAM and CNN (unpaired: against_round6{,_cnn}.md)
-  local tag=$1 out=$2 p m s f w=()
+model_ten() {  # tag model folder [inprocess args]: seeds 0-9 of one model in round 6's setting plus
+  # the args, trained and evaluated (both tables, with a crash log)
+  local tag=$1 model=$2 out=$3 s w=()
+  shift 3
+  train_ten "$tag" "$model" "${ROUND6[@]}" "$@"
+  for s in $(seq 0 9); do w+=("runs/${tag}_${model}_seed$s/policy_$model.safetensors"); done
+  eval_120 "$out" 1 --model "$model" --weights "${w[@]}"
+}
+sam_ten() {  # tag folder [inprocess args]: model_ten for SAM, each table against round 6's SAM and
+  # CNN (unpaired: against_round6{,_cnn}.md)
+  local tag=$1 out=$2 p m f
   shift 2
-  train_ten "$tag" sam "${ROUND6[@]}" "$@"
-  for s in $(seq 0 9); do w+=("runs/${tag}_sam_seed$s/policy_sam.safetensors"); done
-  eval_120 "$out" 1 --model sam --weights "${w[@]}"
+  model_ten "$tag" sam "$out" "$@"
   for p in varied_start fixed_start; do
     for m in sam cnn; do
       f=against_round6
@@ -392,10 +398,7 @@ sam_ten big docs/results/round10_larger_sam --d-model 96 --relational-blocks 2 -
 # round 6's CNN and against the 3-step SAM.
 R11=docs/results/round11_n_step
 sam_ten nstep3 $R11 --n-step 3
-train_ten nstep3 cnn "${ROUND6[@]}" --n-step 3
-r11_cnn=()
-for s in $(seq 0 9); do r11_cnn+=("runs/nstep3_cnn_seed$s/policy_cnn.safetensors"); done
-eval_120 $R11/cnn 1 --model cnn --weights "${r11_cnn[@]}"
+model_ten nstep3 cnn $R11/cnn --n-step 3
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R11/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
     --by run --a nstep3_cnn --b tl300_cnn > $R11/cnn/$p/against_round6.md
