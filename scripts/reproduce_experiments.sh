@@ -405,3 +405,8 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R11/cnn/$p/results.csv $R11/$p/results.csv \
     --by run --a nstep3_cnn --b nstep3_sam > $R11/cnn/$p/against_sam.md
 done
+
+# Round 12: prioritized replay (--priority-alpha 0.6, importance-weight exponent 0.4 rising to 1:
+# an extension, the paper samples uniformly) in round 6's setting, SAM seeds 0-9 against round 6's
+# SAM and CNN.
+sam_ten per06 docs/results/round12_prioritized --priority-alpha 0.6

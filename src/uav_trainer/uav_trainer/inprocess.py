@@ -26,7 +26,7 @@ from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
 
 from .learner import LearnerConfig
-from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training
+from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
 
 VALIDATION_WORLDS = ("random:200", "random:201", "random:202", "random:203", "random:204")
 
@@ -137,6 +137,7 @@ def run(
         raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {sorted(snapshots)}")
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
+    log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}; {replay_description(cfg)}")
     validator = validation(training) if validation is not None else None
     sim_cfg = SimConfig(
         seed=cfg.seed,
@@ -281,6 +282,20 @@ def main() -> int:
         help=f"experiment: learn from N-step returns, 1..{MAX_N_STEP} (1 = one-step Q-learning, as the paper)",
     )
     ap.add_argument(
+        "--priority-alpha",
+        type=float,
+        default=TrainerConfig.priority_alpha,
+        metavar="A",
+        help="experiment: prioritized replay, sampling ~ |TD error|^A, 0..1 (0 = uniform, as the paper; Schaul et al. use 0.6)",
+    )
+    ap.add_argument(
+        "--priority-beta",
+        type=float,
+        default=TrainerConfig.priority_beta,
+        metavar="B",
+        help="prioritized replay: importance-weight exponent at the start, rising linearly to 1 over --steps",
+    )
+    ap.add_argument(
         "--ema-decay",
         type=float,
         default=LearnerConfig.ema_decay,
@@ -316,6 +331,8 @@ def main() -> int:
         ap.error(f"--input-size must lie in [8, 512] px (policy_node's input_height/input_width range), got {a.input_size}")
     if not 1 <= a.n_step <= MAX_N_STEP:
         ap.error(f"--n-step must lie in [1, {MAX_N_STEP}], got {a.n_step}")
+    if not 0.0 <= a.priority_alpha <= 1.0 or not 0.0 <= a.priority_beta <= 1.0:
+        ap.error(f"--priority-alpha and --priority-beta must lie in [0, 1], got {a.priority_alpha}, {a.priority_beta}")
     if not 0.0 <= a.random_start_fraction <= 1.0:
         ap.error(f"--random-start-fraction must lie in [0, 1], got {a.random_start_fraction}")
     torch.set_num_threads(a.threads)
@@ -330,6 +347,9 @@ def main() -> int:
         clearance_weight=a.clearance_weight,
         turn_penalty=a.turn_penalty,
         n_step=a.n_step,
+        priority_alpha=a.priority_alpha,
+        priority_beta=a.priority_beta,
+        priority_beta_steps=a.steps,
         turning_actions=turning_indices(PAPER_ACTIONS),
         sam_readout=a.sam_readout,
         input_size_px=a.input_size,

@@ -89,15 +89,21 @@ class Learner:
         )
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
-        """One gradient step on a sampled batch; returns loss and mean Q. A batch with `discount`
-        (n-step returns) bootstraps with it instead of gamma."""
+        """One gradient step on a sampled batch; returns loss, mean Q, gradient norm and `td_abs`
+        (each sample's |Q - y|, for prioritized replay). A batch with `discount` (n-step returns)
+        bootstraps with it instead of gamma; one with `weight` (prioritized replay) weights each
+        sample's Huber loss by it."""
         s, a, r, done, s2 = self._tensors(batch)
         gamma = torch.from_numpy(batch["discount"]).to(self.device) if "discount" in batch else self.cfg.gamma
         with torch.no_grad():
             y = double_dqn_target(r, done, gamma, self.online(s2)[0], self.target(s2)[0])
         q = self.online(s)[0]
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
-        loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
+        if "weight" in batch:
+            w = torch.from_numpy(batch["weight"]).to(self.device)
+            loss = (w * F.huber_loss(q_taken, y, reduction="none", delta=self.cfg.huber_delta)).mean()
+        else:
+            loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"loss is {loss.item()} at update {self.updates}")
         self.optimizer.zero_grad(set_to_none=True)
@@ -112,7 +118,12 @@ class Learner:
             self._update_ema()
         if self.updates % self.cfg.target_update_interval == 0:
             self.sync_target()
-        return {"loss": float(loss.item()), "q_mean": float(q.mean().item()), "grad_norm": float(grad_norm)}
+        return {
+            "loss": float(loss.item()),
+            "q_mean": float(q.mean().item()),
+            "grad_norm": float(grad_norm),
+            "td_abs": (q_taken - y).abs().detach().cpu().numpy(),
+        }
 
     @torch.no_grad()
     def _update_ema(self) -> None:

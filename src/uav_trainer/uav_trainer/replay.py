@@ -12,11 +12,21 @@ at slot i+m, where m is n or less: the chain stops early at a collision (done: n
 bootstrap), at a time limit (the episode's last frame has no stored transition) and at the newest
 frame. Returns are computed when sampled, so a transition near the write head gets its full n
 steps once they are stored.
+
+With prioritized sampling (`sample(..., priority_alpha=a)` with a > 0, an extension: Schaul et al.
+2016, proportional variant; the paper samples uniformly) transition i is drawn with probability
+p_i^a / sum_k p_k^a, where p_i is its last absolute TD error plus a small floor (new transitions get
+the largest priority seen so far), and the batch carries importance weights
+(N P(i))^-beta / max_k (N P(k))^-beta that undo the bias. `update_priorities` writes the learner's TD
+errors back; a slot rewritten since it was sampled keeps its new priority.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+# Added to every absolute TD error so that no transition's sampling probability falls to zero.
+PRIORITY_FLOOR = 1e-3
 
 
 class ReplayMemory:
@@ -30,6 +40,9 @@ class ReplayMemory:
         self.reward = np.zeros(capacity, dtype=np.float32)
         self.done = np.zeros(capacity, dtype=bool)
         self.has_transition = np.zeros(capacity, dtype=bool)
+        self.priority = np.zeros(capacity, dtype=np.float64)  # prioritized sampling only
+        self.max_priority = 1.0
+        self.writes = np.zeros(capacity, dtype=np.int64)  # times each slot was written
         self.cursor = 0  # next slot to write
         self.count = 0  # frames stored (<= capacity)
         self.transitions_added = 0
@@ -45,6 +58,7 @@ class ReplayMemory:
             self.frame[i] = np.nan_to_num(depth, nan=np.inf).astype(np.float16)
         self.start[i] = start
         self.has_transition[i] = False
+        self.writes[i] += 1
         self.cursor = (i + 1) % self.capacity
         self.count = min(self.count + 1, self.capacity)
 
@@ -62,6 +76,7 @@ class ReplayMemory:
         i = (self.cursor - 1) % self.capacity
         self.action[i], self.reward[i], self.done[i] = action, reward, done
         self.has_transition[i] = True
+        self.priority[i] = self.max_priority
         self._write_frame(next_depth, start=done)
         self.transitions_added += 1
 
@@ -112,16 +127,33 @@ class ReplayMemory:
                 break
         return total, False, discount, j
 
-    def sample(self, batch: int, n_step: int = 1, gamma: float = 0.99) -> dict[str, np.ndarray]:
+    def sample(
+        self, batch: int, n_step: int = 1, gamma: float = 0.99, priority_alpha: float = 0.0, priority_beta: float = 1.0
+    ) -> dict[str, np.ndarray]:
         """A batch of transitions. n_step > 1 adds `discount` (gamma^m per transition) and sums
-        rewards over up to n_step steps (module docstring); n_step = 1 is one-step Q-learning."""
+        rewards over up to n_step steps; priority_alpha > 0 samples by priority and adds `weight`
+        (importance weights with exponent priority_beta) and `writes` (for `update_priorities`); see
+        the module docstring. n_step = 1 with priority_alpha = 0 is the paper's uniform one-step
+        Q-learning."""
         if n_step < 1:
             raise ValueError(f"n_step must be at least 1, got {n_step}")
+        if not 0.0 <= priority_alpha <= 1.0 or not 0.0 <= priority_beta <= 1.0:
+            raise ValueError(f"priority_alpha and priority_beta must lie in [0, 1], got {priority_alpha}, {priority_beta}")
         valid = np.flatnonzero(self._valid())
         if valid.size == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
-        picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
-        out = {"state": self.stacks(picks), "action": self.action[picks], "index": picks}
+        if priority_alpha > 0.0:
+            p = self.priority[valid] ** priority_alpha
+            prob = p / p.sum()
+            k = self.rng.choice(valid.size, size=batch, p=prob)
+            picks = valid[k]
+            # Importance weights, normalised by the largest any stored transition could get.
+            weight = (valid.size * prob[k]) ** -priority_beta / (valid.size * prob.min()) ** -priority_beta
+            extra = {"weight": weight.astype(np.float32), "writes": self.writes[picks].copy()}
+        else:
+            picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
+            extra = {}
+        out = {"state": self.stacks(picks), "action": self.action[picks], "index": picks, **extra}
         if n_step == 1:
             out.update(
                 reward=self.reward[picks],
@@ -137,3 +169,16 @@ class ReplayMemory:
             next_state=self.stacks(np.array([r[3] for r in returns])),
         )
         return out
+
+    def update_priorities(self, slots: np.ndarray, writes: np.ndarray, td_abs: np.ndarray) -> None:
+        """Priorities |TD error| + PRIORITY_FLOOR for sampled slots; `writes` (from `sample`) skips any
+        slot rewritten since, so a new transition keeps the top priority it was stored with."""
+        td_abs = np.asarray(td_abs, dtype=np.float64)
+        if not np.all(np.isfinite(td_abs)):
+            raise ValueError("TD errors must be finite")
+        slots = np.asarray(slots, dtype=np.int64)
+        same = self.writes[slots] == np.asarray(writes)
+        pr = td_abs[same] + PRIORITY_FLOOR
+        self.priority[slots[same]] = pr  # a slot drawn twice keeps its last error
+        if pr.size:
+            self.max_priority = max(self.max_priority, float(pr.max()))

@@ -32,7 +32,7 @@ from uav_sim.ros_params import ParameterError, declare
 
 from .learner import LearnerConfig
 from .pairing import TransitionAssembler
-from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, reward_description
+from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
 
 
 class TrainerNode(Node):
@@ -116,6 +116,21 @@ class TrainerNode(Node):
                 1,
                 MAX_N_STEP,
             ),
+            priority_alpha=d(
+                "priority_alpha",
+                D.priority_alpha,
+                "> 0: prioritized replay, sampling ~ |TD error|^alpha (an extension; 0 = uniform, as the paper)",
+                0.0,
+                1.0,
+            ),
+            priority_beta=d("priority_beta", D.priority_beta, "Prioritized replay: initial importance-weight exponent", 0.0, 1.0),
+            priority_beta_steps=d(
+                "priority_beta_steps",
+                D.priority_beta_steps,
+                "Prioritized replay: env steps over which the importance-weight exponent rises to 1",
+                0,
+                10**10,
+            ),
             sam_readout=d(
                 "sam_readout",
                 D.sam_readout,
@@ -186,7 +201,7 @@ class TrainerNode(Node):
             f"training {self.cfg.model} ({parameter_count(self.training.learner.online)} parameters, seed {self.cfg.seed}) "
             f"on {device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
-            f"reward: {reward_description(self.cfg)}; {self.cfg.n_step}-step returns"
+            f"reward: {reward_description(self.cfg)}; {replay_description(self.cfg)}"
         )
 
     def _on_camera_info(self, msg: CameraInfo) -> None:

@@ -51,6 +51,13 @@ class TrainerConfig:
     # > 1: learn from n-step returns (an extension; the paper learns from one step): a crash's
     # penalty reaches the states n steps before it in one update instead of n.
     n_step: int = 1
+    # > 0: prioritized replay (an extension; the paper samples uniformly): transitions are drawn with
+    # probability ~ |TD error|^priority_alpha, and the importance-weight exponent rises linearly from
+    # priority_beta to 1 over priority_beta_steps environment steps. Crashes are rare in the replay
+    # memory; this replays the ones the network still gets wrong more often.
+    priority_alpha: float = 0.0
+    priority_beta: float = 0.4
+    priority_beta_steps: int = 30000
     sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
     # Square network input (px); the paper does not give one. 64 (the default) gives SAM 8 x 8 nodes,
     # 84 (an experiment: Atari's size) 10 x 10. The camera must render at the same size.
@@ -72,6 +79,24 @@ MAX_N_STEP = 20
 SAM_SIZES = ("d_model", "heads", "relational_blocks", "mlp_hidden")
 
 
+def priority_beta(cfg: TrainerConfig, env_steps: int) -> float:
+    """The importance-weight exponent at env_steps: priority_beta rising linearly to 1."""
+    if cfg.priority_beta_steps <= 0 or env_steps >= cfg.priority_beta_steps:
+        return 1.0
+    return cfg.priority_beta + (1.0 - cfg.priority_beta) * env_steps / cfg.priority_beta_steps
+
+
+def replay_description(cfg: TrainerConfig) -> str:
+    """How the learner samples and bootstraps, for logs."""
+    sampling = "uniform replay"
+    if cfg.priority_alpha > 0.0:
+        sampling = (
+            f"prioritized replay (alpha {cfg.priority_alpha:g}, beta {cfg.priority_beta:g} -> 1 "
+            f"over {cfg.priority_beta_steps} steps)"
+        )
+    return f"{sampling}, {cfg.n_step}-step returns"
+
+
 def reward_description(cfg: TrainerConfig) -> str:
     """The training reward in words, for logs: the paper's, and any extension switched on."""
     parts = ["the paper's"]
@@ -86,6 +111,11 @@ class Training:
     def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
         if not 1 <= cfg.n_step <= MAX_N_STEP:
             raise ValueError(f"n_step must lie in [1, {MAX_N_STEP}], got {cfg.n_step}")
+        if not 0.0 <= cfg.priority_alpha <= 1.0 or not 0.0 <= cfg.priority_beta <= 1.0 or cfg.priority_beta_steps < 0:
+            raise ValueError(
+                "priority_alpha and priority_beta must lie in [0, 1] and priority_beta_steps be >= 0, got "
+                f"{cfg.priority_alpha}, {cfg.priority_beta}, {cfg.priority_beta_steps}"
+            )
         self.cfg = cfg
         self.log = log
         self.dir = Path(run_dir)
@@ -257,8 +287,10 @@ class Training:
         """One update if allowed now; handles push and checkpoint cadence. False if nothing done."""
         if not self.can_learn():
             return False
+        c = self.cfg
         with self.lock:
-            batch = self.replay.sample(self.cfg.learner.batch_size, self.cfg.n_step, self.cfg.learner.gamma)
+            beta = priority_beta(c, self.env_steps)
+            batch = self.replay.sample(c.learner.batch_size, c.n_step, c.learner.gamma, c.priority_alpha, beta)
         try:
             out = self.learner.update(batch)
         except NonFiniteLoss as e:
@@ -268,6 +300,9 @@ class Training:
             )
             self.log(self.failed)
             return False
+        if c.priority_alpha > 0.0:
+            with self.lock:
+                self.replay.update_priorities(batch["index"], batch["writes"], out["td_abs"])
         self.last_loss, self.last_q = out["loss"], out["q_mean"]
         u = self.learner.updates
         if self.tb and u % 10 == 0:
