@@ -1,6 +1,7 @@
 """Trainer figures: the cost of one batch-32 learner update by network input size (ratio against
 64 px, measured in the same run), the cost of sampling a batch from a full replay memory (batched
-stacking against one stack per slot, and 3-step against 1-step returns), environment steps/s and
+stacking against one stack per slot, 3-step against 1-step returns, prioritized against uniform
+sampling with the priority write-back), environment steps/s and
 learner updates/s while training over ROS (capped and uncapped lockstep), and wall-clock on this
 machine from scratch until the SAM policy flies 1000 exploit steps in Basic with 0 crashes
 (in-process trainer, evaluated every --eval-every steps; evaluation time is included in the
@@ -57,7 +58,8 @@ def update_ms(model: str, size: int, n: int = 30) -> float:
 def sample_ms(n: int = 100) -> dict[str, float]:
     """Median wall-clock (ms) on a full 50 000-frame 64 x 64 replay memory (episodes of 100 steps) of:
     building the states and next states of 32 transitions one `stack` call per slot (the earlier
-    code) and in one batched gather; and a whole `sample` of batch 32 with 1-step and 3-step returns."""
+    code) and in one batched gather; a whole `sample` of batch 32 with 1-step and 3-step returns; and
+    a prioritized sample (alpha 0.6) plus its `update_priorities`."""
     mem = ReplayMemory(50000, (64, 64), 5, seed=0)
     rng = np.random.default_rng(0)
     mem.add_first(rng.uniform(0, 10, (64, 64)).astype(np.float32))
@@ -79,7 +81,13 @@ def sample_ms(n: int = 100) -> dict[str, float]:
         "batched": median_ms(lambda: (mem.stacks(picks), mem.stacks(after))),
         "sample": median_ms(lambda: mem.sample(32)),
         "sample_n3": median_ms(lambda: mem.sample(32, n_step=3, gamma=0.99)),
+        "prioritized": median_ms(lambda: prioritized(mem, rng)),
     }
+
+
+def prioritized(mem: ReplayMemory, rng: np.random.Generator) -> None:
+    b = mem.sample(32, priority_alpha=0.6, priority_beta=0.4)
+    mem.update_priorities(b["index"], b["writes"], rng.exponential(1.0, 32))
 
 
 def ros_throughput(steps: int, max_rate_hz: float, domain: int) -> tuple[float, float]:
@@ -156,7 +164,8 @@ def main() -> int:
     print(
         f"replay, full 50 000-frame memory: states of 32 transitions {ms['per_slot']:.2f} ms one slot at a time, "
         f"{ms['batched']:.2f} ms batched ({ms['per_slot'] / ms['batched']:.1f}x faster); a whole batch-32 sample "
-        f"{ms['sample']:.2f} ms, with 3-step returns {ms['sample_n3']:.2f} ms ({ms['sample_n3'] / ms['sample']:.2f}x)"
+        f"{ms['sample']:.2f} ms, with 3-step returns {ms['sample_n3']:.2f} ms ({ms['sample_n3'] / ms['sample']:.2f}x), "
+        f"prioritized with the priority write-back {ms['prioritized']:.2f} ms ({ms['prioritized'] / ms['sample']:.2f}x)"
     )
     if a.updates_only:
         return 0

@@ -6,7 +6,7 @@ from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
 from uav_trainer.learner import Learner, LearnerConfig, double_dqn_target, linear_epsilon
-from uav_trainer.replay import ReplayMemory
+from uav_trainer.replay import PRIORITY_FLOOR, ReplayMemory
 
 
 def frame(v):
@@ -86,6 +86,78 @@ def test_n_step_returns_stop_at_crashes_time_limits_and_the_newest_frame():
         np.testing.assert_array_equal(one["next_state"][k], mem.stack(i + 1))
     with pytest.raises(ValueError, match="n_step"):
         mem.sample(4, n_step=0)
+
+
+def test_prioritized_sampling_follows_priorities_with_hand_computed_weights():
+    mem = ReplayMemory(capacity=100, frame_shape=(4, 4), frames=5, seed=0)
+    mem.add_first(frame(0))
+    for v in range(1, 10):
+        mem.add_transition(0, float(v), False, frame(v))
+    # Slots 0..8 are sampleable (9 is the newest frame); all start at the top priority, 1.
+    assert mem.priority[:9].tolist() == [1.0] * 9 and mem.priority[9] == 0.0
+    mem.update_priorities(np.arange(9), mem.writes[:9], np.array([7.0] + [0.0] * 8))
+    assert mem.priority[0] == 7.0 + PRIORITY_FLOOR and mem.priority[1] == PRIORITY_FLOOR
+    assert mem.max_priority == 7.0 + PRIORITY_FLOOR
+    batch = mem.sample(4000, priority_alpha=1.0, priority_beta=0.5)
+    # P(0) = 7.001 / (7.001 + 8 * 0.001) = 0.99886: slot 0 nearly always.
+    total = 7.0 + PRIORITY_FLOOR + 8 * PRIORITY_FLOOR
+    p0, p1 = (7.0 + PRIORITY_FLOOR) / total, PRIORITY_FLOOR / total
+    share = np.mean(batch["index"] == 0)
+    assert abs(share - p0) < 0.005, share
+    # w_i = (N P_i)^-beta / (N P_min)^-beta with N = 9, beta = 0.5, by hand.
+    w = dict(zip(batch["index"].tolist(), batch["weight"].tolist(), strict=True))
+    assert w[0] == pytest.approx((p1 / p0) ** 0.5, rel=1e-5) and w[1] == pytest.approx(1.0)
+    # alpha 0.5 flattens the preference: P(0) = sqrt(7.001) / (sqrt(7.001) + 8 sqrt(0.001)).
+    flat = mem.sample(4000, priority_alpha=0.5, priority_beta=1.0)
+    want = (7.0 + PRIORITY_FLOOR) ** 0.5 / ((7.0 + PRIORITY_FLOOR) ** 0.5 + 8 * PRIORITY_FLOOR**0.5)
+    assert abs(np.mean(flat["index"] == 0) - want) < 0.03
+    # A new transition enters with the largest priority seen.
+    mem.add_transition(0, 10.0, False, frame(10))
+    assert mem.priority[9] == 7.0 + PRIORITY_FLOOR
+    # Uniform sampling (alpha 0, the paper) carries no weights and ignores priorities.
+    uniform = mem.sample(4000)
+    assert "weight" not in uniform and "writes" not in uniform and np.mean(uniform["index"] == 0) < 0.2
+    with pytest.raises(ValueError, match="priority_alpha"):
+        mem.sample(4, priority_alpha=1.5)
+    with pytest.raises(ValueError, match="finite"):
+        mem.update_priorities(np.array([0]), mem.writes[:1], np.array([np.nan]))
+
+
+def test_priorities_of_slots_rewritten_since_sampling_are_left_alone():
+    mem = ReplayMemory(capacity=8, frame_shape=(4, 4), frames=5, seed=0)
+    mem.add_first(frame(0))
+    for v in range(1, 8):
+        mem.add_transition(0, 0.0, False, frame(v))
+    batch = mem.sample(64, priority_alpha=0.6, priority_beta=0.4)
+    slots, writes = batch["index"], batch["writes"]
+    stale = int(slots[0])
+    mem.add_transition(0, 0.0, False, frame(8))  # writes slot 0 (the ring is full)...
+    for _ in range((stale - 0) % 8):  # ...and on to the stale slot
+        mem.add_transition(0, 0.0, False, frame(9))
+    mem.add_transition(0, 0.0, False, frame(10))  # the stale slot now holds a new transition
+    kept = mem.priority[stale]
+    mem.update_priorities(slots, writes, np.full(len(slots), 5.0))
+    assert mem.priority[stale] == kept, "a rewritten slot keeps the priority it was stored with"
+    fresh = [int(i) for i, w in zip(slots, writes, strict=True) if mem.writes[i] == w]
+    assert fresh and all(mem.priority[i] == 5.0 + PRIORITY_FLOOR for i in fresh)
+
+
+def test_importance_weights_scale_each_samples_loss_and_td_errors_come_back():
+    batch = small_batch(2)
+    learner = Learner(NetConfig(model="cnn"), LearnerConfig(seed=5))
+    with torch.no_grad():
+        s, a, r, done, s2 = learner._tensors(batch)
+        y = double_dqn_target(r, done, 0.99, learner.online(s2)[0], learner.target(s2)[0])
+        q = learner.online(s)[0].gather(1, a.unsqueeze(1)).squeeze(1)
+    w = np.array([1.0, 0.0, 0.5, 0.25, 1.0, 0.0, 0.75, 0.1], np.float32)
+    per_sample = torch.nn.functional.huber_loss(q, y, reduction="none")
+    out = learner.update({**batch, "weight": w})
+    assert out["loss"] == pytest.approx(float((torch.from_numpy(w) * per_sample).mean()), rel=1e-5)
+    np.testing.assert_allclose(out["td_abs"], (q - y).abs().numpy(), rtol=1e-5)
+    # All-ones weights are the unweighted loss.
+    a1 = Learner(NetConfig(model="cnn"), LearnerConfig(seed=5)).update({**batch, "weight": np.ones(8, np.float32)})
+    a2 = Learner(NetConfig(model="cnn"), LearnerConfig(seed=5)).update(batch)
+    assert a1["loss"] == pytest.approx(a2["loss"], rel=1e-6)
 
 
 def test_a_batch_discount_replaces_gamma_in_the_target():

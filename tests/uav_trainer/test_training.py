@@ -10,7 +10,8 @@ from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.learner import LearnerConfig
-from uav_trainer.training import TrainerConfig, Training
+from uav_trainer.replay import PRIORITY_FLOOR
+from uav_trainer.training import TrainerConfig, Training, priority_beta
 
 
 def feed(t: Training, n: int, seed: int = 0) -> None:
@@ -93,13 +94,43 @@ def test_n_step_returns_reach_the_learner_and_out_of_range_values_are_refused(tm
     t.learner.update = lambda batch: learnt.append(batch) or update(batch)
     feed(t, 80)
     assert t.learn_once()
-    assert asked == [(8, 3, 0.99)]
+    assert len(asked) == 1 and asked[0][:4] == (8, 3, 0.99, 0.0)  # 3-step, uniform sampling
     assert "discount" in learnt[0] and set(learnt[0]["discount"]) <= {np.float32(0.99**k) for k in (1, 2, 3)}
     t.close()
     for bad in (0, 21):
         with pytest.raises(ValueError, match="n_step"):
             Training(small_cfg(n_step=bad), tmp_path / f"bad{bad}", log=lambda s: None)
         assert not (tmp_path / f"bad{bad}").exists()
+
+
+def test_prioritized_replay_reaches_the_memory_and_the_learners_errors_come_back(tmp_path):
+    t = Training(small_cfg(priority_alpha=0.6, priority_beta=0.4, priority_beta_steps=200), tmp_path, log=lambda s: None)
+    asked, sample = [], t.replay.sample
+    t.replay.sample = lambda *a: asked.append(a) or sample(*a)
+    learnt, update = [], t.learner.update
+    t.learner.update = lambda batch: learnt.append((batch, update(batch))) or learnt[-1][1]
+    feed(t, 80)
+    assert t.learn_once()
+    # beta at 80 env steps: 0.4 + 0.6 * 80 / 200
+    assert asked == [(8, 1, 0.99, 0.6, pytest.approx(0.64))]
+    batch, out = learnt[0]
+    assert "weight" in batch and batch["weight"].max() <= 1.0
+    # Each sampled slot's priority is now its |TD error| + the floor (the last draw of a repeated slot).
+    last = {int(i): e for i, e in zip(batch["index"], out["td_abs"], strict=True)}
+    for i, e in last.items():
+        assert t.replay.priority[i] == pytest.approx(e + PRIORITY_FLOOR)
+    t.close()
+    for bad in (dict(priority_alpha=-0.1), dict(priority_alpha=1.5), dict(priority_beta=2.0), dict(priority_beta_steps=-1)):
+        where = tmp_path / f"bad{len(asked)}{sorted(bad.items())}"
+        with pytest.raises(ValueError, match="priority"):
+            Training(small_cfg(**bad), where, log=lambda s: None)
+        assert not where.exists()
+
+
+def test_the_importance_weight_exponent_rises_to_one():
+    cfg = TrainerConfig(priority_alpha=0.6, priority_beta=0.4, priority_beta_steps=1000)
+    assert [priority_beta(cfg, n) for n in (0, 500, 1000, 5000)] == pytest.approx([0.4, 0.7, 1.0, 1.0])
+    assert priority_beta(dataclasses.replace(cfg, priority_beta_steps=0), 0) == 1.0
 
 
 def test_inprocess_training_is_reproducible(tmp_path):
