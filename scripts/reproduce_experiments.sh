@@ -12,7 +12,8 @@
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
-# (a larger SAM) and an eleventh (n-step returns). About 20 h on 2 cores.
+# (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay) and a thirteenth
+# (slower exploration). About 21 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -410,3 +411,7 @@ done
 # an extension, the paper samples uniformly) in round 6's setting, SAM seeds 0-9 against round 6's
 # SAM and CNN.
 sam_ten per06 docs/results/round12_prioritized --priority-alpha 0.6
+
+# Round 13: slower exploration (epsilon 1 -> 0.05 over 20 000 steps instead of 10 000) in round 6's
+# setting, SAM seeds 0-9 against round 6's SAM and CNN.
+sam_ten eps20k docs/results/round13_slow_exploration --epsilon-decay-steps 20000
