@@ -147,8 +147,8 @@ class ReplayMemory:
             prob = p / p.sum()
             k = self.rng.choice(valid.size, size=batch, p=prob)
             picks = valid[k]
-            # Importance weights, normalised by the largest any stored transition could get.
-            weight = (valid.size * prob[k]) ** -priority_beta / (valid.size * prob.min()) ** -priority_beta
+            # Importance weights (N P(i))^-beta over the largest any stored transition could get (N cancels).
+            weight = (prob.min() / prob[k]) ** priority_beta
             extra = {"weight": weight.astype(np.float32), "writes": self.writes[picks].copy()}
         else:
             picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
