@@ -142,6 +142,63 @@ def test_priorities_of_slots_rewritten_since_sampling_are_left_alone():
     assert fresh and all(mem.priority[i] == 5.0 + PRIORITY_FLOOR for i in fresh)
 
 
+def filled_memory(capacity: int, steps: int) -> ReplayMemory:
+    mem = ReplayMemory(capacity=capacity, frame_shape=(4, 4), frames=5, seed=3)
+    mem.add_first(frame(0))
+    for v in range(1, steps):
+        mem.add_transition(v % 4, float(v), v % 7 == 6, frame(v))
+    mem.update_priorities(np.arange(3), mem.writes[:3], np.array([0.5, 2.0, 9.0]))
+    return mem
+
+
+@pytest.mark.parametrize("steps", [6, 30])  # partly filled; wrapped around
+def test_replay_state_round_trip_samples_the_same_batches(steps):
+    mem = filled_memory(10, steps)
+    state = mem.state()
+    assert state["frame"].shape == (min(steps, 10), 4, 4)  # only filled slots are written
+    copy = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
+    copy.load_state(state, n_actions=4)
+    assert (copy.cursor, copy.count, copy.transitions_added, copy.max_priority) == (
+        mem.cursor,
+        mem.count,
+        mem.transitions_added,
+        mem.max_priority,
+    )
+    for alpha in (0.0, 0.6):
+        a, b = mem.sample(16, 3, 0.9, alpha, 0.5), copy.sample(16, 3, 0.9, alpha, 0.5)
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_replay_state_that_does_not_fit_or_holds_impossible_values_is_refused_and_changes_nothing():
+    mem = filled_memory(10, 30)
+
+    def spoiled(**kw):
+        st = mem.state()
+        st.update(kw)
+        return st
+
+    bad = [
+        (ReplayMemory(capacity=12, frame_shape=(4, 4), frames=5), mem.state(), "capacity"),
+        (ReplayMemory(capacity=10, frame_shape=(4, 5), frames=5), mem.state(), "capacity"),
+        (None, spoiled(action=np.full(10, 4, dtype=np.int64)), "actions outside"),
+        (None, spoiled(frame=np.full((10, 4, 4), np.nan, dtype=np.float16)), "NaN"),
+        (None, spoiled(reward=np.ones(9, dtype=np.float32)), "'reward'"),
+        (None, spoiled(priority=np.full(10, np.inf)), "non-finite"),
+        (None, spoiled(header=np.array([10, 5, 4, 4, 10, 10, 29], dtype=np.int64)), "counters"),
+        (None, {k: v for k, v in mem.state().items() if k != "header"}, "header"),
+    ]
+    for target, state, words in bad:
+        if target is None:  # (an empty memory is falsy: it has no transitions)
+            target = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5)
+        before = target.state()
+        with pytest.raises(ValueError, match=words):
+            target.load_state(state, n_actions=4)
+        after = target.state()
+        assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
 def test_importance_weights_scale_each_samples_loss_and_td_errors_come_back():
     batch = small_batch(2)
     learner = Learner(NetConfig(model="cnn"), LearnerConfig(seed=5))

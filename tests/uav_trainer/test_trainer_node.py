@@ -72,6 +72,9 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     again = ros.start("uav_trainer", "trainer_node", *trainer_args, name="trainer2")
     assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 30), ros.log_of(again)
     assert f"{t['env_steps']} env steps" in ros.log_of(again)
+    # The stop (no step budget) wrote the replay memory and the resume restored all of it.
+    assert "replay memory saved with the checkpoint" in ros.log_of(trainer)
+    assert f"replay memory restored: {t['env_steps']} transitions" in ros.log_of(again), ros.log_of(again)
 
 
 def run_train(run_dir, domain: str, *args: str, timeout_s: float = 400):

@@ -59,6 +59,47 @@ def test_training_writes_outputs_and_resumes(tmp_path):
     again.close()
 
 
+def test_a_stop_keeps_the_replay_memory_and_a_resume_learns_on_at_once(tmp_path):
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(t, 120)
+    while t.learn_once():
+        pass
+    path = t.save_checkpoint(final=True)
+    assert (path / checkpoint.REPLAY_FILE).is_file()
+    t.close()
+    logs = []
+    again = Training(small_cfg(), tmp_path, log=logs.append, resume=True)
+    assert any(f"replay memory restored: {len(t.replay)} transitions" in line for line in logs), logs
+    a, b = t.replay.sample(8), again.replay.sample(8)  # same memory, same sampling RNG
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    # Learning carries on at the uninterrupted run's cadence: 10 more steps allow 5 more updates.
+    feed(t, 10, seed=1)
+    feed(again, 10, seed=1)
+    done = 0
+    while again.learn_once():
+        done += 1
+    assert done == 5 and again.learner.updates == 40
+    again.close()
+
+
+def test_the_replay_memory_is_not_written_after_the_budget_or_when_switched_off_and_a_bad_one_is_skipped(tmp_path):
+    for name, cfg in (("budget", small_cfg(total_steps=100)), ("off", small_cfg(save_replay=False))):
+        t = Training(cfg, tmp_path / name, log=lambda s: None)
+        feed(t, 120)
+        assert not (t.save_checkpoint(final=True) / checkpoint.REPLAY_FILE).exists(), name
+        t.close()
+    t = Training(small_cfg(), tmp_path / "bad", log=lambda s: None)
+    feed(t, 120)
+    (t.save_checkpoint(final=True) / checkpoint.REPLAY_FILE).write_bytes(b"\xff" * 64)  # corrupt on disk
+    t.close()
+    logs = []
+    again = Training(small_cfg(), tmp_path / "bad", log=logs.append, resume=True)
+    assert any("replay memory not restored" in line and "unreadable" in line for line in logs), logs
+    assert len(again.replay) == 0 and again.env_steps == 120  # the checkpoint itself is still resumed
+    again.close()
+
+
 def test_the_weight_average_is_written_beside_the_policy_weights(tmp_path):
     t = Training(small_cfg(learner=LearnerConfig(batch_size=8, ema_decay=0.99)), tmp_path, log=lambda s: None)
     feed(t, 80)

@@ -1,8 +1,10 @@
 """Atomic checkpoints: weights, target, Adam state, counters and RNG states; safetensors + JSON, no pickle.
 
-Layout under `dir`: ckpt-<updates>/{state.safetensors, meta.json} and a `latest` file naming
-the newest complete one. A checkpoint directory is renamed into place only when complete,
-and `latest` is replaced atomically after it, so a crash mid-write never corrupts a resume.
+Layout under `dir`: ckpt-<updates>/{state.safetensors, meta.json[, replay.safetensors]} and a
+`latest` file naming the newest complete one. The replay memory is written only when asked (the
+trainers do at a stop before the step budget), since it is large: 8 KiB per 64 x 64 frame.
+A checkpoint directory is renamed into place only when complete, and `latest` is replaced
+atomically after it, so a crash mid-write never corrupts a resume.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import safetensors.numpy
 import torch
 from safetensors.torch import load_file, save_file
 
@@ -34,8 +37,18 @@ def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tens
     return tensors, groups
 
 
-def save(dir_: str | os.PathLike, learner: Learner, counters: dict, extra_rng: dict) -> Path:
-    """Write a checkpoint named after the update count; returns its directory."""
+REPLAY_FILE = "replay.safetensors"
+
+
+def save(
+    dir_: str | os.PathLike,
+    learner: Learner,
+    counters: dict,
+    extra_rng: dict,
+    replay: dict[str, np.ndarray] | None = None,
+) -> Path:
+    """Write a checkpoint named after the update count, with `replay` (ReplayMemory.state()) when
+    given; returns its directory."""
     root = Path(dir_)
     root.mkdir(parents=True, exist_ok=True)
     name = f"ckpt-{learner.updates:09d}-{counters.get('env_steps', 0):09d}"
@@ -62,6 +75,8 @@ def save(dir_: str | os.PathLike, learner: Learner, counters: dict, extra_rng: d
         "rng": extra_rng,
     }
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    if replay is not None:
+        safetensors.numpy.save_file(replay, str(tmp / REPLAY_FILE))
     for f in tmp.iterdir():
         with open(f, "rb") as fh:
             os.fsync(fh.fileno())
@@ -111,6 +126,18 @@ def load(path: Path, learner: Learner) -> dict:
     learner.updates = int(meta["updates"])
     torch.random.set_rng_state(tensors["rng.torch"])
     return meta
+
+
+def load_replay(path: Path) -> dict[str, np.ndarray] | None:
+    """The replay arrays saved with checkpoint `path`, or None if it has none. Raises ValueError for a
+    file safetensors cannot read (no pickle is involved)."""
+    f = path / REPLAY_FILE
+    if not f.is_file():
+        return None
+    try:
+        return safetensors.numpy.load_file(str(f))
+    except Exception as e:  # safetensors raises its own error types for a truncated or bad header
+        raise ValueError(f"{f}: unreadable ({e})") from e
 
 
 def rng_state(rng: np.random.Generator) -> dict:

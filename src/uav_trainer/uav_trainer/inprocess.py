@@ -195,7 +195,7 @@ def run(
         sim.close()
         if validator is not None:
             validator.close()
-        training.save_checkpoint()
+        training.save_checkpoint(final=True)
         training.close()
     return training
 
@@ -213,6 +213,11 @@ def main() -> int:
     ap.add_argument("--learning-starts", type=int, default=TrainerConfig.learning_starts)
     ap.add_argument("--replay-ratio", type=float, default=TrainerConfig.replay_ratio)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument(
+        "--no-save-replay",
+        action="store_true",
+        help="an interrupted run (Ctrl-C) does not write its replay memory (8 KiB per frame) with the final checkpoint",
+    )
     ap.add_argument(
         "--layout-per-episode", action="store_true", help="experiment: a new procedural layout every episode instead of --world"
     )
@@ -340,6 +345,7 @@ def main() -> int:
         model=a.model,
         seed=a.seed,
         total_steps=a.steps,
+        save_replay=not a.no_save_replay,
         epsilon_decay_steps=a.epsilon_decay_steps,
         learning_starts=a.learning_starts,
         replay_ratio=a.replay_ratio,

@@ -88,7 +88,7 @@ class Learner:
             torch.from_numpy(batch["next_state"]).to(d),
         )
 
-    def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+    def update(self, batch: dict[str, np.ndarray]) -> dict[str, float | np.ndarray]:
         """One gradient step on a sampled batch; returns loss, mean Q, gradient norm and `td_abs`
         (each sample's |Q - y|, for prioritized replay). A batch with `discount` (n-step returns)
         bootstraps with it instead of gamma; one with `weight` (prioritized replay) weights each

@@ -19,6 +19,9 @@ p_i^a / sum_k p_k^a, where p_i is its last absolute TD error plus a small floor 
 the largest priority seen so far), and the batch carries importance weights
 (N P(i))^-beta / max_k (N P(k))^-beta that undo the bias. `update_priorities` writes the learner's TD
 errors back; a slot rewritten since it was sampled keeps its new priority.
+
+`state()` and `load_state()` carry the memory across a stop and resume (trainer checkpoints keep it
+in replay.safetensors); only the filled slots are written.
 """
 
 from __future__ import annotations
@@ -47,6 +50,67 @@ class ReplayMemory:
         self.count = 0  # frames stored (<= capacity)
         self.transitions_added = 0
         self.rng = np.random.default_rng(seed)
+
+    # Arrays saved per slot, with their dtypes; `state()` adds `header` and `max_priority`.
+    SLOT_ARRAYS = {
+        "frame": np.float16,
+        "start": np.bool_,
+        "action": np.int64,
+        "reward": np.float32,
+        "done": np.bool_,
+        "has_transition": np.bool_,
+        "priority": np.float64,
+        "writes": np.int64,
+    }
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Copies of the filled slots and the counters, as arrays (for safetensors)."""
+        n = self.count
+        out = {name: getattr(self, name)[:n].copy() for name in self.SLOT_ARRAYS}
+        out["header"] = np.array(
+            [self.capacity, self.frames, *self.frame.shape[1:], self.cursor, self.count, self.transitions_added], dtype=np.int64
+        )
+        out["max_priority"] = np.array([self.max_priority], dtype=np.float64)
+        return out
+
+    def load_state(self, state: dict[str, np.ndarray], n_actions: int) -> None:
+        """Restore what `state()` returned. Raises ValueError, leaving this memory unchanged, when the
+        arrays do not fit this memory (another capacity, frame size or stack depth) or hold values
+        no run could have written (actions outside [0, n_actions), NaN or negative depths, ...)."""
+        header = state.get("header")
+        if header is None or header.dtype != np.int64 or header.shape != (7,):
+            raise ValueError("replay state has no valid header")
+        capacity, frames, h, w, cursor, count, added = (int(v) for v in header)
+        mine = (self.capacity, self.frames, *self.frame.shape[1:])
+        if (capacity, frames, h, w) != mine:
+            theirs = (capacity, frames, h, w)
+            raise ValueError(f"replay state is for capacity, frames, height, width {theirs}, this memory {mine}")
+        if not 0 <= count <= capacity or not 0 <= cursor < capacity or (count < capacity and cursor != count) or added < 0:
+            raise ValueError(f"replay state has inconsistent counters: cursor {cursor}, count {count}, added {added}")
+        arrays = {}
+        for name, dtype in self.SLOT_ARRAYS.items():
+            a = state.get(name)
+            want = (count, *self.frame.shape[1:]) if name == "frame" else (count,)
+            if a is None or a.dtype != dtype or a.shape != want:
+                raise ValueError(f"replay state array {name!r} missing or not {np.dtype(dtype).name} of shape {want}")
+            arrays[name] = a
+        if np.isnan(arrays["frame"]).any() or (arrays["frame"] < 0).any():
+            raise ValueError("replay state has NaN or negative depths")
+        if ((arrays["action"] < 0) | (arrays["action"] >= n_actions)).any():
+            raise ValueError(f"replay state has actions outside [0, {n_actions})")
+        if not np.isfinite(arrays["reward"]).all() or not np.isfinite(arrays["priority"]).all():
+            raise ValueError("replay state has non-finite rewards or priorities")
+        if (arrays["priority"] < 0).any() or (arrays["writes"] < 0).any():
+            raise ValueError("replay state has negative priorities or write counts")
+        max_priority = state.get("max_priority")
+        if max_priority is None or max_priority.shape != (1,) or not np.isfinite(max_priority).all() or max_priority[0] <= 0:
+            raise ValueError("replay state has no valid max_priority")
+        for name, a in arrays.items():
+            target = getattr(self, name)
+            target[:count] = a
+            target[count:] = 0
+        self.cursor, self.count, self.transitions_added = cursor, count, added
+        self.max_priority = float(max_priority[0])
 
     def __len__(self) -> int:
         """Number of sampleable transitions."""

@@ -91,6 +91,12 @@ class TrainerNode(Node):
             epsilon_end=d("epsilon_end", D.epsilon_end, "Final exploration rate (the paper keeps 0.05)", 0.0, 1.0),
             epsilon_decay_steps=d("epsilon_decay_steps", D.epsilon_decay_steps, "Env steps of linear decay", 0, 10**9),
             total_steps=d("total_steps", D.total_steps, "Env steps budget; 0 = until Ctrl-C", 0, 10**10),
+            save_replay=d(
+                "save_replay",
+                D.save_replay,
+                "A stop before the budget also writes the replay memory (8 KiB per frame) with the final checkpoint, "
+                "and a resume restores it",
+            ),
             clearance_m=d(
                 "clearance_m",
                 D.clearance_m,
@@ -312,7 +318,7 @@ class TrainerNode(Node):
         self._closed = True
         self._stop.set()
         self._learner_thread.join(timeout=30)
-        path = self.training.save_checkpoint()
+        path = self.training.save_checkpoint(final=True)
         if path is not None:
             self.get_logger().info(
                 f"final checkpoint {path}; policy weights {self.training.policy_weights_path} "

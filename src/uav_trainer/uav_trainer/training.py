@@ -42,6 +42,9 @@ class TrainerConfig:
     epsilon_end: float = 0.05
     epsilon_decay_steps: int = 10000  # environment steps of linear decay
     total_steps: int = 0  # environment steps budget; 0 = unlimited
+    # A stop before the budget writes the replay memory with the final checkpoint, and a resume
+    # restores it, so learning carries on at once instead of refilling from an empty memory.
+    save_replay: bool = True
     clearance_m: float = 0.0  # > 0 adds clearance_penalty (not in the paper's reward); 0 = the paper's reward
     clearance_weight: float = 4.0
     # > 0 subtracts this from the reward of every step that turns (not in the paper's reward): under
@@ -146,10 +149,9 @@ class Training:
         self._pending_push: bytes | None = None
         self.t_start = time.monotonic()
         self.resumed_from = None
+        self._updates_at_start, self._steps_at_start = 0, 0
         if resume:
             self._resume()
-        # A resumed run refills its (unsaved) replay memory before learning continues.
-        self._updates_at_start, self._steps_at_start = self.learner.updates, self.env_steps
         self._pending_push = self.weights_blob()  # the policy acts with the learner's weights from the start
         self._open_logs()
 
@@ -218,10 +220,27 @@ class Training:
         if "replay" in meta.get("rng", {}):
             checkpoint.set_rng_state(self.replay.rng, meta["rng"]["replay"])
         self.resumed_from = path
+        restored = self._restore_replay(path)
+        if not restored:
+            # Learning waits for learning_starts new transitions, then keeps replay_ratio from here.
+            self._updates_at_start, self._steps_at_start = self.learner.updates, self.env_steps
         self.log(
             f"resumed from {path}: {self.learner.updates} updates, {self.env_steps} env steps "
-            "(the replay memory refills before learning continues)"
+            + (f"(replay memory restored: {restored})" if restored else "(the replay memory refills before learning continues)")
         )
+
+    def _restore_replay(self, path: Path) -> str:
+        """Load the checkpoint's replay memory if it has one and it fits; a description, or "" if none was
+        restored. A bad or mismatching file is logged and skipped: the run refills instead."""
+        try:
+            state = checkpoint.load_replay(path)
+            if state is None:
+                return ""
+            self.replay.load_state(state, self.net_cfg.actions)
+        except ValueError as e:
+            self.log(f"replay memory not restored: {e}")
+            return ""
+        return f"{len(self.replay)} transitions"
 
     # -- acting side --------------------------------------------------------------------
     def epsilon(self) -> float:
@@ -330,13 +349,20 @@ class Training:
             "updates": self.learner.updates,
         }
 
-    def save_checkpoint(self) -> Path | None:
+    def save_checkpoint(self, final: bool = False) -> Path | None:
+        """A checkpoint, the policy weights and the curves. `final` (a stop) also writes the replay
+        memory when save_replay is on and the step budget is not used up, so a resume carries on."""
         if self.failed:
             return None
+        with_replay = final and self.cfg.save_replay and not self.budget_done
         with self.lock:
             counters = self.counters()
             rng = {"replay": checkpoint.rng_state(self.replay.rng)}
-        path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng)
+            replay = self.replay.state() if with_replay else None
+        path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng, replay)
+        if replay is not None:
+            mib = sum(a.nbytes for a in replay.values()) / 2**20
+            self.log(f"replay memory saved with the checkpoint: {len(self.replay)} transitions, {mib:.0f} MiB")
         self.save_weights(self.policy_weights_path)
         if self.learner.ema is not None:
             self.save_weights(self.ema_weights_path, self.learner.ema)
