@@ -12,8 +12,8 @@
 # main job on its defaults, a sixth round (a time limit on training episodes) and a seventh
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
-# (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay) and a thirteenth
-# (slower exploration). About 21 h on 2 cores.
+# (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
+# (slower exploration) and a fourteenth (the same on fresh seeds). About 22 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -415,3 +415,24 @@ sam_ten per06 docs/results/round12_prioritized --priority-alpha 0.6
 # Round 13: slower exploration (epsilon 1 -> 0.05 over 20 000 steps instead of 10 000) in round 6's
 # setting, SAM seeds 0-9 against round 6's SAM and CNN.
 sam_ten eps20k docs/results/round13_slow_exploration --epsilon-decay-steps 20000
+
+# Round 14: round 13's setting on fresh SAM seeds 10-19 (is round 13's fixed-start figure in Complex
+# luck?); seeds 10-19 alone and pooled with round 13's 0-9, against round 6's SAM and CNN.
+R14=docs/results/round14_slow_exploration_seeds10_19
+for s in 10 12 14 16 18; do
+  for k in "$s" $((s + 1)); do train eps20k sam "$k" "${ROUND6[@]}" --epsilon-decay-steps 20000 & done
+  wait
+done
+W=()
+for s in $(seq 10 19); do W+=("runs/eps20k_sam_seed$s/policy_sam.safetensors"); done
+eval_120 $R14 1 --model sam --weights "${W[@]}"
+for p in varied_start fixed_start; do
+  for m in sam cnn; do
+    f=against_round6
+    [ "$m" = sam ] || f=against_round6_cnn
+    python scripts/compare_models.py $R14/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+      --by run --a eps20k_sam --b "tl300_$m" > "$R14/$p/$f.md"
+    python scripts/compare_models.py $R14/$p/results.csv docs/results/round13_slow_exploration/$p/results.csv \
+      docs/results/round6_time_limit/$p/results.csv --by run --a eps20k_sam --b "tl300_$m" > "$R14/$p/pooled_$f.md"
+  done
+done

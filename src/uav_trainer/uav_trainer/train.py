@@ -7,8 +7,9 @@ camera, a new procedural layout every episode and a turn penalty of 1.0 in the r
 `paper` is the paper's setting: a 90 deg camera in the Basic world with the paper's reward.
 
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
-policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint,
-then the policy and the simulator. Running it again with the same run directory resumes.
+policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint with
+the replay memory, then the policy and the simulator. Running it again with the same run
+directory resumes where it stopped.
 """
 
 from __future__ import annotations
