@@ -13,7 +13,8 @@
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
-# (slower exploration) and a fourteenth (the same on fresh seeds). About 22 h on 2 cores.
+# (slower exploration, then with CNN) and a fourteenth (the same on fresh seeds). About 23 h on 2
+# cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -435,4 +436,15 @@ for p in varied_start fixed_start; do
     python scripts/compare_models.py $R14/$p/results.csv docs/results/round13_slow_exploration/$p/results.csv \
       docs/results/round6_time_limit/$p/results.csv --by run --a eps20k_sam --b "tl300_$m" > "$R14/$p/pooled_$f.md"
   done
+done
+
+# Round 13's CNN arm: CNN seeds 0-9 with the slower exploration; against round 6's CNN, and SAM's
+# twenty seeds of rounds 13 and 14 against it.
+R13=docs/results/round13_slow_exploration
+model_ten eps20k cnn $R13/cnn --epsilon-decay-steps 20000
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R13/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a eps20k_cnn --b tl300_cnn > $R13/cnn/$p/against_round6.md
+  python scripts/compare_models.py $R13/cnn/$p/results.csv $R13/$p/results.csv $R14/$p/results.csv \
+    --by run --a eps20k_sam --b eps20k_cnn > $R13/cnn/$p/sam_against_cnn.md
 done
