@@ -80,6 +80,10 @@ def test_a_stop_keeps_the_replay_memory_and_a_resume_learns_on_at_once(tmp_path)
     while again.learn_once():
         done += 1
     assert done == 5 and again.learner.updates == 40
+    # A newer checkpoint removes the older one's replay file (400 MiB when full), keeping the checkpoint.
+    newer = again.save_checkpoint()
+    assert not (path / checkpoint.REPLAY_FILE).exists() and (path / "state.safetensors").is_file()
+    assert not (newer / checkpoint.REPLAY_FILE).exists()
     again.close()
 
 

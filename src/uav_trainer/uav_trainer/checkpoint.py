@@ -2,7 +2,8 @@
 
 Layout under `dir`: ckpt-<updates>/{state.safetensors, meta.json[, replay.safetensors]} and a
 `latest` file naming the newest complete one. The replay memory is written only when asked (the
-trainers do at a stop before the step budget), since it is large: 8 KiB per 64 x 64 frame.
+trainers do at a stop before the step budget), since it is large: 8 KiB per 64 x 64 frame; a
+newer checkpoint removes an older one's.
 A checkpoint directory is renamed into place only when complete, and `latest` is replaced
 atomically after it, so a crash mid-write never corrupts a resume.
 """
@@ -86,6 +87,9 @@ def save(
     write_atomic(root / "latest", name.encode())
     for old in sorted(p for p in root.glob("ckpt-*") if p.is_dir())[:-KEEP]:
         shutil.rmtree(old, ignore_errors=True)
+    for older in root.glob(f"ckpt-*/{REPLAY_FILE}"):  # only the newest checkpoint's memory can be resumed with
+        if older.parent != final:
+            older.unlink(missing_ok=True)
     return final
 
 
