@@ -11,11 +11,14 @@ its weights files (training seeds), the difference a - b with a 95 % bootstrap i
 two models' seeds come from one distribution" (difference of means, model labels shuffled).
 Both are seeded, so the output is reproducible. `--by run` compares two training variants instead
 of two models: a row's group is its weights file's folder without `_seed<N>` (runs/turn_sam_seed3/
-policy_sam.safetensors -> turn_sam; a snapshot policy_sam_step40000.safetensors -> turn_sam_step40000).
+policy_sam.safetensors -> turn_sam; a snapshot policy_sam_step40000.safetensors -> turn_sam_step40000;
+an ensemble of three files, evaluate --ensemble 3 -> turn_sam_ens3).
 `--paired` (with `--by run`) compares the same training seeds in both groups: the difference is the
 mean over seeds of a - b, its interval resamples seeds, and the p-value flips the signs of the
 per-seed differences (a sign-flip permutation test), which is stronger than the unpaired test when
 seeds differ more from each other than the variants do. Only seeds present in both groups count.
+An ensemble (evaluate --ensemble) is paired with the same ensemble in b if b has it, else with the
+mean of b's rows for its members' seeds: does voting beat the members it is made of?
 """
 
 from __future__ import annotations
@@ -29,18 +32,44 @@ from pathlib import PurePath
 
 import numpy as np
 
+ENSEMBLE_SEP = "+"  # evaluate.ENSEMBLE_SEP: an ensemble's weights column is its files joined by it
+
 
 def run_name(weights: str) -> str:
-    """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam; .../policy_sam_step40000.safetensors -> turn_sam_step40000"""
+    """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam; .../policy_sam_step40000.safetensors -> turn_sam_step40000;
+    an ensemble of three (evaluate --ensemble 3: files joined by '+') -> turn_sam_ens3"""
+    if ENSEMBLE_SEP in weights:
+        files = weights.split(ENSEMBLE_SEP)
+        return f"{run_name(files[0])}_ens{len(files)}"
     path = PurePath(weights)
     step = re.search(r"_step(\d+)\.safetensors$", path.name)
     return re.sub(r"_seed\d+$", "", path.parent.name) + (f"_step{step.group(1)}" if step else "")
 
 
-def seed_of(weights: str) -> int | None:
-    """runs/turn_sam_seed3/policy_sam.safetensors -> 3 (None without a _seed<N> folder)"""
-    m = re.search(r"_seed(\d+)$", PurePath(weights).parent.name)
-    return int(m.group(1)) if m else None
+def seeds_of(weights: str) -> tuple[int, ...] | None:
+    """runs/turn_sam_seed3/policy_sam.safetensors -> (3,); an ensemble -> its members' seeds, e.g. (3, 4, 5);
+    None when a file has no _seed<N> folder."""
+    seeds = []
+    for path in weights.split(ENSEMBLE_SEP):
+        m = re.search(r"_seed(\d+)$", PurePath(path).parent.name)
+        if not m:
+            return None
+        seeds.append(int(m.group(1)))
+    return tuple(seeds)
+
+
+def partners(xa: list[float], sa: list, xb: list[float], sb: list) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs for --paired: a's row with the b row of the same seeds, else (an ensemble against single
+    files) with the mean of the b rows of its members' seeds; rows without a partner are left out."""
+    by_seeds = dict(zip(sb, xb, strict=True))
+    pairs = []
+    for x, key in zip(xa, sa, strict=True):
+        if key in by_seeds:
+            pairs.append((key, x, by_seeds[key]))
+        elif len(key) > 1 and all((k,) in by_seeds for k in key):
+            pairs.append((key, x, float(np.mean([by_seeds[(k,)] for k in key]))))
+    pairs.sort()  # by seeds: the resampling sees the same order whatever the rows' order
+    return np.array([p[1] for p in pairs]), np.array([p[2] for p in pairs])
 
 
 def compare(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resamples: int) -> tuple[float, float, float, float]:
@@ -79,7 +108,7 @@ def main(argv=None) -> int:
     if a.paired and a.by != "run":
         ap.error("--paired needs --by run (two variants trained on the same seeds)")
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
-    seeds: dict[tuple[str, str], list[int | None]] = defaultdict(list)  # in the order of values' rows
+    seeds: dict[tuple[str, str], list[tuple[int, ...] | None]] = defaultdict(list)  # in the order of values' rows
     worlds: list[str] = []
     for path in a.csv:
         for r in csv.DictReader(open(path)):
@@ -88,7 +117,7 @@ def main(argv=None) -> int:
             group = r["model"] if a.by == "model" else run_name(r["weights"])
             values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
             values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
-            seeds[(group, r["world"])].append(seed_of(r["weights"]))
+            seeds[(group, r["world"])].append(seeds_of(r["weights"]))
     rng = np.random.default_rng(a.seed)
     A, B = (a.a.upper(), a.b.upper()) if a.by == "model" else (a.a, a.b)
     how = "paired by training seed, sign-flip test" if a.paired else "unpaired"
@@ -105,9 +134,7 @@ def main(argv=None) -> int:
                 if None in sx + sy or len(set(sx)) != len(sx) or len(set(sy)) != len(sy):
                     print(f"--paired: {world}: every weights file needs a distinct _seed<N> folder per group", file=sys.stderr)
                     return 2
-                common = sorted(set(sx) & set(sy))
-                x = np.array([x[sx.index(k)] for k in common])
-                y = np.array([y[sy.index(k)] for k in common])
+                x, y = partners(list(x), sx, list(y), sy)
             if x.size < 2 or y.size < 2:
                 continue
             missing = False

@@ -13,8 +13,8 @@
 # (the same trained longer, and a confirmation on fresh seeds), an eighth (an 84 x 84 input) and a
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
-# (slower exploration, then with CNN) and a fourteenth (the same on fresh seeds). About 23 h on 2
-# cores.
+# (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
+# 6's setting on fresh seeds, flown alone and as ensembles of three). About 24 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -448,3 +448,41 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R13/cnn/$p/results.csv $R13/$p/results.csv $R14/$p/results.csv \
     --by run --a eps20k_sam --b eps20k_cnn > $R13/cnn/$p/sam_against_cnn.md
 done
+
+# Round 15: round 6's setting on fresh SAM seeds 20-31, flown one by one and as four ensembles of
+# three consecutive seeds (evaluate --ensemble 3: the mean of their Q-values); the ensembles against
+# their own members (paired) and all single seeds; the fresh seeds against round 6's (renamed so
+# that the two sets of tl300_sam runs can be told apart); round 6's SAM pooled over 32 seeds.
+R15=docs/results/round15_ensembles
+for s in 20 22 24 26 28 30; do
+  for k in "$s" $((s + 1)); do train tl300 sam "$k" "${ROUND6[@]}" & done
+  wait
+done
+W=()
+for s in $(seq 20 31); do W+=("runs/tl300_sam_seed$s/policy_sam.safetensors"); done
+eval_120 $R15/single 1 --model sam --weights "${W[@]}"
+eval_120 $R15/ensemble3 1 --model sam --ensemble 3 --weights "${W[@]}"
+R6=docs/results/round6_time_limit
+for p in varied_start fixed_start; do
+  E=$R15/ensemble3/$p
+  python scripts/compare_models.py $E/results.csv $R15/single/$p/results.csv --by run --a tl300_sam_ens3 --b tl300_sam \
+    > $E/against_single.md
+  python scripts/compare_models.py $E/results.csv $R15/single/$p/results.csv --by run --paired --a tl300_sam_ens3 \
+    --b tl300_sam > $E/against_members.md
+  python scripts/compare_models.py $E/results.csv $R15/single/$p/results.csv $R6/$p/results.csv --by run \
+    --a tl300_sam_ens3 --b tl300_sam > $E/against_32_single.md
+  sed 's/tl300_sam_seed/fresh_sam_seed/' $R15/single/$p/results.csv > /tmp/fresh_$p.csv
+  python scripts/compare_models.py /tmp/fresh_$p.csv $R6/$p/results.csv --by run --a fresh_sam --b tl300_sam \
+    | sed "s|/tmp/fresh_$p.csv|$R15/single/$p/results.csv (runs renamed fresh_sam)|" > $R15/single/$p/against_round6.md
+done
+$EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 \
+  --from-csv $R6/varied_start/results.csv $R15/single/varied_start/results.csv --out $R15/round6_32_seeds/varied_start
+$EVAL --inprocess --worlds basic complex turbulent --steps 1000 --sim-arg hfov_deg:=120.0 \
+  --from-csv $R6/fixed_start/results.csv $R15/single/fixed_start/results.csv --out $R15/round6_32_seeds/fixed_start
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R15/round6_32_seeds/$p/results.csv > $R15/round6_32_seeds/$p/comparison.md
+done
+# Round 15's reproducibility check: round 6's seed 0 trained again and flown; compare its rows with
+# runs/tl300_sam_seed0's in docs/results/round6_time_limit/*/results.csv (equal only on round 6's machine).
+train recheck sam 0 "${ROUND6[@]}"
+eval_120 runs/recheck_eval 0 --model sam --weights runs/recheck_sam_seed0/policy_sam.safetensors

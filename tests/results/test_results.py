@@ -157,6 +157,48 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
     assert "random heading (uniform ±180°), 2 x 30 steps" in (tmp_path / "joined" / "results.md").read_text()
 
 
+def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):
+    """--ensemble K groups the files in order; two copies of one network fly exactly as that network."""
+    import importlib.util
+
+    from uav_trainer.evaluate import main
+
+    def save(name, seed, cfg=NetConfig()):
+        path = tmp_path / name / "policy_sam.safetensors"
+        path.parent.mkdir()
+        wio.save_file(build_network(cfg, seed=seed), cfg, path, camera_hfov_deg=120.0)
+        return str(path)
+
+    a, a_copy, b = save("e_sam_seed0", 0), save("e_sam_seed1", 0), save("e_sam_seed2", 1)
+    flat = save("flat_sam_seed0", 0, NetConfig(sam_readout="flatten"))
+    proto = ["--inprocess", "--worlds", "basic", "--steps", "40", "--start-yaw-jitter-deg", "180"]
+    assert main([*proto, "--weights", a, "--out", str(tmp_path / "one")]) == 0
+    assert main([*proto, "--ensemble", "2", "--weights", a, a_copy, "--out", str(tmp_path / "ens")]) == 0
+    one, ens = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("one", "ens"))
+    assert ens["weights"] == f"{a}+{a_copy}"
+    for key in ("steps", "crashes", "mean_reward", "distance_m", "turn_steps", "cells_visited"):
+        assert ens[key] == one[key], key
+    assert main([*proto, "--ensemble", "2", "--weights", a, b, "--out", str(tmp_path / "mixed")]) == 0
+    for bad, says in (
+        (["--ensemble", "2", "--weights", a, b, b], "not a multiple of 2"),
+        (["--ensemble", "2", "--weights", a, flat], "one architecture"),
+        (["--ensemble", "0", "--weights", a], "must be >= 1"),
+        (["--ensemble", "2"], "give the sam weights files"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main([*proto, *bad])
+        assert e.value.code == 2 and says in capsys.readouterr().err
+    no_ros = run_tool("uav_trainer", "evaluate", "--ensemble", "2", "--weights", a, b, "--steps", "5")
+    assert no_ros.returncode == 2 and "--ensemble needs --inprocess" in no_ros.stderr
+    spec = importlib.util.spec_from_file_location("compare_models", ROOT / "scripts" / "compare_models.py")
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    assert compare.run_name(ens["weights"]) == "e_sam_ens2" and compare.seeds_of(ens["weights"]) == (0, 1)
+    # --paired: an ensemble against the mean of its members (b = the single files)
+    x, y = compare.partners([1.0, 5.0], [(0, 1), (2, 3)], [0.0, 4.0, 2.0], [(0,), (1,), (2,)])
+    assert x.tolist() == [1.0] and y.tolist() == [2.0]  # (2, 3) has no partner: seed 3 is missing
+
+
 def test_compare_models_tells_a_real_difference_from_none(tmp_path):
     def write(name, sam, cnn):
         path = tmp_path / name

@@ -6,7 +6,7 @@ from uav_policy.actions import PAPER_ACTIONS, match_action
 from uav_policy.agent import Agent
 from uav_policy.attention import attention_map, overlay
 from uav_policy.frame_stack import FrameStack
-from uav_policy.networks import NetConfig, build_network, normalise_depth, parameter_count
+from uav_policy.networks import NetConfig, QEnsemble, build_network, normalise_depth, parameter_count
 
 
 def depth_batch(b=3, seed=0):
@@ -89,6 +89,30 @@ def test_seeded_network_is_deterministic(model):
     x = depth_batch()
     torch.testing.assert_close(a(x)[0], b(x)[0], rtol=0, atol=0)
     assert not torch.allclose(a(x)[0], c(x)[0])
+
+
+@pytest.mark.parametrize("model", ["sam", "cnn"])
+def test_an_ensemble_acts_on_the_mean_of_its_members_q_values(model):
+    members = [build_network(NetConfig(model=model), seed=s) for s in (1, 2, 3)]
+    x = depth_batch()
+    with torch.no_grad():
+        q, w = QEnsemble(members)(x)
+        outs = [m(x) for m in members]
+    torch.testing.assert_close(q, sum(o[0] for o in outs) / 3)
+    if model == "sam":  # every member's heads side by side, rows still sum to 1
+        assert w.shape == (3, 9, 64, 64)
+        torch.testing.assert_close(w[:, 3:6], outs[1][1])
+        torch.testing.assert_close(w.sum(-1), torch.ones(3, 9, 64))
+        assert QEnsemble(members).grid_hw == (8, 8)
+    else:
+        assert w is None
+    with torch.no_grad():  # two copies of one network act as that network
+        torch.testing.assert_close(QEnsemble([members[0], members[0]])(x)[0], outs[0][0])
+    with pytest.raises(ValueError, match="at least 2"):
+        QEnsemble(members[:1])
+    other = build_network(NetConfig(model=model, head_hidden=32), seed=1)
+    with pytest.raises(ValueError, match="one architecture"):
+        QEnsemble([members[0], other])
 
 
 def test_normalisation_of_rep117_values():

@@ -1,4 +1,5 @@
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -57,6 +58,11 @@ def test_training_writes_outputs_and_resumes(tmp_path):
     feed(again, 40, seed=1)
     assert not again.can_learn()
     again.close()
+    # Every start records the machine: a seeded run is bit-exact only on the same kind of processor.
+    starts = [json.loads(line) for line in (tmp_path / "machine.jsonl").read_text().splitlines()]
+    assert [s["env_steps"] for s in starts] == [0, 120]
+    assert starts[1]["cpu_kernels"] == torch.backends.cpu.get_cpu_capability() and starts[1]["torch"] == torch.__version__
+    assert starts[1]["processor"] and starts[1]["torch_threads"] == torch.get_num_threads()
 
 
 def test_a_stop_keeps_the_replay_memory_and_a_resume_learns_on_at_once(tmp_path):

@@ -15,6 +15,10 @@ grid order into the CNN's hidden layer, so the head sees where each feature is, 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
 Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10).
+
+QEnsemble (an extension; evaluate --ensemble K): several networks of one model, trained from
+different seeds, act as one by the mean of their Q-values; its attention is every member's heads
+side by side (B, members x heads, nodes, nodes).
 """
 
 from __future__ import annotations
@@ -236,6 +240,31 @@ class D3QNCnn(nn.Module):
 
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, None]:
         return self.dueling_head(self.hidden(self.trunk(depth_m).flatten(1))), None
+
+
+class QEnsemble(nn.Module):
+    """Networks of one architecture (e.g. several training seeds) acting as one: Q is the mean of
+    the members' Q-values, the attention the members' heads concatenated (None for CNN)."""
+
+    def __init__(self, members: list[nn.Module]):
+        super().__init__()
+        if len(members) < 2:
+            raise ValueError(f"an ensemble needs at least 2 networks, got {len(members)}")
+        first = dataclasses.asdict(members[0].cfg)
+        for i, m in enumerate(members[1:], 1):
+            differ = {k: (v, first[k]) for k, v in dataclasses.asdict(m.cfg).items() if v != first[k]}
+            if differ:
+                raise ValueError(f"ensemble members must share one architecture: member {i} differs from member 0 in {differ}")
+        self.members = nn.ModuleList(members)
+        self.cfg = members[0].cfg
+
+    @property
+    def grid_hw(self) -> tuple[int, int]:
+        return self.members[0].grid_hw
+
+    def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        qs, ws = zip(*(m(depth_m) for m in self.members), strict=True)
+        return torch.stack(qs).mean(dim=0), None if ws[0] is None else torch.cat(ws, dim=1)
 
 
 def build_network(cfg: NetConfig, seed: int | None = None) -> nn.Module:

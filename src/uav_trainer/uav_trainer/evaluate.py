@@ -391,6 +391,26 @@ def evaluate_inprocess(
     )
 
 
+ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
+
+
+def load_ensemble(model: str, files: list[str], hfov_deg: float | None):
+    """(QEnsemble, its NetConfig, the camera to fly with) for weights files of one architecture. Without
+    hfov_deg the members' trained camera, which must then be the same for all (ValueError if not)."""
+    from uav_policy import weights as wio
+    from uav_policy.networks import QEnsemble
+    from uav_sim.simulator import SimConfig
+
+    nets = [wio.load_file(f, wio.config_for(model, f)) for f in files]
+    net = QEnsemble(nets)
+    if hfov_deg is None:
+        cameras = {wio.camera_for(f, SimConfig.hfov_deg) for f in files}
+        if len(cameras) != 1:
+            raise ValueError(f"members were trained with different cameras {sorted(cameras)}: give --sim-arg hfov_deg:=X")
+        hfov_deg = cameras.pop()
+    return net, net.cfg, hfov_deg
+
+
 def pool(runs: list[EvalResult]) -> EvalResult:
     """Several evaluations of one weight file in one world as one (steps, crashes and distance summed)."""
     first = runs[0]
@@ -615,6 +635,14 @@ def main(argv=None) -> int:
         "file flies with the camera it was trained with (its header), else the sim default",
     )
     ap.add_argument("--repeats", type=int, default=1, help="runs per weight file and world (sim seeds --seed + i), pooled")
+    ap.add_argument(
+        "--ensemble",
+        type=int,
+        default=1,
+        metavar="K",
+        help="with --inprocess: fly each K consecutive weights files of a model as one policy, the mean of their "
+        "Q-values (an extension; one results row per group, its weights column the files joined by '+')",
+    )
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
     ap.add_argument(
@@ -641,6 +669,10 @@ def main(argv=None) -> int:
         ap.error("--crash-log needs --inprocess")
     if a.repeats < 1 or a.steps < 1:
         ap.error("--repeats and --steps must be >= 1")
+    if a.ensemble < 1:
+        ap.error("--ensemble must be >= 1")
+    if a.ensemble > 1 and not a.inprocess:
+        ap.error("--ensemble needs --inprocess (policy_node flies one weights file)")
     try:
         hfov_deg = sim_arg_hfov_deg(a.sim_arg)
     except ValueError as e:
@@ -697,22 +729,32 @@ def main(argv=None) -> int:
         print(md.read_text())
         return 0
     models = a.model or ["sam"]
-    runs: list[tuple[str, str]] = []
+    runs: list[tuple[str, list[str]]] = []  # (model, its files: one, an ensemble's, or none for the packaged weights)
     for m in models:
         files = [w.split("=", 1)[1] for w in (a.weights or []) if w.startswith(f"{m}=")]
         files += [w for w in (a.weights or []) if "=" not in w] if len(models) == 1 else []
-        runs += [(m, f) for f in files] or [(m, "")]
+        if a.ensemble > 1 and not files:
+            ap.error(f"--ensemble {a.ensemble}: give the {m} weights files to group (--weights)")
+        if a.ensemble > 1 and len(files) % a.ensemble:
+            ap.error(f"--ensemble {a.ensemble}: {m} has {len(files)} weights files, not a multiple of {a.ensemble}")
+        runs += [(m, files[i : i + a.ensemble]) for i in range(0, len(files), a.ensemble)] or [(m, [])]
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
 
     from uav_policy.weights import WeightsError, read_file_config
 
-    for model, weights in runs:  # unreadable weights fail here, before any node starts
-        if weights:
+    for model, files in runs:  # unreadable weights fail here, before any node starts
+        for path in files:
             try:
-                read_file_config(weights)
+                read_file_config(path)
             except WeightsError as e:
-                ap.error(f"--weights {model}={weights}: {e}")
+                ap.error(f"--weights {model}={path}: {e}")
+    ensembles = {}  # weights column -> (network, its config, camera)
+    for model, files in runs if a.ensemble > 1 else []:
+        try:
+            ensembles[ENSEMBLE_SEP.join(files)] = load_ensemble(model, files, hfov_deg)
+        except ValueError as e:
+            ap.error(f"--ensemble {a.ensemble}, {model}: {e}")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     results, crash_rows = [], []
@@ -734,22 +776,26 @@ def main(argv=None) -> int:
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
                 )
+            net, net_cfg, hfov = ensembles.get(weights, (None, None, hfov_deg))
             r = evaluate_inprocess(
                 model,
                 weights,
                 world,
                 a.steps,
                 seed,
+                net=net,
                 start_yaw_jitter_deg=jitter,
-                hfov_deg=hfov_deg,
+                hfov_deg=hfov,
+                net_cfg=net_cfg,
                 crash_log=crash_rows if a.crash_log else None,
             )
             bar.update(a.steps)
             return r
 
-        for model, weights in runs:
+        for model, files in runs:
+            weights = ENSEMBLE_SEP.join(files)  # the weights column: "" for the packaged weights
             for world in a.worlds:
-                bar.set_description(f"{model} {world} {Path(weights).name if weights else 'packaged'}")
+                bar.set_description(f"{model} {world} {Path(files[0]).name if files else 'packaged'}")
                 r = pool([measure(model, weights, world, a.seed + i) for i in range(a.repeats)])
                 results.append(r)
                 bar.write(

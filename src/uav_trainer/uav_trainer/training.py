@@ -1,8 +1,10 @@
 """The training core shared by the ROS trainer node and the in-process loop (no ROS here).
 
 It owns the replay memory, the learner, the episode statistics and the run directory:
-metrics.csv, episodes.csv, TensorBoard events (tb/), curves.png, checkpoints/ and the latest
-policy weights (policy_<model>.safetensors, loadable by policy_node's `weights`).
+metrics.csv, episodes.csv, TensorBoard events (tb/), curves.png, checkpoints/, the latest
+policy weights (policy_<model>.safetensors, loadable by policy_node's `weights`) and machine.jsonl
+(one line per start: the processor, torch and the CPU kernels it picked; a seeded run is
+bit-reproducible on one machine, but another processor may round differently).
 Thread-safe: one thread adds transitions while another calls `learn_once`.
 """
 
@@ -10,7 +12,9 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
+import platform
 import threading
 import time
 from pathlib import Path
@@ -110,6 +114,24 @@ def reward_description(cfg: TrainerConfig) -> str:
     return " ".join(parts)
 
 
+def machine_info() -> dict:
+    """What decides a run's floating-point results beyond the code, seed and packages."""
+    processor = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            processor = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), processor)
+    except OSError:
+        pass
+    return {
+        "processor": processor or platform.machine(),
+        "machine": platform.machine(),
+        "cpu_kernels": torch.backends.cpu.get_cpu_capability(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "torch_threads": torch.get_num_threads(),
+    }
+
+
 class Training:
     def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
         if not 1 <= cfg.n_step <= MAX_N_STEP:
@@ -152,6 +174,7 @@ class Training:
         self._updates_at_start, self._steps_at_start = 0, 0
         if resume:
             self._resume()
+        self._record_machine()
         self._pending_push = self.weights_blob()  # the policy acts with the learner's weights from the start
         self._open_logs()
 
@@ -167,6 +190,16 @@ class Training:
     @property
     def ema_weights_path(self) -> Path:
         return self.dir / f"policy_{self.cfg.model}_ema.safetensors"
+
+    def _record_machine(self) -> None:
+        info = machine_info()
+        line = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "env_steps": self.env_steps, **info}
+        with open(self.dir / "machine.jsonl", "a") as f:
+            f.write(json.dumps(line) + "\n")
+        self.log(
+            f"machine: {info['processor']}, torch {info['torch']} with {info['cpu_kernels']} kernels, "
+            f"{info['torch_threads']} thread(s)"
+        )
 
     def _open_logs(self) -> None:
         new = not (self.dir / "metrics.csv").exists()
