@@ -64,7 +64,7 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     # The transition into the sim's last step is missing when the policy stopped before answering
     # its frame; if that step was a collision, the trainer has one episode fewer.
     assert collisions > 20 and collisions - missing <= int(t["episodes"]) <= collisions, (t, collisions, sim_steps)
-    assert ros.stop(trainer) == 0
+    assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
     assert "final checkpoint" in ros.log_of(trainer)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
     # The weights record the camera the trainer saw on depth/camera_info.
@@ -177,7 +177,7 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     assert ros.spin_until(lambda: "uav_policy" in diag, 10)
     assert diag["uav_trainer"]["pushes_rejected"] == "0" and diag["uav_policy"]["pushes_rejected"] == "0"
     assert "prioritized replay (alpha 0.6, beta 0.4 -> 1 over 30000 steps), 3-step returns" in ros.log_of(trainer)
-    assert ros.stop(trainer) == 0
+    assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
     made = wio.read_file_config(tmp_path / "policy_sam.safetensors")
     assert (made.d_model, made.heads, made.relational_blocks, made.mlp_hidden) == (24, 2, 2, 32)
 

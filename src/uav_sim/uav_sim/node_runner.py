@@ -30,6 +30,9 @@ def run(node_factory, args=None) -> int:
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception as e:
+        if not interrupted(e):
+            raise
     finally:
         if node is not None:
             close = getattr(node, "close", None)
@@ -39,3 +42,16 @@ def run(node_factory, args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def interrupted(e: BaseException | None) -> bool:
+    """Whether `e` is Ctrl-C in disguise. The signal can land while rclpy's C++ code builds a
+    message (taking a service request or response); pybind11 then raises SystemError with the
+    KeyboardInterrupt as its cause, and a node stopped with Ctrl-C would exit 1 with a traceback."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, (KeyboardInterrupt, ExternalShutdownException)):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False

@@ -1,0 +1,73 @@
+"""node_runner.run: Ctrl-C that lands inside rclpy's C++ code still ends a node cleanly (exit 0),
+while a real error in a callback still ends it with a traceback (exit 1)."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from uav_sim.node_runner import interrupted
+
+# A node whose first timer callback raises what the test passes in; close() proves the clean-up ran.
+NODE = """
+import sys
+from rclpy.node import Node
+from uav_sim.node_runner import run
+
+class N(Node):
+    def __init__(self):
+        super().__init__("runner_probe")
+        self.create_timer(0.01, self.tick)
+
+    def tick(self):
+        {raise_line}
+
+    def close(self):
+        print("closed", flush=True)
+
+sys.exit(run(N))
+"""
+
+
+def run_node(raise_line: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, ROS_DOMAIN_ID="98", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    code = NODE.format(raise_line=raise_line)
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_ctrl_c_wrapped_by_pybind11_exits_cleanly():
+    # What rclpy's take_response raises when SIGINT arrives while it builds the response message.
+    p = run_node('raise SystemError("take_response returned a result with an exception set") from KeyboardInterrupt()')
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "closed" in p.stdout
+    assert "Traceback" not in p.stderr
+
+
+def test_a_real_error_in_a_callback_still_fails_with_its_traceback():
+    p = run_node('raise SystemError("a real bug")')
+    assert p.returncode == 1
+    assert "a real bug" in p.stderr and "Traceback" in p.stderr
+    assert "closed" in p.stdout  # the final checkpoint is still written on the way out
+
+
+@pytest.mark.parametrize(
+    "chain, expected",
+    [
+        (KeyboardInterrupt(), True),
+        (ValueError("x"), False),
+        (SystemError("wrapped"), False),
+    ],
+)
+def test_interrupted_reads_the_cause_chain(chain, expected):
+    assert interrupted(chain) is expected
+    outer = RuntimeError("outer")
+    outer.__cause__ = SystemError("middle")
+    outer.__cause__.__context__ = chain
+    assert interrupted(outer) is expected
+
+
+def test_interrupted_survives_a_cycle():
+    a, b = ValueError("a"), ValueError("b")
+    a.__context__, b.__context__ = b, a
+    assert interrupted(a) is False
