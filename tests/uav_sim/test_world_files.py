@@ -1,6 +1,8 @@
+import itertools
+
 import pytest
 
-from uav_sim.world import WorldError, load_world
+from uav_sim.world import WorldError, load_world, training_layouts
 
 
 def write(tmp_path, text, name="w.yaml"):
@@ -57,3 +59,18 @@ def test_unknown_name_and_missing_file():
         load_world("mars")
     with pytest.raises(WorldError, match="cannot read world file"):
         load_world("/nonexistent/world.yaml")
+
+
+def test_training_layouts_can_mix_a_world_in_every_kth_episode():
+    basic = load_world("basic")
+    plain = [w.name for w in itertools.islice(training_layouts(2), 6)]
+    mixed = [w.name for w in itertools.islice(training_layouts(2, basic, 3), 9)]
+    # Every third episode is Basic; the layouts in between keep their order and skip none.
+    assert mixed[2::3] == ["basic"] * 3
+    assert [n for i, n in enumerate(mixed) if i % 3 != 2] == plain
+    assert [w.name for w in itertools.islice(training_layouts(2, basic, 0), 6)] == plain
+    for bad in (1, -2):
+        with pytest.raises(ValueError, match="world_every"):
+            training_layouts(2, basic, bad)
+    with pytest.raises(ValueError, match="world_every"):
+        training_layouts(2, None, 3)

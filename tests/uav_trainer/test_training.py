@@ -410,3 +410,19 @@ def test_the_reward_is_described_with_its_extensions():
     assert reward_description(TrainerConfig()) == "the paper's"
     both = TrainerConfig(turn_penalty=1.0, clearance_m=1.5, clearance_weight=4.0)
     assert reward_description(both) == "the paper's - 1 per turning step - clearance penalty (up to 4 within 1.5 m)"
+
+
+def test_inprocess_world_every_flies_the_world_between_layouts(tmp_path, monkeypatch):
+    import uav_trainer.inprocess as ip
+    from uav_sim.simulator import Simulator
+
+    entered = []
+    enter = Simulator._enter
+    monkeypatch.setattr(Simulator, "_enter", lambda sim, *a: enter(sim, *a) or entered.append(sim.world.name))
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=60, learning_starts=10**6, epsilon_start=1.0)
+    ip.run(cfg, str(tmp_path), world="complex", log=lambda s: None, layout_per_episode=True, max_episode_steps=3, world_every=2)
+    # The first episode is a layout; from then on every second episode flies --world.
+    assert len(entered) >= 10 and entered[0::2] == ["complex"] * len(entered[0::2])
+    assert all(n.startswith("random:") for n in entered[1::2])
+    with pytest.raises(ValueError, match="layout_per_episode"):
+        ip.run(cfg, str(tmp_path / "no"), log=lambda s: None, world_every=2)

@@ -246,8 +246,16 @@ def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
     return World(f"random:{seed}", length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
 
 
-def training_layouts(seed: int) -> Iterator[World]:
+def training_layouts(seed: int, world: World | None = None, world_every: int = 0) -> Iterator[World]:
     """The procedural layouts a run with this seed trains on, one per episode:
-    random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear."""
+    random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear.
+
+    With `world` and `world_every` = K >= 2, every K-th episode flies `world` instead (an extension:
+    e.g. the paper's training room Basic between the layouts); the layouts keep their order."""
     start = TRAINING_LAYOUTS_FROM + 100_000 * seed
-    return (procedural_world(s) for s in itertools.count(start))
+    layouts = (procedural_world(s) for s in itertools.count(start))
+    if not world_every:
+        return layouts
+    if world is None or world_every < 2:
+        raise ValueError(f"world_every must be 0 (layouts only) or >= 2 with a world, got {world_every}")
+    return (world if i % world_every == 0 else next(layouts) for i in itertools.count(1))

@@ -112,6 +112,7 @@ def run(
     max_episode_steps: int = 0,
     save_weights_at=(),
     random_start_fraction: float = 0.0,
+    world_every: int = 0,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -125,6 +126,9 @@ def run(
     a cut, not a crash: Training.add_truncated) so that training keeps meeting new layouts and
     starts once the policy has learnt to survive.
 
+    `world_every` = K >= 2, with `layout_per_episode`, flies `world` as every K-th episode between
+    the layouts (an extension: the paper trains in Basic only, round 6 on layouts only).
+
     `random_start_fraction` > 0 starts that share of episodes at a random free place and heading
     in the room (SimConfig.random_start_fraction) instead of the layout's start pose.
 
@@ -133,6 +137,8 @@ def run(
     without retraining the shorter budget: the first N steps of a longer run are the N-step run).
     """
     snapshots = frozenset(int(n) for n in save_weights_at)
+    if world_every and not layout_per_episode:
+        raise ValueError("world_every mixes the world into the layouts: it needs layout_per_episode")
     if any(n < 1 or n > cfg.total_steps for n in snapshots):
         raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {sorted(snapshots)}")
     training = Training(cfg, run_dir, log=log, resume=resume)
@@ -149,7 +155,7 @@ def run(
         image_height=cfg.input_size_px,
     )
     if layout_per_episode:
-        layouts = training_layouts(cfg.seed)
+        layouts = training_layouts(cfg.seed, load_world(world) if world_every else None, world_every)
         sim = Simulator(next(layouts), sim_cfg, next_worlds=layouts, redraw_heading=redraw_heading)
     else:
         sim = Simulator(load_world(world), sim_cfg)
@@ -264,6 +270,14 @@ def main() -> int:
         help="experiment: start this share of training episodes at a random free place and heading in the room "
         "instead of the layout's start pose (0 = always the start pose, as the paper)",
     )
+    ap.add_argument(
+        "--world-every",
+        type=int,
+        default=0,
+        metavar="K",
+        help="experiment, with --layout-per-episode: every K-th training episode (K >= 2) flies --world instead of "
+        "a new layout (0 = layouts only)",
+    )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
     ap.add_argument(
@@ -340,6 +354,8 @@ def main() -> int:
         ap.error(f"--priority-alpha and --priority-beta must lie in [0, 1], got {a.priority_alpha}, {a.priority_beta}")
     if not 0.0 <= a.random_start_fraction <= 1.0:
         ap.error(f"--random-start-fraction must lie in [0, 1], got {a.random_start_fraction}")
+    if a.world_every and (a.world_every < 2 or not a.layout_per_episode):
+        ap.error(f"--world-every must be 0 or >= 2, and needs --layout-per-episode, got {a.world_every}")
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
         model=a.model,
@@ -385,6 +401,7 @@ def main() -> int:
         max_episode_steps=a.max_episode_steps,
         save_weights_at=a.save_weights_at,
         random_start_fraction=a.random_start_fraction,
+        world_every=a.world_every,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0
