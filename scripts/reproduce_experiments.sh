@@ -14,7 +14,8 @@
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
 # (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
-# 6's setting on fresh seeds, flown alone and as ensembles of three). About 24 h on 2 cores.
+# 6's setting on fresh seeds, flown alone and as ensembles of three) and a sixteenth (every fourth
+# training episode in Basic). About 25 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -486,3 +487,13 @@ done
 # runs/tl300_sam_seed0's in docs/results/round6_time_limit/*/results.csv (equal only on round 6's machine).
 train recheck sam 0 "${ROUND6[@]}"
 eval_120 runs/recheck_eval 0 --model sam --weights runs/recheck_sam_seed0/policy_sam.safetensors
+
+# Round 16: round 6's setting with every fourth training episode in Basic, the paper's training room
+# (--world basic --world-every 4), SAM seeds 0-9; against round 6's SAM and CNN, and against round 6's
+# setting pooled over 32 SAM seeds (round 15).
+R16=docs/results/round16_basic_mix
+sam_ten r16basic4 $R16 --world basic --world-every 4
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R16/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+    --a r16basic4_sam --b tl300_sam > $R16/$p/against_round6_32_seeds.md
+done
