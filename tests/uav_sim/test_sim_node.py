@@ -242,3 +242,35 @@ def test_params_file_is_accepted(ros):
     proc = ros.start("uav_sim", "sim_node", "--params-file", str(ROOT / "params" / "sim.yaml"), "-p", "world:=complex")
     # The node logs its start-up line after publishing the first frame: wait for both.
     assert ros.spin_until(lambda: rec.by_topic["depth"] and "world 'complex'" in ros.log_of(proc), 20), ros.log_of(proc)
+
+
+def test_mix_world_every_flies_the_mixed_world_between_layouts(ros):
+    from uav_sim.world import load_world
+
+    rec = Recorder(ros)
+    args = ("-p", "world:=random_each_episode", "-p", "mix_world:=complex", "-p", "mix_world_every:=2")
+    proc = ros.start("uav_sim", "sim_node", *args, "-p", "max_episode_steps:=2")
+    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
+    for _ in range(6):  # three episodes of two steps: a layout, complex, a layout
+        n = len(rec.distinct_frames())
+        rec.cmd.publish(twist())
+        assert ros.spin_until(lambda n=n: len(rec.distinct_frames()) > n, 10)
+    by_stamp = {contract.stamp_ns(m.header.stamp): m.pose.pose.position for m in rec.by_topic["odom"]}
+    starts = [by_stamp[s] for s in sorted(by_stamp)]
+    complex_start = load_world("complex").start_xyz_m[:2]
+    assert (starts[2].x, starts[2].y) == pytest.approx(complex_start)  # the time limit's step reports the next start
+    assert (starts[0].x, starts[0].y) != pytest.approx(complex_start)
+    assert "a new layout every episode ('complex' every 2 episodes), first world 'random:" in ros.log_of(proc)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("mix_world_every:=3",), "parameter 'mix_world_every' (3)"),
+        (("world:=random_each_episode", "mix_world_every:=1"), "parameter 'mix_world_every' (1)"),
+        (("world:=random_each_episode", "mix_world_every:=2", "mix_world:=nowhere"), "parameter 'mix_world'"),
+    ],
+)
+def test_bad_mix_world_parameters_fail_at_start_up(args, message):
+    p = run_to_exit("uav_sim", "sim_node", *[x for a in args for x in ("-p", a)])
+    assert p.returncode == 2 and message in p.stderr, p.stderr

@@ -127,7 +127,22 @@ class SimNode(Node):
             f"world:={EACH_EPISODE} only: draw a new start_yaw_jitter_deg heading for every layout (default: every "
             "layout starts at the run's first draw, as the shipped weights were trained; redrawing trained worse)",
         )
-        layouts = training_layouts(seed) if world_name == EACH_EPISODE else None
+        mix_name = d("mix_world", "basic", f"world:={EACH_EPISODE} with mix_world_every: the world flown between the layouts")
+        mix_every = d(
+            "mix_world_every",
+            0,
+            f"world:={EACH_EPISODE} only: every K-th episode (K >= 2) flies mix_world instead of a new layout "
+            "(an extension; 0 = layouts only)",
+            0,
+            10**6,
+        )
+        if mix_every and (mix_every < 2 or world_name != EACH_EPISODE):
+            raise ParameterError(f"parameter 'mix_world_every' ({mix_every}): must be 0, or >= 2 with world:={EACH_EPISODE}")
+        try:
+            mix = load_world(mix_name, seed=seed) if mix_every else None
+        except WorldError as e:
+            raise ParameterError(f"parameter 'mix_world': {e}") from None
+        layouts = training_layouts(seed, mix, mix_every) if world_name == EACH_EPISODE else None
         try:
             world = next(layouts) if layouts else load_world(world_name, seed=seed)
         except WorldError as e:
@@ -172,8 +187,9 @@ class SimNode(Node):
         else:
             self.create_timer(min(self.republish_s, 0.25), self.on_lockstep_idle)
         self.create_timer(1.0, self.publish_diagnostics)
+        mixed = f" ('{mix.name}' every {mix_every} episodes)" if mix else ""
         self.get_logger().info(
-            ("a new layout every episode, first " if layouts else "")
+            (f"a new layout every episode{mixed}, first " if layouts else "")
             + f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
             f"snow={world.weather.snow} leaves={world.weather.leaves}), mode {self.mode}, "
             f"{cfg.image_width}x{cfg.image_height} depth, step {cfg.step_duration_s} s"
