@@ -14,8 +14,8 @@
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
 # (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
-# 6's setting on fresh seeds, flown alone and as ensembles of three) and a sixteenth (every fourth
-# training episode in Basic). About 25 h on 2 cores.
+# 6's setting on fresh seeds, flown alone and as ensembles of three) and a sixteenth (every fourth or
+# eighth training episode in Basic). About 26 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -489,11 +489,24 @@ train recheck sam 0 "${ROUND6[@]}"
 eval_120 runs/recheck_eval 0 --model sam --weights runs/recheck_sam_seed0/policy_sam.safetensors
 
 # Round 16: round 6's setting with every fourth training episode in Basic, the paper's training room
-# (--world basic --world-every 4), SAM seeds 0-9; against round 6's SAM and CNN, and against round 6's
-# setting pooled over 32 SAM seeds (round 15).
+# (--world basic --world-every 4), SAM seeds 0-9; then every eighth (every8/); then the CNN arm of every
+# fourth (cnn/). SAM against round 6's SAM and CNN and against round 6's setting pooled over 32 SAM
+# seeds (round 15); every eighth against every fourth; the CNN against round 6's CNN and SAM against it.
 R16=docs/results/round16_basic_mix
 sam_ten r16basic4 $R16 --world basic --world-every 4
+sam_ten r16basic8 $R16/every8 --world basic --world-every 8
+model_ten r16basic4 cnn $R16/cnn --world basic --world-every 4
 for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R16/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
-    --a r16basic4_sam --b tl300_sam > $R16/$p/against_round6_32_seeds.md
+  for k in 4 8; do
+    d=$R16
+    [ $k = 8 ] && d=$R16/every8
+    python scripts/compare_models.py $d/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+      --a r16basic${k}_sam --b tl300_sam > $d/$p/against_round6_32_seeds.md
+  done
+  python scripts/compare_models.py $R16/every8/$p/results.csv $R16/$p/results.csv --by run \
+    --a r16basic8_sam --b r16basic4_sam > $R16/every8/$p/against_every4.md
+  python scripts/compare_models.py $R16/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a r16basic4_cnn --b tl300_cnn > $R16/cnn/$p/against_round6.md
+  python scripts/compare_models.py $R16/$p/results.csv $R16/cnn/$p/results.csv --by run \
+    --a r16basic4_sam --b r16basic4_cnn > $R16/cnn/$p/sam_against_cnn.md
 done
