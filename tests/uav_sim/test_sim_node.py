@@ -31,6 +31,11 @@ class Recorder:
         n.create_subscription(Clock, "/clock", lambda m: self.by_topic["clock"].append(m), q)
         self.cmd = n.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
 
+    def ready(self, ros, timeout_s: float = 20.0) -> bool:
+        """The first frame is in and sim_node listens to our cmd_vel: a command sent before the
+        sim's subscription matched our publisher would be lost, and a lockstep sim would wait."""
+        return ros.spin_until(lambda: self.by_topic["depth"] and self.cmd.get_subscription_count() > 0, timeout_s)
+
     def stamps(self, key):
         if key == "clock":
             return [contract.stamp_ns(m.clock) for m in self.by_topic[key]]
@@ -49,7 +54,7 @@ def twist(vx=0.0, wz=0.0, vy=0.0):
 def test_lockstep_topics_encodings_and_shared_stamps(ros):
     rec = Recorder(ros)
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
-    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), "no depth frame from sim_node"
+    assert rec.ready(ros), "no depth frame from sim_node"
     ros.spin_for(1.0)
     assert len(rec.distinct_frames()) == 1, "lockstep must not advance without commands"
     for k in range(10):
@@ -106,7 +111,7 @@ def test_the_first_frame_waits_for_the_subscribers_asked_for(ros):
 def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
     rec = Recorder(ros)
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
-    assert ros.spin_until(lambda: rec.by_topic["depth"], 20)
+    assert rec.ready(ros)
     for _ in range(40):  # basic: 14 m of open room ahead of the start; 1 m per step
         n = len(rec.distinct_frames())
         rec.cmd.publish(twist(vx=2.0))
@@ -124,7 +129,7 @@ def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
 def test_time_limit_ends_episodes_with_a_nan_outcome(ros):
     rec = Recorder(ros)
     proc = ros.start("uav_sim", "sim_node", "-p", "max_episode_steps:=3", "-p", "lockstep_republish_s:=0.3")
-    assert ros.spin_until(lambda: rec.by_topic["depth"] and rec.cmd.get_subscription_count() > 0, 20), ros.log_of(proc)
+    assert rec.ready(ros), ros.log_of(proc)
     for _ in range(7):  # basic: 14 m of open room ahead; 0.5 m per step
         n = len(rec.distinct_frames())
         rec.cmd.publish(twist(vx=1.0))
@@ -150,7 +155,7 @@ def test_random_each_episode_flies_a_new_layout_after_every_crash(ros):
     proc = ros.start(
         "uav_sim", "sim_node", "-p", "world:=random_each_episode", "-p", "seed:=2", "-p", "start_yaw_jitter_deg:=90.0"
     )
-    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
+    assert rec.ready(ros), ros.log_of(proc)
     layouts = list(itertools.islice(training_layouts(2), 3))  # random:201000, 201001, 201002
     crashes = []
     for _ in range(80):  # at 1 m per step straight ahead, every room ends within 20 steps
@@ -180,7 +185,7 @@ def test_bad_commands_are_rejected_and_the_node_survives(ros):
     diags = []
     ros.node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     proc = ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
-    assert ros.spin_until(lambda: rec.by_topic["depth"], 20)
+    assert rec.ready(ros)
     for bad in (twist(vx=float("nan")), twist(vx=100.0), twist(wz=float("inf")), twist(vy=-7.0)):
         rec.cmd.publish(bad)
     ros.spin_for(1.0)
@@ -250,7 +255,7 @@ def test_mix_world_every_flies_the_mixed_world_between_layouts(ros):
     rec = Recorder(ros)
     args = ("-p", "world:=random_each_episode", "-p", "mix_world:=complex", "-p", "mix_world_every:=2")
     proc = ros.start("uav_sim", "sim_node", *args, "-p", "max_episode_steps:=2")
-    assert ros.spin_until(lambda: rec.by_topic["depth"], 20), ros.log_of(proc)
+    assert rec.ready(ros), ros.log_of(proc)
     for _ in range(6):  # three episodes of two steps: a layout, complex, a layout
         n = len(rec.distinct_frames())
         rec.cmd.publish(twist())
