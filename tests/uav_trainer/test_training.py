@@ -205,7 +205,7 @@ def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monke
 
     made, start_yaws = [], []
     real = world_module.procedural_world
-    monkeypatch.setattr(world_module, "procedural_world", lambda seed: made.append(seed) or real(seed))
+    monkeypatch.setattr(world_module, "procedural_world", lambda seed, **kw: made.append(seed) or real(seed, **kw))
     observe, enter = Simulator.observe, Simulator._enter  # the first episode's frame; every later layout
     monkeypatch.setattr(Simulator, "observe", lambda sim: start_yaws.append(sim.pose.yaw_rad) or observe(sim))
     monkeypatch.setattr(Simulator, "_enter", lambda sim, *a: enter(sim, *a) or start_yaws.append(sim.pose.yaw_rad))

@@ -23,7 +23,7 @@ from .node_runner import run
 from .ros_params import ParameterError, declare
 from .simulator import SimConfig, Simulator, StepResult
 from .vehicle import HOVER, BodyTwist, TwistLimits, twist_error
-from .world import EACH_EPISODE, WorldError, load_world, training_layouts
+from .world import EACH_EPISODE, PARTITIONS, WorldError, load_world, training_layouts
 
 
 class SimNode(Node):
@@ -136,13 +136,21 @@ class SimNode(Node):
             0,
             10**6,
         )
+        partitions = d(
+            "layout_partitions",
+            False,
+            f"world:={EACH_EPISODE} only: layouts with 2-3 m partitions among the boxes ({PARTITIONS}:SEED, an "
+            "extension; default: plain layouts, as the shipped weights were trained)",
+        )
+        if partitions and world_name != EACH_EPISODE:
+            raise ParameterError(f"parameter 'layout_partitions' (true): needs world:={EACH_EPISODE}")
         if mix_every and (mix_every < 2 or world_name != EACH_EPISODE):
             raise ParameterError(f"parameter 'mix_world_every' ({mix_every}): must be 0, or >= 2 with world:={EACH_EPISODE}")
         try:
             mix = load_world(mix_name, seed=seed) if mix_every else None
         except WorldError as e:
             raise ParameterError(f"parameter 'mix_world': {e}") from None
-        layouts = training_layouts(seed, mix, mix_every) if world_name == EACH_EPISODE else None
+        layouts = training_layouts(seed, mix, mix_every, partitions) if world_name == EACH_EPISODE else None
         try:
             world = next(layouts) if layouts else load_world(world_name, seed=seed)
         except WorldError as e:

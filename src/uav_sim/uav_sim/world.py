@@ -14,6 +14,7 @@ Format (`format: uav_sim_world/1`), all lengths in metres, angles in degrees:
 
 Built-in worlds live in the package's `worlds/` folder (installed to share/uav_sim/worlds);
 `random` (or `random:SEED`) makes a seeded procedural layout for held-out testing;
+`random_partitions[:SEED]` the same with long partitions among the boxes (for training);
 `random_each_episode` (sim_node) flies a new one every episode, for training.
 """
 
@@ -32,6 +33,7 @@ import yaml
 FORMAT = "uav_sim_world/1"
 BUILTIN_WORLDS = ("basic", "complex", "turbulent")
 EACH_EPISODE = "random_each_episode"  # sim_node: a new training layout every episode
+PARTITIONS = "random_partitions"  # procedural layouts where half of the boxes are 2-3 m partitions
 TRAINING_LAYOUTS_FROM = 1000  # random:0..999 are never trained on (test and validation layouts)
 
 
@@ -182,16 +184,18 @@ def _parse(doc, source: str, depth: int = 0) -> World:
 
 
 def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
-    """A world by built-in name (basic, complex, turbulent), `random[:SEED]`, or file path."""
+    """A world by built-in name (basic, complex, turbulent), `random[:SEED]`, `random_partitions[:SEED]`,
+    or file path."""
     if not isinstance(name_or_path, str) or not name_or_path:
         raise WorldError("world must be a non-empty string: a built-in name or a file path")
-    if name_or_path == "random" or name_or_path.startswith("random:"):
+    kind = name_or_path.split(":", 1)[0]
+    if kind in ("random", PARTITIONS) and (kind == name_or_path or name_or_path.startswith(kind + ":")):
         if ":" in name_or_path:
             try:
                 seed = int(name_or_path.split(":", 1)[1])
             except ValueError:
-                raise WorldError(f"world '{name_or_path}': the seed after 'random:' must be an integer") from None
-        return procedural_world(seed)
+                raise WorldError(f"world '{name_or_path}': the seed after '{kind}:' must be an integer") from None
+        return procedural_world(seed, partitions=kind == PARTITIONS)
     if name_or_path in BUILTIN_WORLDS:
         path = worlds_dir() / f"{name_or_path}.yaml"
     else:
@@ -199,7 +203,7 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
         if not path.suffix and os.sep not in name_or_path:
             raise WorldError(
                 f"unknown world '{name_or_path}': expected one of {', '.join(BUILTIN_WORLDS)}, "
-                "'random[:SEED]', or a path to a .yaml world file"
+                "'random[:SEED]', 'random_partitions[:SEED]', or a path to a .yaml world file"
             )
     try:
         text = path.read_text()
@@ -212,8 +216,12 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
     return _parse(doc, str(path), _depth)
 
 
-def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
-    """A seeded random room with boxes and cylinders, keeping the start area clear."""
+def procedural_world(seed: int, n_obstacles: int | None = None, partitions: bool = False) -> World:
+    """A seeded random room with boxes and cylinders, keeping the start area clear.
+
+    With `partitions` (world `random_partitions:SEED`, an extension for training), half of the boxes
+    are partitions instead: 2-3 m long and 0.3-0.8 m thick, as the long boxes of Basic and Complex,
+    which plain layouts (boxes up to 1.5 m) lack. Plain layouts are unchanged by the option."""
     rng = np.random.default_rng(seed)
     length = float(rng.uniform(12.0, 20.0))
     width = float(rng.uniform(10.0, 16.0))
@@ -231,6 +239,12 @@ def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
             continue
         if rng.random() < 0.5:
             obstacles.append(Obstacle("cylinder", x, y, 3.0, radius_m=float(rng.uniform(0.15, 0.5))))
+        elif partitions and rng.random() < 0.5:
+            size = (float(rng.uniform(2.0, 3.0)), float(rng.uniform(0.3, 0.8)))
+            yaw = float(rng.uniform(0, 180))
+            if math.hypot(x - start[0], y - start[1]) < 2.5 + size[0] / 2:  # the long side must not reach the start
+                continue
+            obstacles.append(Obstacle("box", x, y, 3.0, size_x_m=size[0], size_y_m=size[1], yaw_deg=yaw))
         else:
             obstacles.append(
                 Obstacle(
@@ -243,17 +257,19 @@ def procedural_world(seed: int, n_obstacles: int | None = None) -> World:
                     yaw_deg=float(rng.uniform(0, 90)),
                 )
             )
-    return World(f"random:{seed}", length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
+    name = f"{PARTITIONS}:{seed}" if partitions else f"random:{seed}"
+    return World(name, length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
 
 
-def training_layouts(seed: int, world: World | None = None, world_every: int = 0) -> Iterator[World]:
+def training_layouts(seed: int, world: World | None = None, world_every: int = 0, partitions: bool = False) -> Iterator[World]:
     """The procedural layouts a run with this seed trains on, one per episode:
     random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear.
 
     With `world` and `world_every` = K >= 2, every K-th episode flies `world` instead (an extension:
-    e.g. the paper's training room Basic between the layouts); the layouts keep their order."""
+    e.g. the paper's training room Basic between the layouts); the layouts keep their order.
+    With `partitions`, the layouts are random_partitions:SEED (the same seeds; see procedural_world)."""
     start = TRAINING_LAYOUTS_FROM + 100_000 * seed
-    layouts = (procedural_world(s) for s in itertools.count(start))
+    layouts = (procedural_world(s, partitions=partitions) for s in itertools.count(start))
     if not world_every:
         return layouts
     if world is None or world_every < 2:

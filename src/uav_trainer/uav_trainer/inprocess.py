@@ -113,6 +113,7 @@ def run(
     save_weights_at=(),
     random_start_fraction: float = 0.0,
     world_every: int = 0,
+    partitions: bool = False,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -128,6 +129,8 @@ def run(
 
     `world_every` = K >= 2, with `layout_per_episode`, flies `world` as every K-th episode between
     the layouts (an extension: the paper trains in Basic only, round 6 on layouts only).
+    `partitions`, with `layout_per_episode`, trains on layouts where half of the boxes are 2-3 m
+    partitions (world.procedural_world; an extension, round 17).
 
     `random_start_fraction` > 0 starts that share of episodes at a random free place and heading
     in the room (SimConfig.random_start_fraction) instead of the layout's start pose.
@@ -139,6 +142,8 @@ def run(
     snapshots = frozenset(int(n) for n in save_weights_at)
     if world_every and not layout_per_episode:
         raise ValueError("world_every mixes the world into the layouts: it needs layout_per_episode")
+    if partitions and not layout_per_episode:
+        raise ValueError("partitions changes the training layouts: it needs layout_per_episode")
     if any(n < 1 or n > cfg.total_steps for n in snapshots):
         raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {sorted(snapshots)}")
     training = Training(cfg, run_dir, log=log, resume=resume)
@@ -155,7 +160,7 @@ def run(
         image_height=cfg.input_size_px,
     )
     if layout_per_episode:
-        layouts = training_layouts(cfg.seed, load_world(world) if world_every else None, world_every)
+        layouts = training_layouts(cfg.seed, load_world(world) if world_every else None, world_every, partitions)
         sim = Simulator(next(layouts), sim_cfg, next_worlds=layouts, redraw_heading=redraw_heading)
     else:
         sim = Simulator(load_world(world), sim_cfg)
@@ -278,6 +283,12 @@ def main() -> int:
         help="experiment, with --layout-per-episode: every K-th training episode (K >= 2) flies --world instead of "
         "a new layout (0 = layouts only)",
     )
+    ap.add_argument(
+        "--layout-partitions",
+        action="store_true",
+        help="experiment, with --layout-per-episode: layouts where half of the boxes are 2-3 m partitions "
+        "(random_partitions:SEED; default: plain layouts, as the shipped weights)",
+    )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
     ap.add_argument(
@@ -356,6 +367,8 @@ def main() -> int:
         ap.error(f"--random-start-fraction must lie in [0, 1], got {a.random_start_fraction}")
     if a.world_every and (a.world_every < 2 or not a.layout_per_episode):
         ap.error(f"--world-every must be 0 or >= 2, and needs --layout-per-episode, got {a.world_every}")
+    if a.layout_partitions and not a.layout_per_episode:
+        ap.error("--layout-partitions changes the training layouts: it needs --layout-per-episode")
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
         model=a.model,
@@ -402,6 +415,7 @@ def main() -> int:
         save_weights_at=a.save_weights_at,
         random_start_fraction=a.random_start_fraction,
         world_every=a.world_every,
+        partitions=a.layout_partitions,
     )
     print(f"weights: {t.policy_weights_path}")
     return 0
