@@ -14,8 +14,8 @@
 # ninth (half or a fifth of the training episodes start at a random place and heading), a tenth
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
 # (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
-# 6's setting on fresh seeds, flown alone and as ensembles of three) and a sixteenth (every fourth or
-# eighth training episode in Basic). About 26 h on 2 cores.
+# 6's setting on fresh seeds, flown alone and as ensembles of three), a sixteenth (every fourth or
+# eighth training episode in Basic) and a seventeenth (layouts with 2-3 m partitions). About 27 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -509,4 +509,19 @@ for p in varied_start fixed_start; do
     --by run --a r16basic4_cnn --b tl300_cnn > $R16/cnn/$p/against_round6.md
   python scripts/compare_models.py $R16/$p/results.csv $R16/cnn/$p/results.csv --by run \
     --a r16basic4_sam --b r16basic4_cnn > $R16/cnn/$p/sam_against_cnn.md
+done
+
+# Round 17: round 6's setting on layouts where half of the boxes are 2-3 m partitions
+# (--layout-partitions; Basic stays held out), SAM and CNN seeds 0-9; SAM against round 6's 32 SAM seeds,
+# the CNN against round 6's CNN, and SAM against the CNN.
+R17=docs/results/round17_partitions
+sam_ten r17part $R17 --layout-partitions
+model_ten r17part cnn $R17/cnn --layout-partitions
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R17/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+    --a r17part_sam --b tl300_sam > $R17/$p/against_round6_32_seeds.md
+  python scripts/compare_models.py $R17/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a r17part_cnn --b tl300_cnn > $R17/cnn/$p/against_round6.md
+  python scripts/compare_models.py $R17/$p/results.csv $R17/cnn/$p/results.csv --by run \
+    --a r17part_sam --b r17part_cnn > $R17/cnn/$p/sam_against_cnn.md
 done

@@ -1,8 +1,11 @@
+import dataclasses
+import hashlib
 import itertools
+import math
 
 import pytest
 
-from uav_sim.world import WorldError, load_world, training_layouts
+from uav_sim.world import WorldError, load_world, procedural_world, training_layouts
 
 
 def write(tmp_path, text, name="w.yaml"):
@@ -74,3 +77,46 @@ def test_training_layouts_can_mix_a_world_in_every_kth_episode():
             training_layouts(2, basic, bad)
     with pytest.raises(ValueError, match="world_every"):
         training_layouts(2, None, 3)
+
+
+def layout_digest(seeds) -> str:
+    h = hashlib.sha256()
+    for s in seeds:
+        w = procedural_world(s)
+        fields = [v for o in w.obstacles for v in dataclasses.astuple(o)] + [w.length_m, w.width_m, *w.start_xyz_m]
+        h.update(repr([round(v, 6) if isinstance(v, float) else v for v in fields]).encode())
+    return h.hexdigest()
+
+
+def test_the_held_out_layouts_do_not_change():
+    # random:0..999 are the test and validation layouts of every round in docs/RESULTS.md: options for
+    # training layouts (such as partitions) must leave them as they were (digest taken on round 16's code).
+    assert layout_digest(range(0, 1000, 37)) == "6fbbeb79a60eb2048385fbab6029a3c1dd2fa210d9ab4455880fc4e105280235"
+
+
+def clearance_from(x: float, y: float, o) -> float:
+    """Distance from (x, y) to an obstacle's footprint."""
+    if o.shape == "cylinder":
+        return math.hypot(x - o.x_m, y - o.y_m) - o.radius_m
+    c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
+    u, v = c * (x - o.x_m) + s * (y - o.y_m), -s * (x - o.x_m) + c * (y - o.y_m)
+    return math.hypot(max(abs(u) - o.size_x_m / 2, 0.0), max(abs(v) - o.size_y_m / 2, 0.0))
+
+
+def test_partition_layouts_add_long_boxes_and_keep_the_start_clear():
+    w = load_world("random_partitions:7")
+    assert w.name == "random_partitions:7" and w.length_m == load_world("random:7").length_m  # the same room
+    layouts = list(itertools.islice(training_layouts(1, partitions=True), 100))
+    assert [w.name for w in layouts[:2]] == ["random_partitions:101000", "random_partitions:101001"]
+    long_boxes = [sum(o.shape == "box" and max(o.size_x_m, o.size_y_m) >= 2.0 for o in w.obstacles) for w in layouts]
+    plain = [sum(o.shape == "box" and max(o.size_x_m, o.size_y_m) >= 2.0 for o in w.obstacles) for w in training_layouts_n(1)]
+    assert sum(plain) == 0 and sum(n > 0 for n in long_boxes) >= 80  # 92 % of layouts have one or more
+    for w in layouts:
+        x, y, _ = w.start_xyz_m
+        assert min(clearance_from(x, y, o) for o in w.obstacles) > 1.4, w.name
+    with pytest.raises(WorldError, match="after 'random_partitions:' must be an integer"):
+        load_world("random_partitions:x")
+
+
+def training_layouts_n(seed: int, n: int = 100):
+    return itertools.islice(training_layouts(seed), n)

@@ -426,3 +426,18 @@ def test_inprocess_world_every_flies_the_world_between_layouts(tmp_path, monkeyp
     assert all(n.startswith("random:") for n in entered[1::2])
     with pytest.raises(ValueError, match="layout_per_episode"):
         ip.run(cfg, str(tmp_path / "no"), log=lambda s: None, world_every=2)
+    # --layout-partitions: the layouts are random_partitions:SEED, the mixed world stays as it is.
+    entered.clear()
+    ip.run(
+        cfg,
+        str(tmp_path / "p"),
+        world="complex",
+        log=lambda s: None,
+        layout_per_episode=True,
+        max_episode_steps=3,
+        world_every=2,
+        partitions=True,
+    )
+    assert entered[0::2] == ["complex"] * len(entered[0::2]) and all(n.startswith("random_partitions:") for n in entered[1::2])
+    with pytest.raises(ValueError, match="layout_per_episode"):
+        ip.run(cfg, str(tmp_path / "no2"), log=lambda s: None, partitions=True)
