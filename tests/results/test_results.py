@@ -268,3 +268,25 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
     assert float(paired[6]) < 0.01  # 8 equal signs: exact p = 2 / 256
     bad = subprocess.run([sys.executable, str(script), str(path), "--paired"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--by run" in bad.stderr
+
+
+def test_crash_map_draws_the_crashes_of_a_crash_log(tmp_path):
+    script = ROOT / "scripts" / "crash_map.py"
+    log = tmp_path / "crashes.csv"
+    rows = [("complex", "runs/a_seed0/policy_sam.safetensors", 1.0, 2.0, 90.0)] * 2
+    rows += [("complex", "runs/a_seed1/policy_sam.safetensors", -3.0, 0.5, 0.0), ("basic", "runs/a_seed1/p.safetensors", 0, 0, 0)]
+    with open(log, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["model", "world", "weights", "x_m", "y_m", "yaw_deg"])
+        w.writerows(("sam", *r) for r in rows)
+    env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src' / 'uav_sim'}:{os.environ.get('PYTHONPATH', '')}"}
+    run = lambda *a: subprocess.run([sys.executable, str(script), *a], capture_output=True, text=True, env=env)  # noqa: E731
+    out = run("--crashes", str(log), "--out", str(tmp_path / "map.png"))
+    assert out.returncode == 0, out.stderr
+    assert "complex: 3 crashes; a_seed0 2; a_seed1 1" in out.stdout and "basic: 1 crashes; a_seed1 1" in out.stdout
+    assert (tmp_path / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Plan views alone, of any world name; bad input gets a clear message.
+    assert run("--worlds", "random_partitions:3", "--out", str(tmp_path / "w.png")).returncode == 0
+    assert "--worlds: unknown world 'mars'" in run("--worlds", "mars").stderr
+    log.write_text("a,b\n1,2\n")
+    assert "not a crash log: missing column(s) world" in run("--crashes", str(log)).stderr
