@@ -273,8 +273,13 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
 def test_crash_map_draws_the_crashes_of_a_crash_log(tmp_path):
     script = ROOT / "scripts" / "crash_map.py"
     log = tmp_path / "crashes.csv"
-    rows = [("complex", "runs/a_seed0/policy_sam.safetensors", 1.0, 2.0, 90.0)] * 2
-    rows += [("complex", "runs/a_seed1/policy_sam.safetensors", -3.0, 0.5, 0.0), ("basic", "runs/a_seed1/p.safetensors", 0, 0, 0)]
+    # Complex: heading west onto the 0.2 m cylinder at (0.5, 2), twice; heading east into the box at
+    # (1.5, -3.5). Basic: heading west into the wall at x = -8.
+    rows = [("complex", "runs/a_seed0/policy_sam.safetensors", 1.0, 2.0, 180.0)] * 2
+    rows += [
+        ("complex", "runs/a_seed1/policy_sam.safetensors", 1.0, -3.5, 0.0),
+        ("basic", "runs/a_seed1/p.safetensors", -7.8, 0, 180),
+    ]
     with open(log, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["model", "world", "weights", "x_m", "y_m", "yaw_deg"])
@@ -283,7 +288,8 @@ def test_crash_map_draws_the_crashes_of_a_crash_log(tmp_path):
     run = lambda *a: subprocess.run([sys.executable, str(script), *a], capture_output=True, text=True, env=env)  # noqa: E731
     out = run("--crashes", str(log), "--out", str(tmp_path / "map.png"))
     assert out.returncode == 0, out.stderr
-    assert "complex: 3 crashes; a_seed0 2; a_seed1 1" in out.stdout and "basic: 1 crashes; a_seed1 1" in out.stdout
+    assert "complex: 3 crashes (nearest surface: cylinder 2, box 1); a_seed0 2; a_seed1 1" in out.stdout, out.stdout
+    assert "basic: 1 crashes (nearest surface: wall 1); a_seed1 1" in out.stdout, out.stdout
     assert (tmp_path / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # Plan views alone, of any world name; bad input gets a clear message.
     assert run("--worlds", "random_partitions:3", "--out", str(tmp_path / "w.png")).returncode == 0

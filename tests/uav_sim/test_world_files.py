@@ -1,10 +1,10 @@
 import dataclasses
 import hashlib
 import itertools
-import math
 
 import pytest
 
+from uav_sim.simulator import obstacle_distance_m
 from uav_sim.world import WorldError, load_world, procedural_world, training_layouts
 
 
@@ -94,15 +94,6 @@ def test_the_held_out_layouts_do_not_change():
     assert layout_digest(range(0, 1000, 37)) == "6fbbeb79a60eb2048385fbab6029a3c1dd2fa210d9ab4455880fc4e105280235"
 
 
-def clearance_from(x: float, y: float, o) -> float:
-    """Distance from (x, y) to an obstacle's footprint."""
-    if o.shape == "cylinder":
-        return math.hypot(x - o.x_m, y - o.y_m) - o.radius_m
-    c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
-    u, v = c * (x - o.x_m) + s * (y - o.y_m), -s * (x - o.x_m) + c * (y - o.y_m)
-    return math.hypot(max(abs(u) - o.size_x_m / 2, 0.0), max(abs(v) - o.size_y_m / 2, 0.0))
-
-
 def test_partition_layouts_add_long_boxes_and_keep_the_start_clear():
     w = load_world("random_partitions:7")
     assert w.name == "random_partitions:7" and w.length_m == load_world("random:7").length_m  # the same room
@@ -113,7 +104,7 @@ def test_partition_layouts_add_long_boxes_and_keep_the_start_clear():
     assert sum(plain) == 0 and sum(n > 0 for n in long_boxes) >= 80  # 92 % of layouts have one or more
     for w in layouts:
         x, y, _ = w.start_xyz_m
-        assert min(clearance_from(x, y, o) for o in w.obstacles) > 1.4, w.name
+        assert min(obstacle_distance_m(o, x, y) for o in w.obstacles) > 1.4, w.name
     with pytest.raises(WorldError, match="after 'random_partitions:' must be an integer"):
         load_world("random_partitions:x")
 
