@@ -15,7 +15,8 @@
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
 # (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
 # 6's setting on fresh seeds, flown alone and as ensembles of three), a sixteenth (every fourth or
-# eighth training episode in Basic) and a seventeenth (layouts with 2-3 m partitions). About 27 h on 2 cores.
+# eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions)
+# and an eighteenth (round 16 on fresh seeds, both models). About 28 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -524,4 +525,33 @@ for p in varied_start fixed_start; do
     --by run --a r17part_cnn --b tl300_cnn > $R17/cnn/$p/against_round6.md
   python scripts/compare_models.py $R17/$p/results.csv $R17/cnn/$p/results.csv --by run \
     --a r17part_sam --b r17part_cnn > $R17/cnn/$p/sam_against_cnn.md
+done
+
+# Round 18: round 16's recipe (every fourth training episode in Basic) on fresh seeds 10-19, SAM and CNN;
+# pooled with round 16's seeds 0-9 (twenty per model): tables of both models (pooled_20_seeds/), SAM
+# against CNN, SAM against round 6's 32 SAM seeds, CNN against round 6's CNN.
+R18=docs/results/round18_basic_mix_seeds10_19
+for m in sam cnn; do
+  for s in 10 12 14 16 18; do
+    for k in "$s" $((s + 1)); do train r16basic4 $m "$k" "${ROUND6[@]}" --world basic --world-every 4 & done
+    wait
+  done
+  W=()
+  for s in $(seq 10 19); do W+=("runs/r16basic4_${m}_seed$s/policy_$m.safetensors"); done
+  d=$R18
+  [ $m = sam ] || d=$R18/cnn
+  eval_120 $d 1 --model $m --weights "${W[@]}"
+done
+for p in varied_start fixed_start; do
+  proto=()
+  [ $p = varied_start ] && proto=("${VARIED[@]}")
+  $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" --sim-arg hfov_deg:=120.0 \
+    --from-csv $R16/$p/results.csv $R18/$p/results.csv $R16/cnn/$p/results.csv $R18/cnn/$p/results.csv \
+    --out $R18/pooled_20_seeds/$p
+  python scripts/compare_models.py $R18/pooled_20_seeds/$p/results.csv --by run --a r16basic4_sam --b r16basic4_cnn \
+    > $R18/pooled_20_seeds/$p/sam_against_cnn.md
+  python scripts/compare_models.py $R18/pooled_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+    --a r16basic4_sam --b tl300_sam > $R18/pooled_20_seeds/$p/sam_against_round6_32_seeds.md
+  python scripts/compare_models.py $R18/pooled_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a r16basic4_cnn --b tl300_cnn > $R18/pooled_20_seeds/$p/cnn_against_round6.md
 done
