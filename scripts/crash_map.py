@@ -94,7 +94,7 @@ def main(argv=None) -> int:
     try:
         worlds = [load_world(n) for n in names]
     except WorldError as e:
-        raise SystemExit(f"--worlds: {e}") from None
+        raise SystemExit(f"cannot draw a world: {e}") from None
     import matplotlib
 
     matplotlib.use("Agg")

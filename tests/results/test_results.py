@@ -293,6 +293,6 @@ def test_crash_map_draws_the_crashes_of_a_crash_log(tmp_path):
     assert (tmp_path / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # Plan views alone, of any world name; bad input gets a clear message.
     assert run("--worlds", "random_partitions:3", "--out", str(tmp_path / "w.png")).returncode == 0
-    assert "--worlds: unknown world 'mars'" in run("--worlds", "mars").stderr
+    assert "cannot draw a world: unknown world 'mars'" in run("--worlds", "mars").stderr
     log.write_text("a,b\n1,2\n")
     assert "not a crash log: missing column(s) world" in run("--crashes", str(log)).stderr
