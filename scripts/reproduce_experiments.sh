@@ -497,19 +497,24 @@ R16=docs/results/round16_basic_mix
 sam_ten r16basic4 $R16 --world basic --world-every 4
 sam_ten r16basic8 $R16/every8 --world basic --world-every 8
 model_ten r16basic4 cnn $R16/cnn --world basic --world-every 4
-for p in varied_start fixed_start; do
-  for k in 4 8; do
-    d=$R16
-    [ $k = 8 ] && d=$R16/every8
-    python scripts/compare_models.py $d/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
-      --a r16basic${k}_sam --b tl300_sam > $d/$p/against_round6_32_seeds.md
+two_arms() {  # tag folder: per protocol, SAM (folder) against round 6's 32 SAM seeds, the CNN (folder/cnn)
+  # against round 6's CNN, and SAM against the CNN
+  local tag=$1 out=$2 p
+  for p in varied_start fixed_start; do
+    python scripts/compare_models.py $out/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+      --a ${tag}_sam --b tl300_sam > $out/$p/against_round6_32_seeds.md
+    python scripts/compare_models.py $out/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+      --by run --a ${tag}_cnn --b tl300_cnn > $out/cnn/$p/against_round6.md
+    python scripts/compare_models.py $out/$p/results.csv $out/cnn/$p/results.csv --by run \
+      --a ${tag}_sam --b ${tag}_cnn > $out/cnn/$p/sam_against_cnn.md
   done
+}
+two_arms r16basic4 $R16
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R16/every8/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+    --a r16basic8_sam --b tl300_sam > $R16/every8/$p/against_round6_32_seeds.md
   python scripts/compare_models.py $R16/every8/$p/results.csv $R16/$p/results.csv --by run \
     --a r16basic8_sam --b r16basic4_sam > $R16/every8/$p/against_every4.md
-  python scripts/compare_models.py $R16/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-    --by run --a r16basic4_cnn --b tl300_cnn > $R16/cnn/$p/against_round6.md
-  python scripts/compare_models.py $R16/$p/results.csv $R16/cnn/$p/results.csv --by run \
-    --a r16basic4_sam --b r16basic4_cnn > $R16/cnn/$p/sam_against_cnn.md
 done
 
 # Round 17: round 6's setting on layouts where half of the boxes are 2-3 m partitions
@@ -518,14 +523,7 @@ done
 R17=docs/results/round17_partitions
 sam_ten r17part $R17 --layout-partitions
 model_ten r17part cnn $R17/cnn --layout-partitions
-for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R17/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
-    --a r17part_sam --b tl300_sam > $R17/$p/against_round6_32_seeds.md
-  python scripts/compare_models.py $R17/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-    --by run --a r17part_cnn --b tl300_cnn > $R17/cnn/$p/against_round6.md
-  python scripts/compare_models.py $R17/$p/results.csv $R17/cnn/$p/results.csv --by run \
-    --a r17part_sam --b r17part_cnn > $R17/cnn/$p/sam_against_cnn.md
-done
+two_arms r17part $R17
 
 # Round 18: round 16's recipe (every fourth training episode in Basic) on fresh seeds 10-19, SAM and CNN;
 # pooled with round 16's seeds 0-9 (twenty per model): tables of both models (pooled_20_seeds/), SAM
