@@ -100,14 +100,13 @@ def test_partition_layouts_add_long_boxes_and_keep_the_start_clear():
     layouts = list(itertools.islice(training_layouts(1, partitions=True), 100))
     assert [w.name for w in layouts[:2]] == ["random_partitions:101000", "random_partitions:101001"]
     long_boxes = [sum(o.shape == "box" and max(o.size_x_m, o.size_y_m) >= 2.0 for o in w.obstacles) for w in layouts]
-    plain = [sum(o.shape == "box" and max(o.size_x_m, o.size_y_m) >= 2.0 for o in w.obstacles) for w in training_layouts_n(1)]
+    plain = [
+        sum(o.shape == "box" and max(o.size_x_m, o.size_y_m) >= 2.0 for o in w.obstacles)
+        for w in itertools.islice(training_layouts(1), 100)
+    ]
     assert sum(plain) == 0 and sum(n > 0 for n in long_boxes) >= 80  # 92 % of layouts have one or more
     for w in layouts:
         x, y, _ = w.start_xyz_m
         assert min(obstacle_distance_m(o, x, y) for o in w.obstacles) > 1.4, w.name
     with pytest.raises(WorldError, match="after 'random_partitions:' must be an integer"):
         load_world("random_partitions:x")
-
-
-def training_layouts_n(seed: int, n: int = 100):
-    return itertools.islice(training_layouts(seed), n)

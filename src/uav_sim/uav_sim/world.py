@@ -188,11 +188,11 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
     or file path."""
     if not isinstance(name_or_path, str) or not name_or_path:
         raise WorldError("world must be a non-empty string: a built-in name or a file path")
-    kind = name_or_path.split(":", 1)[0]
-    if kind in ("random", PARTITIONS) and (kind == name_or_path or name_or_path.startswith(kind + ":")):
-        if ":" in name_or_path:
+    kind, colon, seed_text = name_or_path.partition(":")
+    if kind in ("random", PARTITIONS):
+        if colon:
             try:
-                seed = int(name_or_path.split(":", 1)[1])
+                seed = int(seed_text)
             except ValueError:
                 raise WorldError(f"world '{name_or_path}': the seed after '{kind}:' must be an integer") from None
         return procedural_world(seed, partitions=kind == PARTITIONS)
