@@ -17,6 +17,8 @@ an ensemble of three files, evaluate --ensemble 3 -> turn_sam_ens3).
 mean over seeds of a - b, its interval resamples seeds, and the p-value flips the signs of the
 per-seed differences (a sign-flip permutation test), which is stronger than the unpaired test when
 seeds differ more from each other than the variants do. Only seeds present in both groups count.
+`--pool-worlds NAME` first sums each weights file's rows over all worlds into one world NAME (steps
+and crashes summed, reward weighted by steps): e.g. twenty validation layouts as one score per seed.
 An ensemble (evaluate --ensemble) is paired with the same ensemble in b if b has it, else with the
 mean of b's rows for its members' seeds: does voting beat the members it is made of?
 """
@@ -95,6 +97,17 @@ def compare_paired(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resam
     return diff, float(lo), float(hi), float(p)
 
 
+def pool_worlds(rows: list[dict], name: str) -> list[dict]:
+    """One row per (model, weights file): its rows' steps and crashes summed, reward weighted by steps."""
+    pooled: dict[tuple[str, str], dict] = {}
+    for r in rows:
+        p = pooled.setdefault((r["model"], r["weights"]), {**r, "world": name, "steps": 0, "crashes": 0, "reward_sum": 0.0})
+        p["steps"] += int(r["steps"])
+        p["crashes"] += int(r["crashes"])
+        p["reward_sum"] += float(r["mean_reward"]) * int(r["steps"])
+    return [{**p, "mean_reward": p["reward_sum"] / p["steps"]} for p in pooled.values()]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("csv", nargs="+", help="evaluate results.csv file(s); rows are joined")
@@ -104,20 +117,23 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--by", choices=("model", "run"), default="model", help="group rows by model or by training run")
     ap.add_argument("--paired", action="store_true", help="with --by run: pair the two groups' rows by training seed")
+    ap.add_argument("--pool-worlds", metavar="NAME", help="sum each weights file's rows over all worlds into one world NAME")
     a = ap.parse_args(argv)
     if a.paired and a.by != "run":
         ap.error("--paired needs --by run (two variants trained on the same seeds)")
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     seeds: dict[tuple[str, str], list[tuple[int, ...] | None]] = defaultdict(list)  # in the order of values' rows
     worlds: list[str] = []
-    for path in a.csv:
-        for r in csv.DictReader(open(path)):
-            if r["world"] not in worlds:
-                worlds.append(r["world"])
-            group = r["model"] if a.by == "model" else run_name(r["weights"])
-            values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
-            values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
-            seeds[(group, r["world"])].append(seeds_of(r["weights"]))
+    rows = [r for path in a.csv for r in csv.DictReader(open(path))]
+    if a.pool_worlds:
+        rows = pool_worlds(rows, a.pool_worlds)
+    for r in rows:
+        if r["world"] not in worlds:
+            worlds.append(r["world"])
+        group = r["model"] if a.by == "model" else run_name(r["weights"])
+        values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
+        values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
+        seeds[(group, r["world"])].append(seeds_of(r["weights"]))
     rng = np.random.default_rng(a.seed)
     A, B = (a.a.upper(), a.b.upper()) if a.by == "model" else (a.a, a.b)
     how = "paired by training seed, sign-flip test" if a.paired else "unpaired"

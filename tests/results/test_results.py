@@ -239,6 +239,25 @@ def test_compare_models_tells_a_real_difference_from_none(tmp_path):
     )
     row = next(line for line in by_run.stdout.splitlines() if "crashes / 1000" in line)
     assert [c.strip() for c in row.strip("|").split("|")][2:5] == ["0.333 (3)", "5.000 (3)", "-4.667"], by_run.stdout
+    # --pool-worlds: each weights file's worlds summed into one row (crashes per 1000 of all its steps).
+    rows += [
+        ["sam", "basic", f"runs/{v}_sam_seed{i}/policy_sam.safetensors", 3000, 3, 1.0] for v in ("new", "old") for i in range(3)
+    ]
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([["model", "world", "weights", "steps", "crashes", "mean_reward"], *rows])
+    pooled = subprocess.run(
+        [sys.executable, str(script), str(path), "--by", "run", "--a", "new_sam", "--b", "old_sam", "--pool-worlds", "both"],
+        capture_output=True,
+        text=True,
+    )
+    lines = [line for line in pooled.stdout.splitlines() if line.startswith("| both |")]
+    assert len(lines) == 2 and "complex" not in pooled.stdout.split("\n", 1)[1], pooled.stdout
+    assert [c.strip() for c in lines[0].strip("|").split("|")][2:5] == [
+        "0.833 (3)",
+        "2.000 (3)",
+        "-1.167",
+    ]  # (0 + 3) / 4 and (4 + 3) / 4 for seed 0
+    assert [c.strip() for c in lines[1].strip("|").split("|")][2:4] == ["1.250 (3)", "1.250 (3)"]  # (2 + 3) / 4
 
 
 def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
@@ -296,3 +315,58 @@ def test_crash_map_draws_the_crashes_of_a_crash_log(tmp_path):
     assert "cannot draw a world: unknown world 'mars'" in run("--worlds", "mars").stderr
     log.write_text("a,b\n1,2\n")
     assert "not a crash log: missing column(s) world" in run("--crashes", str(log)).stderr
+
+
+def test_select_runs_chooses_on_validation_and_reports_the_test_worlds(tmp_path):
+    """Eight seeds in two groups of four. Validation ranks them as Complex does, except seed 5 (a
+    tie on validation crashes with seed 6, which wins it on reward); Basic runs against it."""
+    script = ROOT / "scripts" / "select_runs.py"
+    header = ["model", "world", "weights", "steps", "crashes", "mean_reward", "turn_steps"]
+    w = "runs/v_sam_seed{}/policy_sam.safetensors"
+
+    def write(path, rows):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows([header, *rows])
+        return str(path)
+
+    val_crashes = [4, 1, 3, 2, 9, 0, 0, 7]
+    val_reward = [2.0, 2.0, 2.0, 2.0, 2.0, 1.0, 3.0, 2.0]
+    val = [
+        ["sam", f"random:{k}", w.format(s), 1000, c * (k == 300), r, 0]
+        for s, (c, r) in enumerate(zip(val_crashes, val_reward, strict=True))
+        for k in (300, 301)
+    ]
+    complex_ = [5, 2, 4, 3, 9, 1, 0, 8]
+    basic = [0, 3, 0, 0, 1, 2, 6, 0]
+    test = [
+        ["sam", world, w.format(s), 2000, c[s] * 2, 2.5, 11]
+        for s in range(8)
+        for world, c in (("basic", basic), ("complex", complex_))
+    ]
+    vpath, tpath = write(tmp_path / "val" / "results.csv", val), write(tmp_path / "varied_start" / "results.csv", test)
+    run = lambda *a: subprocess.run([sys.executable, str(script), *a], capture_output=True, text=True)  # noqa: E731
+    out = run(vpath, "--group", "4", "--test", tpath, "--out", str(tmp_path / "sel"))
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert "| 1 (chosen) | 0.50 | 2.000 | 3.00 | 2.00 |" in lines  # validation: 1 crash in 2000 steps
+    assert "| 6 (chosen) | 0.00 | 3.000 | 6.00 | 0.00 |" in lines and "| 5 | 0.00 | 1.000 | 2.00 | 1.00 |" in lines
+    cells = lambda world: [c.strip() for c in next(x for x in lines if x.startswith(f"| {world} |")).strip("|").split("|")]  # noqa: E731
+    rho, p = cells("complex")[1].split()
+    assert float(rho) > 0.9 and float(p.strip("()")) < 0.01  # validation predicts Complex
+    assert cells("complex")[2:5] == ["1.000 (2)", "4.000", "-3.000"]  # chosen (2 + 0) / 2; groups (14/4 + 18/4) / 2
+    assert cells("basic")[2:5] == ["4.500 (2)", "1.500", "+3.000"] and float(cells("basic")[1].split()[0]) < 0
+    # Test files in folders of one name are joined: the rows split over two files give the same report.
+    halves = [write(tmp_path / h / "varied_start" / "results.csv", test[i::2]) for i, h in enumerate("ab")]
+    assert run(vpath, "--group", "4", "--test", *halves).stdout == out.stdout
+    kept = list(csv.DictReader(open(tmp_path / "sel" / "varied_start" / "results.csv")))
+    assert sorted({r["weights"] for r in kept}) == [w.format(1), w.format(6)] and list(kept[0]) == header
+    # Bad input: a clear message, exit 2 or 1, nothing written.
+    assert "--group 3 must divide the number of sam runs (8)" in run(vpath, "--group", "3").stderr
+    assert "needs --test" in run(vpath, "--group", "4", "--out", str(tmp_path / "x")).stderr
+    short = write(tmp_path / "short" / "results.csv", test[:4])
+    assert "no sam test rows for runs/v_sam_seed2" in run(vpath, "--group", "4", "--test", short).stderr
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    assert "not an evaluate results.csv: missing column(s) model" in run(str(tmp_path / "bad.csv"), "--group", "1").stderr
+    nameless = write(tmp_path / "nameless" / "results.csv", [["sam", "random:1", "p.safetensors", 1000, 0, 2.0, 0]])
+    assert "must sit in a runs/<name>_seed<N>/ folder" in run(nameless, "--group", "1").stderr
