@@ -553,3 +553,40 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R18/pooled_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
     --by run --a r16basic4_cnn --b tl300_cnn > $R18/pooled_20_seeds/$p/cnn_against_round6.md
 done
+
+# Round 19: choosing one training seed of each group on validation layouts that neither training nor the
+# test worlds use (random:300..309 and random_partitions:300..309, 1000 steps each from a random heading),
+# for round 16/18's twenty seeds per model (groups of four) and round 17's ten (groups of two); the chosen
+# seeds' test tables (rows of the earlier evaluations), SAM against CNN on the chosen seeds and on the
+# validation layouts themselves.
+R19=docs/results/round19_validation_choice
+VAL=()
+for s in $(seq 300 309); do VAL+=("random:$s" "random_partitions:$s"); done
+choose_on_validation() {  # tag last-seed group-size folder test-folders...
+  local tag=$1 last=$2 group=$3 out=$4 m p W tests=() proto
+  shift 4
+  for m in sam cnn; do
+    W=()
+    for s in $(seq 0 "$last"); do W+=("runs/${tag}_${m}_seed$s/policy_$m.safetensors"); done
+    [ -f runs/r19val_${tag}_$m/results.csv ] || $EVAL --inprocess --model $m --weights "${W[@]}" --worlds "${VAL[@]}" \
+      --steps 1000 --start-yaw-jitter-deg 180 --sim-arg hfov_deg:=120.0 --out runs/r19val_${tag}_$m > runs/r19val_${tag}_$m.log &
+  done
+  wait
+  $EVAL --inprocess --worlds "${VAL[@]}" --steps 1000 --start-yaw-jitter-deg 180 --sim-arg hfov_deg:=120.0 \
+    --from-csv runs/r19val_${tag}_{sam,cnn}/results.csv --out $out/validation
+  python scripts/compare_models.py $out/validation/results.csv --pool-worlds validation --by run \
+    --a ${tag}_sam --b ${tag}_cnn > $out/validation/sam_against_cnn.md
+  for p in "$@"; do tests+=("$p/varied_start/results.csv" "$p/fixed_start/results.csv"); done
+  python scripts/select_runs.py $out/validation/results.csv --group "$group" --test "${tests[@]}" --out $out/chosen \
+    > $out/selection.md
+  for p in varied_start fixed_start; do
+    proto=()
+    [ $p = varied_start ] && proto=("${VARIED[@]}")
+    $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" --sim-arg hfov_deg:=120.0 \
+      --from-csv $out/chosen/$p/results.csv --out $out/chosen/$p
+    python scripts/compare_models.py $out/chosen/$p/results.csv --by run --a ${tag}_sam --b ${tag}_cnn \
+      > $out/chosen/$p/sam_against_cnn.md
+  done
+}
+choose_on_validation r16basic4 19 4 $R19 $R18/pooled_20_seeds
+choose_on_validation r17part 9 2 $R19/round17_partitions $R17 $R17/cnn

@@ -136,7 +136,8 @@ def report(label: str, model: str, scores, chosen, rows: list[dict], rng: np.ran
         y = np.array([np.mean([per[(w, world)] for w in g]) for g, _ in chosen])
         diff, lo, hi, p = compare_paired(x, y, rng, resamples)
         cells = f"{x.mean():.3f} ({x.size}) | {y.mean():.3f} | {diff:+.3f} | {lo:+.3f} to {hi:+.3f} | {p:.3f}"
-        print(f"| {world} | {rho:+.2f} ({p_rho:.3f}) | {cells} |")
+        corr = "n/a (a constant column)" if np.isnan(rho) else f"{rho:+.2f} ({p_rho:.3f})"
+        print(f"| {world} | {corr} | {cells} |")
     print()
 
 
