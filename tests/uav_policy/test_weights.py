@@ -112,13 +112,15 @@ def test_loaders_take_the_layer_sizes_from_the_file_and_nothing_else(tmp_path):
     assert wio.load_file(tmp_path / "other.safetensors", flat, sizes_from_blob=True).cfg == other
     with pytest.raises(wio.WeightsError, match="architecture"):
         wio.load_file(tmp_path / "other.safetensors", flat)  # without sizes_from_blob the sizes must match
-    # The model, frame stack, actions and depth range are the stack's, not the file's.
+    # The frame stack is the file's too (evaluate flies a file with its own); the model, actions and
+    # depth range are the stack's.
     with pytest.raises(wio.WeightsError, match="model 'sam'"):
         wio.load_file(tmp_path / "other.safetensors", wio.config_for("cnn", tmp_path / "other.safetensors"))
     six = NetConfig(model="sam", frames=6)
     wio.save_file(build_network(six), six, tmp_path / "six.safetensors")
+    assert wio.load_file(tmp_path / "six.safetensors", wio.config_for("sam", tmp_path / "six.safetensors")).cfg == six
     with pytest.raises(wio.WeightsError, match='"frames": 6'):
-        wio.load_file(tmp_path / "six.safetensors", wio.config_for("sam", tmp_path / "six.safetensors"))
+        wio.load_file(tmp_path / "six.safetensors", SAM)  # policy_node's own frame_stack (5) must match
 
 
 def test_a_header_claiming_a_huge_network_is_refused_before_anything_is_allocated(monkeypatch):

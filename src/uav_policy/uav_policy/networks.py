@@ -34,6 +34,8 @@ MODELS = ("sam", "cnn")
 SAM_READOUTS = ("max", "flatten")
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
 # on them, so whoever loads a weights file takes them from the file (weights.config_for).
+# The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
+MAX_FRAMES = 16
 SIZE_FIELDS = ("conv_channels", "d_model", "heads", "relational_blocks", "mlp_hidden", "cnn_hidden", "head_hidden")
 # Upper bounds on those sizes: a weights file's header cannot make a loader build a network that
 # no file within weights.MAX_BYTES could fill.
@@ -85,8 +87,8 @@ class NetConfig:
                 raise ValueError(f"{name} must be integer(s) in [1, {SIZE_LIMITS[name]}], got {value!r}")
         if self.d_model % self.heads:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by heads ({self.heads})")
-        if self.frames < 1 or self.actions < 2:
-            raise ValueError("need frames >= 1 and actions >= 2")
+        if type(self.frames) is not int or not 1 <= self.frames <= MAX_FRAMES or self.actions < 2:
+            raise ValueError(f"need frames in [1, {MAX_FRAMES}] and actions >= 2, got {self.frames!r} and {self.actions!r}")
         if self.height < 8 or self.width < 8:
             raise ValueError(f"input {self.width}x{self.height} is too small (>= 8x8)")
 

@@ -36,7 +36,7 @@ from .actions import PAPER_ACTIONS, make_actions
 from .agent import Agent
 from .attention import attention_map, overlay
 from .frame_stack import FrameStack, fit_to_network
-from .networks import SAM_READOUTS, SIZE_FIELDS, NetConfig, build_network, parameter_count
+from .networks import MAX_FRAMES, SAM_READOUTS, SIZE_FIELDS, NetConfig, build_network, parameter_count
 
 
 def resolve_device(name: str) -> str:
@@ -64,7 +64,7 @@ class PolicyNode(Node):
         names = d("action_names", [a.name for a in PAPER_ACTIONS], "Action names (q_values layout labels)")
         lin = d("action_linear_x_mps", [a.linear_x_mps for a in PAPER_ACTIONS], "Forward speed of each action (m/s)")
         yaw = d("action_yaw_deg", [a.yaw_deg_per_step for a in PAPER_ACTIONS], "Yaw turned during one step (deg, left +)")
-        frames = d("frame_stack", 5, "Depth frames in the state", 1, 16)
+        frames = d("frame_stack", NetConfig.frames, "Depth frames in the state", 1, MAX_FRAMES)
         height = d("input_height", 64, "Network input height (px); frames of another size are resized", 8, 512)
         width = d("input_width", 64, "Network input width (px)", 8, 512)
         max_range = d("max_range_m", 10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)

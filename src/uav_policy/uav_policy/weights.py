@@ -217,13 +217,14 @@ def camera_for(path: str | os.PathLike | None, default: float) -> float:
 
 
 def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
-    """The architecture to load `path` as `model` with: the file's input size, SAM readout and layer
-    sizes (networks.SIZE_FIELDS; the defaults without a path). The model, frame stack, action count
-    and depth range stay the stack's, so a file made for another model or interface still fails to load."""
+    """The architecture to load `path` as `model` with: the file's input size, frame stack, SAM readout
+    and layer sizes (networks.SIZE_FIELDS; the defaults without a path). The model, action count and
+    depth range stay the stack's, so a file made for another model or interface still fails to load."""
     if not path:
         return NetConfig(model=model)
     made = read_file_config(path)
-    return with_sizes_of(NetConfig(model=model, sam_readout=made.sam_readout, height=made.height, width=made.width), made)
+    cfg = NetConfig(model=model, sam_readout=made.sam_readout, height=made.height, width=made.width, frames=made.frames)
+    return with_sizes_of(cfg, made)
 
 
 def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:

@@ -163,7 +163,7 @@ class StepMonitor:
 
 
 def architecture_args(model: str, weights: str) -> list[str]:
-    """policy_node parameters for a weights file whose SAM readout or input size is not the default."""
+    """policy_node parameters for a weights file whose SAM readout, input size or frame stack is not the default."""
     from uav_policy import weights as wio
     from uav_policy.networks import NetConfig
 
@@ -171,6 +171,8 @@ def architecture_args(model: str, weights: str) -> list[str]:
     args = [f"sam_readout:={cfg.sam_readout}"] if cfg.sam_readout != NetConfig.sam_readout else []
     if (cfg.height, cfg.width) != (NetConfig.height, NetConfig.width):
         args += [f"input_height:={cfg.height}", f"input_width:={cfg.width}"]
+    if cfg.frames != NetConfig.frames:
+        args.append(f"frame_stack:={cfg.frames}")
     return args
 
 

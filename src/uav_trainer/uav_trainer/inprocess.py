@@ -20,7 +20,7 @@ import torch
 from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
-from uav_policy.networks import SAM_READOUTS, NetConfig
+from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, NetConfig
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
@@ -299,6 +299,12 @@ def main() -> int:
         help="experiment: square network input and depth image size in px (84: SAM sees 10 x 10 nodes instead of 8 x 8)",
     )
     ap.add_argument(
+        "--frames",
+        type=int,
+        default=TrainerConfig.frames,
+        help="experiment: depth frames stacked into the state (the paper's 5; policy_node's frame_stack must match)",
+    )
+    ap.add_argument(
         "--turn-penalty",
         type=float,
         default=TrainerConfig.turn_penalty,
@@ -359,6 +365,8 @@ def main() -> int:
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     if not 8 <= a.input_size <= 512:
         ap.error(f"--input-size must lie in [8, 512] px (policy_node's input_height/input_width range), got {a.input_size}")
+    if not 1 <= a.frames <= MAX_FRAMES:
+        ap.error(f"--frames must lie in [1, {MAX_FRAMES}] (policy_node's frame_stack range), got {a.frames}")
     if not 1 <= a.n_step <= MAX_N_STEP:
         ap.error(f"--n-step must lie in [1, {MAX_N_STEP}], got {a.n_step}")
     if not 0.0 <= a.priority_alpha <= 1.0 or not 0.0 <= a.priority_beta <= 1.0:
@@ -388,6 +396,7 @@ def main() -> int:
         turning_actions=turning_indices(PAPER_ACTIONS),
         sam_readout=a.sam_readout,
         input_size_px=a.input_size,
+        frames=a.frames,
         **size_args,
         learner=dataclasses.replace(
             LearnerConfig(),

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
-from uav_policy.networks import SAM_READOUTS, SIZE_LIMITS, parameter_count
+from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, parameter_count
 from uav_policy.push import push_request
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim import contract
@@ -146,6 +146,7 @@ class TrainerNode(Node):
             input_size_px=d(
                 "input_size_px", D.input_size_px, "Square network input (px); policy_node's input_height/input_width", 8, 512
             ),
+            frames=d("frame_stack", D.frames, "Depth frames in the state; policy_node's frame_stack", 1, MAX_FRAMES),
             d_model=d("d_model", D.d_model, "SAM: node feature size, split over the heads", 1, SIZE_LIMITS["d_model"]),
             heads=d("heads", D.heads, "SAM: attention heads", 1, SIZE_LIMITS["heads"]),
             relational_blocks=d(

@@ -69,6 +69,9 @@ class TrainerConfig:
     # Square network input (px); the paper does not give one. 64 (the default) gives SAM 8 x 8 nodes,
     # 84 (an experiment: Atari's size) 10 x 10. The camera must render at the same size.
     input_size_px: int = 64
+    # Depth frames stacked into the state (the paper: 5; more is an experiment). policy_node's
+    # frame_stack must match.
+    frames: int = NetConfig.frames
     # SAM's relational module (an experiment; the defaults are the shipped networks'): node feature
     # size, attention heads, relational blocks and the blocks' MLP width.
     d_model: int = NetConfig.d_model
@@ -150,6 +153,7 @@ class Training:
             sam_readout=cfg.sam_readout,
             height=cfg.input_size_px,
             width=cfg.input_size_px,
+            frames=cfg.frames,
             **{name: getattr(cfg, name) for name in SAM_SIZES},
         )
         # The depth camera's field of view, recorded in every weights file written; None until the
