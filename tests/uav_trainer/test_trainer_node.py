@@ -195,12 +195,12 @@ def test_launcher_rejects_a_bad_budget():
         (180.0, 120.0, None, "max", 64, {}),
         (0.0, 90.0, None, "flatten", 64, {}),
         (180.0, None, 90.0, "max", 64, {}),
-        (180.0, 120.0, None, "max", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2}),
+        (180.0, 120.0, None, "max", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}),
     ],
 )
 def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes):
     """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
-    random start heading, extra sim parameters, the weights' SAM readout, input size and layer sizes
+    random start heading, extra sim parameters, the weights' SAM readout, input size, layer sizes and frame stack
     and, without an hfov_deg argument, the camera recorded in the weights reach the nodes)."""
     from uav_sim.simulator import SimConfig
     from uav_trainer.evaluate import evaluate_inprocess

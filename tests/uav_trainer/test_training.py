@@ -286,6 +286,19 @@ def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):
     assert r.steps == 20
 
 
+def test_the_frame_stack_reaches_the_network_the_replay_memory_and_the_evaluation(tmp_path):
+    from uav_trainer.evaluate import architecture_args, evaluate_inprocess
+
+    cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, frames=3)
+    t = run_inprocess(cfg, str(tmp_path), log=lambda s: None, hfov_deg=90.0)
+    assert t.learner.updates > 0 and t.replay.frames == 3 and t.learner.online.trunk.net[0].in_channels == 3
+    assert wio.read_file_config(t.policy_weights_path).frames == 3
+    assert architecture_args("sam", str(t.policy_weights_path)) == ["frame_stack:=3"]  # policy_node's parameter
+    assert evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1).steps == 20  # stacks 3 frames
+    with pytest.raises(ValueError, match=r"frames in \[1, 16\]"):
+        NetConfig(frames=17).validate()  # nor may a weights file's header ask for more
+
+
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
     import csv
 
