@@ -16,7 +16,8 @@
 # (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
 # 6's setting on fresh seeds, flown alone and as ensembles of three), a sixteenth (every fourth or
 # eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions)
-# and an eighteenth (round 16 on fresh seeds, both models). About 28 h on 2 cores.
+# an eighteenth (round 16 on fresh seeds, both models) and a nineteenth (choosing one seed of each group
+# on validation layouts). About 28 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
