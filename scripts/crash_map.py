@@ -15,24 +15,17 @@ from __future__ import annotations
 
 import argparse
 import collections
-import csv
 import math
 import sys
 from pathlib import Path
+
+from csv_input import read_csv
 
 COLUMNS = ("world", "weights", "x_m", "y_m", "yaw_deg")
 
 
 def read_crashes(path: str) -> list[dict]:
-    try:
-        with open(path, newline="") as f:
-            reader = csv.DictReader(f)
-            missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]
-            if missing:
-                raise SystemExit(f"{path}: not a crash log: missing column(s) {', '.join(missing)}")
-            rows = list(reader)
-    except OSError as e:
-        raise SystemExit(f"cannot read {path}: {e.strerror}") from None
+    rows = read_csv(path, COLUMNS, "a crash log")[1]
     for i, r in enumerate(rows, start=2):
         try:
             r["x"], r["y"], r["yaw"] = float(r["x_m"]), float(r["y_m"]), math.radians(float(r["yaw_deg"]))

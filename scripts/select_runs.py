@@ -31,21 +31,13 @@ from pathlib import Path
 
 import numpy as np
 from compare_models import compare_paired, seeds_of
+from csv_input import read_csv
 
 
 def read_rows(path: str) -> tuple[list[str], list[dict]]:
     """(header, rows) of an evaluate results.csv; each row keeps its text and gains n, c, r
     (steps, crashes, mean reward per step) as numbers."""
-    try:
-        with open(path, newline="") as f:
-            reader = csv.DictReader(f)
-            header = list(reader.fieldnames or [])
-            missing = [c for c in ("model", "world", "weights", "steps", "crashes", "mean_reward") if c not in header]
-            if missing:
-                raise SystemExit(f"{path}: not an evaluate results.csv: missing column(s) {', '.join(missing)}")
-            rows = list(reader)
-    except OSError as e:
-        raise SystemExit(f"cannot read {path}: {e.strerror}") from None
+    header, rows = read_csv(path, ("model", "world", "weights", "steps", "crashes", "mean_reward"), "an evaluate results.csv")
     for i, r in enumerate(rows, start=2):
         try:
             r["n"], r["c"], r["r"] = int(r["steps"]), int(r["crashes"]), float(r["mean_reward"])
