@@ -35,15 +35,15 @@ from csv_input import read_csv
 
 
 def read_rows(path: str) -> tuple[list[str], list[dict]]:
-    """(header, rows) of an evaluate results.csv; each row keeps its text and gains n, c, r
+    """(header, rows) of an evaluate results.csv; each row keeps its text and gains _n, _c, _r
     (steps, crashes, mean reward per step) as numbers."""
     header, rows = read_csv(path, ("model", "world", "weights", "steps", "crashes", "mean_reward"), "an evaluate results.csv")
     for i, r in enumerate(rows, start=2):
         try:
-            r["n"], r["c"], r["r"] = int(r["steps"]), int(r["crashes"]), float(r["mean_reward"])
+            r["_n"], r["_c"], r["_r"] = int(r["steps"]), int(r["crashes"]), float(r["mean_reward"])
         except ValueError:
             raise SystemExit(f"{path} line {i}: steps, crashes and mean_reward must be numbers") from None
-        if r["n"] <= 0 or r["c"] < 0:
+        if r["_n"] <= 0 or r["_c"] < 0:
             raise SystemExit(f"{path} line {i}: steps must be positive and crashes not negative")
     return header, rows
 
@@ -53,9 +53,9 @@ def validation_scores(rows: list[dict]) -> dict[tuple[str, str], tuple[float, fl
     sums: dict[tuple[str, str], list[float]] = defaultdict(lambda: [0, 0, 0.0])
     for r in rows:
         s = sums[(r["model"], r["weights"])]
-        s[0] += r["c"]
-        s[1] += r["n"]
-        s[2] += r["r"] * r["n"]
+        s[0] += r["_c"]
+        s[1] += r["_n"]
+        s[2] += r["_r"] * r["_n"]
     return {k: (1000.0 * c / n, reward / n) for k, (c, n, reward) in sums.items()}
 
 
@@ -101,7 +101,7 @@ def spearman(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, resamples: 
 
 def report(label: str, model: str, scores, chosen, rows: list[dict], rng: np.random.Generator, resamples: int) -> None:
     """One test file's tables for one model: every run, then validation against test per world."""
-    per = {(r["weights"], r["world"]): 1000.0 * r["c"] / r["n"] for r in rows if r["model"] == model}
+    per = {(r["weights"], r["world"]): 1000.0 * r["_c"] / r["_n"] for r in rows if r["model"] == model}
     worlds = list(dict.fromkeys(world for _, world in per))
     lacking = [w for w in scores if any((w, world) not in per for world in worlds)]
     if not worlds or lacking:
