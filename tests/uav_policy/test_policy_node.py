@@ -209,6 +209,11 @@ def test_policy_start_up_errors(tmp_path):
     wio.save_file(build_network(cfg84, seed=0), cfg84, big)
     r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={big}")
     assert r.returncode == 2 and "parameter 'weights'" in r.stderr and "set input_height:=84 input_width:=84" in r.stderr
+    deep, cfg10 = tmp_path / "sam10.safetensors", NetConfig(model="sam", frames=10)
+    wio.save_file(build_network(cfg10, seed=0), cfg10, deep)
+    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={deep}")
+    assert r.returncode == 2 and "the file stacks 10 frames: set frame_stack:=10" in r.stderr
+    assert "input_height" not in r.stderr.split("parameter 'weights'")[1]
     r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
     assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")

@@ -158,17 +158,20 @@ class PolicyNode(Node):
         return net
 
     def _size_hint(self, path: str) -> str:
-        """What to set when a weights file was made for another input size ('' otherwise)."""
+        """What to set when a weights file was made for another input size or frame stack ('' otherwise)."""
         try:
             made = wio.read_file_config(path)
         except wio.WeightsError:
             return ""
-        if (made.height, made.width) == (self.cfg.height, self.cfg.width):
-            return ""
-        return (
-            f"; the file takes {made.width}x{made.height} frames: set input_height:={made.height} "
-            f"input_width:={made.width} (and sim_node's image_width/image_height to match)"
-        )
+        hint = ""
+        if (made.height, made.width) != (self.cfg.height, self.cfg.width):
+            hint += (
+                f"; the file takes {made.width}x{made.height} frames: set input_height:={made.height} "
+                f"input_width:={made.width} (and sim_node's image_width/image_height to match)"
+            )
+        if made.frames != self.cfg.frames:
+            hint += f"; the file stacks {made.frames} frames: set frame_stack:={made.frames}"
+        return hint
 
     # -- camera -------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
