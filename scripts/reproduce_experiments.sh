@@ -15,9 +15,9 @@
 # (a larger SAM), an eleventh (n-step returns), a twelfth (prioritized replay), a thirteenth
 # (slower exploration, then with CNN), a fourteenth (the same on fresh seeds) and a fifteenth (round
 # 6's setting on fresh seeds, flown alone and as ensembles of three), a sixteenth (every fourth or
-# eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions)
-# an eighteenth (round 16 on fresh seeds, both models) and a nineteenth (choosing one seed of each group
-# on validation layouts). About 28 h on 2 cores.
+# eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions), an eighteenth
+# (round 16 on fresh seeds, both models), a nineteenth (choosing one seed of each group on validation
+# layouts) and a twentieth (ten stacked depth frames). About 29 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -591,3 +591,10 @@ choose_on_validation() {  # tag last-seed group-size folder test-folders...
 }
 choose_on_validation r16basic4 19 4 $R19 $R18/pooled_20_seeds
 choose_on_validation r17part 9 2 $R19/round17_partitions $R17 $R17/cnn
+
+# Round 20: round 6's setting with ten stacked depth frames instead of the paper's five (--frames 10), SAM
+# and CNN seeds 0-9; SAM against round 6's 32 SAM seeds, the CNN against round 6's CNN, SAM against the CNN.
+R20=docs/results/round20_frames10
+model_ten r20frames10 sam $R20 --frames 10
+model_ten r20frames10 cnn $R20/cnn --frames 10
+two_arms r20frames10 $R20
