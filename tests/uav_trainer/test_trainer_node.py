@@ -124,12 +124,12 @@ def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
     assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
 
 
-def test_the_main_job_sets_the_input_size_everywhere_and_takes_sam_sizes(tmp_path):
+def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
     run_dir = tmp_path / "run"
     sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2")
-    r, logs = run_train(run_dir, "75", "--steps", "200", "--input-size", "48", *sizes, timeout_s=300)
+    r, logs = run_train(run_dir, "75", "--steps", "200", "--input-size", "48", "--frames", "3", *sizes, timeout_s=300)
     made = wio.read_file_config(run_dir / "policy_sam.safetensors")
-    assert (made.height, made.width, made.d_model, made.heads) == (48, 48, 24, 2)
+    assert (made.height, made.width, made.frames, made.d_model, made.heads) == (48, 48, 3, 24, 2)
     assert "48x48 depth" in logs["sim"] and "policy rejected" not in logs["trainer"]
     policy_log = (run_dir / "logs" / "policy.log").read_text()
     assert "pushed weights changed the layer sizes: conv_channels (16, 32, 32), d_model 24, heads 2" in policy_log

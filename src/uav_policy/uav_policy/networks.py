@@ -32,10 +32,10 @@ from torch import nn
 
 MODELS = ("sam", "cnn")
 SAM_READOUTS = ("max", "flatten")
-# The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
-# on them, so whoever loads a weights file takes them from the file (weights.config_for).
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
+# The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
+# on them, so whoever loads a weights file takes them from the file (weights.config_for).
 SIZE_FIELDS = ("conv_channels", "d_model", "heads", "relational_blocks", "mlp_hidden", "cnn_hidden", "head_hidden")
 # Upper bounds on those sizes: a weights file's header cannot make a loader build a network that
 # no file within weights.MAX_BYTES could fill.

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from uav_policy.networks import SAM_READOUTS
+from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 
 from .launching import Processes, params_args
 
@@ -80,11 +80,20 @@ def main(argv=None) -> int:
         help="square network input and camera image (px) for all three nodes (default: params/*.yaml's, 64); "
         "SAM's layer sizes go by --trainer-arg (d_model, heads, relational_blocks, mlp_hidden)",
     )
+    ap.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help=f"depth frames in the state for policy_node and trainer_node (1 to {MAX_FRAMES}; default: params/*.yaml's, 5)",
+    )
     a = ap.parse_args(argv)
     if a.steps <= 0:
         ap.error("--steps must be positive")
     if a.input_size is not None and not 8 <= a.input_size <= 512:
         ap.error(f"--input-size must lie in [8, 512] px, got {a.input_size}")
+    if a.frames is not None and not 1 <= a.frames <= MAX_FRAMES:
+        ap.error(f"--frames must lie in [1, {MAX_FRAMES}], got {a.frames}")
+    frames = [] if a.frames is None else [f"frame_stack:={a.frames}"]
     size = [] if a.input_size is None else [a.input_size]
     recipe = RECIPES[a.recipe]
     world = a.world or recipe["world"]
@@ -108,7 +117,7 @@ def main(argv=None) -> int:
         "policy_node",
         params_args(params, "policy")
         + p("", [f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0"])
-        + p("", [f"input_{side}:={px}" for px in size for side in ("height", "width")]),
+        + p("", [f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
     )
     trainer = procs.start(
         "trainer",
@@ -126,6 +135,7 @@ def main(argv=None) -> int:
                 f"resume:={'false' if a.no_resume else 'true'}",
                 *recipe["trainer"],
                 *[f"input_size_px:={px}" for px in size],
+                *frames,
                 *a.trainer_arg,
             ],
         ),
