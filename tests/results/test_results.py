@@ -361,9 +361,11 @@ def test_select_runs_chooses_on_validation_and_reports_the_test_worlds(tmp_path)
     assert run(vpath, "--group", "4", "--test", *halves).stdout == out.stdout
     kept = list(csv.DictReader(open(tmp_path / "sel" / "varied_start" / "results.csv")))
     assert sorted({r["weights"] for r in kept}) == [w.format(1), w.format(6)] and list(kept[0]) == header
-    # Bad input: a clear message, exit 2 or 1, nothing written.
-    assert "--group 3 must divide the number of sam runs (8)" in run(vpath, "--group", "3").stderr
+    # Bad input: a one-line message naming what is wrong, and a non-zero exit.
+    bad = run(vpath, "--group", "3")
+    assert bad.returncode != 0 and "--group 3 must divide the number of sam runs (8)" in bad.stderr
     assert "needs --test" in run(vpath, "--group", "4", "--out", str(tmp_path / "x")).stderr
+    assert not (tmp_path / "x").exists()
     short = write(tmp_path / "short" / "results.csv", test[:4])
     assert "no sam test rows for runs/v_sam_seed2" in run(vpath, "--group", "4", "--test", short).stderr
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
