@@ -598,3 +598,5 @@ R20=docs/results/round20_frames10
 model_ten r20frames10 sam $R20 --frames 10
 model_ten r20frames10 cnn $R20/cnn --frames 10
 two_arms r20frames10 $R20
+# Round 19's choice on validation layouts for round 20's runs as well (groups of two).
+choose_on_validation r20frames10 9 2 $R19/round20_frames10 $R20 $R20/cnn
