@@ -26,11 +26,10 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from compare_models import compare_paired, seeds_of
+from compare_models import compare_paired, pool_worlds, seeds_of
 from csv_input import read_csv
 
 
@@ -50,13 +49,10 @@ def read_rows(path: str) -> tuple[list[str], list[dict]]:
 
 def validation_scores(rows: list[dict]) -> dict[tuple[str, str], tuple[float, float]]:
     """(model, weights) -> (crashes per 1000 steps, mean reward per step), pooled over the rows' worlds."""
-    sums: dict[tuple[str, str], list[float]] = defaultdict(lambda: [0, 0, 0.0])
-    for r in rows:
-        s = sums[(r["model"], r["weights"])]
-        s[0] += r["_c"]
-        s[1] += r["_n"]
-        s[2] += r["_r"] * r["_n"]
-    return {k: (1000.0 * c / n, reward / n) for k, (c, n, reward) in sums.items()}
+    return {
+        (r["model"], r["weights"]): (1000.0 * r["crashes"] / r["steps"], r["mean_reward"])
+        for r in pool_worlds(rows, "validation")
+    }
 
 
 def choose(scores: dict[str, tuple[float, float]], group: int, model: str) -> list[tuple[list[str], str]]:
