@@ -91,6 +91,12 @@ class NetConfig:
             raise ValueError(f"need frames in [1, {MAX_FRAMES}] and actions >= 2, got {self.frames!r} and {self.actions!r}")
         if self.height < 8 or self.width < 8:
             raise ValueError(f"input {self.width}x{self.height} is too small (>= 8x8)")
+        # Each trunk layer (4x4, stride 2, padding 1) halves the input, rounding down.
+        if min(self.height, self.width) >> len(self.conv_channels) < 1:
+            raise ValueError(
+                f"{len(self.conv_channels)} conv layers leave nothing of a {self.width}x{self.height} input "
+                f"(each halves it): use at most {min(self.height, self.width).bit_length() - 1}"
+            )
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), sort_keys=True)

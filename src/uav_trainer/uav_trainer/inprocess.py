@@ -348,6 +348,15 @@ def main() -> int:
         default=TrainerConfig.sam_readout,
         help="SAM only: max pools the nodes (the paper's design); flatten keeps every node's place (an extension)",
     )
+    ap.add_argument(
+        "--conv-channels",
+        type=int,
+        nargs="+",
+        default=list(TrainerConfig.conv_channels),
+        metavar="C",
+        help="experiment: the conv trunk's output channels, one stride-2 layer each (both models); "
+        "the default 16 32 32 gives SAM 8 x 8 nodes from 64 px, 16 32 gives 16 x 16",
+    )
     sizes = ap.add_argument_group("SAM's relational module (an experiment; the defaults are the shipped SAM's)")
     sizes.add_argument("--d-model", type=int, default=TrainerConfig.d_model, help="node feature size, split over the heads")
     sizes.add_argument("--heads", type=int, default=TrainerConfig.heads, help="attention heads")
@@ -361,6 +370,10 @@ def main() -> int:
         NetConfig(**size_args).validate()
     except ValueError as e:
         ap.error(f"SAM sizes (--d-model, --heads, --relational-blocks, --mlp-hidden): {e}")
+    try:
+        NetConfig(conv_channels=tuple(a.conv_channels), height=a.input_size, width=a.input_size).validate()
+    except ValueError as e:
+        ap.error(f"--conv-channels: {e}")
     if any(not 1 <= n <= a.steps for n in a.save_weights_at):
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     if not 8 <= a.input_size <= 512:
@@ -397,6 +410,7 @@ def main() -> int:
         sam_readout=a.sam_readout,
         input_size_px=a.input_size,
         frames=a.frames,
+        conv_channels=tuple(a.conv_channels),
         **size_args,
         learner=dataclasses.replace(
             LearnerConfig(),

@@ -72,6 +72,9 @@ class TrainerConfig:
     # Depth frames stacked into the state (the paper: 5; more is an experiment). policy_node's
     # frame_stack must match.
     frames: int = NetConfig.frames
+    # The conv trunk's output channels, one stride-2 layer each (an experiment; both models share the
+    # trunk): the default three layers give SAM 8 x 8 nodes from 64 px, (16, 32) gives 16 x 16.
+    conv_channels: tuple[int, ...] = NetConfig.conv_channels
     # SAM's relational module (an experiment; the defaults are the shipped networks'): node feature
     # size, attention heads, relational blocks and the blocks' MLP width.
     d_model: int = NetConfig.d_model
@@ -154,6 +157,7 @@ class Training:
             height=cfg.input_size_px,
             width=cfg.input_size_px,
             frames=cfg.frames,
+            conv_channels=tuple(cfg.conv_channels),
             **{name: getattr(cfg, name) for name in SAM_SIZES},
         )
         # The depth camera's field of view, recorded in every weights file written; None until the
