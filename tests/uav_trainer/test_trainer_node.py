@@ -126,13 +126,14 @@ def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
 
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
     run_dir = tmp_path / "run"
-    sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2")
+    sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2", "--trainer-arg", "conv_channels:=[8, 16]")
     r, logs = run_train(run_dir, "75", "--steps", "200", "--input-size", "48", "--frames", "3", *sizes, timeout_s=300)
     made = wio.read_file_config(run_dir / "policy_sam.safetensors")
     assert (made.height, made.width, made.frames, made.d_model, made.heads) == (48, 48, 3, 24, 2)
+    assert made.conv_channels == (8, 16)  # 12 x 12 nodes from 48 px
     assert "48x48 depth" in logs["sim"] and "policy rejected" not in logs["trainer"]
     policy_log = (run_dir / "logs" / "policy.log").read_text()
-    assert "pushed weights changed the layer sizes: conv_channels (16, 32, 32), d_model 24, heads 2" in policy_log
+    assert "pushed weights changed the layer sizes: conv_channels (8, 16), d_model 24, heads 2" in policy_log
 
 
 def test_trainer_rejects_bad_parameters():
@@ -146,6 +147,10 @@ def test_trainer_rejects_bad_parameters():
     assert r.returncode == 2 and "action" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "d_model:=50")
     assert r.returncode == 2 and "parameters 'd_model' (50) and 'heads' (3)" in r.stderr
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "conv_channels:=[16, 32, 32, 32, 32, 32, 32]")
+    assert r.returncode == 2 and "parameter 'conv_channels'=[16, 32, 32, 32, 32, 32, 32]: 7 conv layers" in r.stderr
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "conv_channels:=16")
+    assert r.returncode == 2 and "parameter 'conv_channels'" in r.stderr and "INTEGER_ARRAY" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "n_step:=0")
     assert r.returncode == 2 and "n_step" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "priority_alpha:=1.5")

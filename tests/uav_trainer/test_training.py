@@ -299,6 +299,27 @@ def test_the_frame_stack_reaches_the_network_the_replay_memory_and_the_evaluatio
         NetConfig(frames=17).validate()  # nor may a weights file's header ask for more
 
 
+def test_a_two_layer_trunk_gives_sam_16_by_16_nodes_and_the_file_carries_it(tmp_path, monkeypatch, capsys):
+    from uav_trainer import inprocess
+    from uav_trainer.evaluate import architecture_args, evaluate_inprocess
+
+    cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, conv_channels=(16, 32))
+    t = run_inprocess(cfg, str(tmp_path), log=lambda s: None, hfov_deg=90.0)
+    assert t.learner.updates > 0 and t.learner.online.grid_hw == (16, 16)
+    assert t.learner.online.coords.shape == (256, 2)
+    made = wio.read_file_config(t.policy_weights_path)
+    assert made.conv_channels == (16, 32) and wio.config_for("sam", t.policy_weights_path) == made
+    assert architecture_args("sam", str(t.policy_weights_path)) == []  # policy_node takes layer sizes from the file
+    assert evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1).steps == 20
+    with pytest.raises(ValueError, match="7 conv layers leave nothing of a 64x64 input .* use at most 6"):
+        NetConfig(conv_channels=(8,) * 7).validate()  # nor may a weights file's header ask for more
+    for bad, said in (["16", "0"], "conv_channels must be integer"), (["8"] * 7, "7 conv layers leave nothing"):
+        monkeypatch.setattr("sys.argv", ["inprocess", "--steps", "10", "--conv-channels", *bad])
+        with pytest.raises(SystemExit) as e:
+            inprocess.main()
+        assert e.value.code == 2 and f"--conv-channels: {said}" in capsys.readouterr().err
+
+
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
     import csv
 

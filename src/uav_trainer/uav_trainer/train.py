@@ -78,7 +78,7 @@ def main(argv=None) -> int:
         default=None,
         metavar="PX",
         help="square network input and camera image (px) for all three nodes (default: params/*.yaml's, 64); "
-        "SAM's layer sizes go by --trainer-arg (d_model, heads, relational_blocks, mlp_hidden)",
+        "layer sizes go by --trainer-arg (conv_channels, and SAM's d_model, heads, relational_blocks, mlp_hidden)",
     )
     ap.add_argument(
         "--frames",

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
-from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, parameter_count
+from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig, parameter_count
 from uav_policy.push import push_request
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim import contract
@@ -147,6 +147,14 @@ class TrainerNode(Node):
                 "input_size_px", D.input_size_px, "Square network input (px); policy_node's input_height/input_width", 8, 512
             ),
             frames=d("frame_stack", D.frames, "Depth frames in the state; policy_node's frame_stack", 1, MAX_FRAMES),
+            conv_channels=tuple(
+                d(
+                    "conv_channels",
+                    list(D.conv_channels),
+                    "Conv trunk output channels, one stride-2 layer each (both models; [16, 32] gives SAM 16 x 16 nodes "
+                    "from 64 px); policy_node takes the layer sizes from the pushed weights",
+                )
+            ),
             d_model=d("d_model", D.d_model, "SAM: node feature size, split over the heads", 1, SIZE_LIMITS["d_model"]),
             heads=d("heads", D.heads, "SAM: attention heads", 1, SIZE_LIMITS["heads"]),
             relational_blocks=d(
@@ -155,6 +163,10 @@ class TrainerNode(Node):
             mlp_hidden=d("mlp_hidden", D.mlp_hidden, "SAM: width of each block's MLP", 1, SIZE_LIMITS["mlp_hidden"]),
             learner=learner,
         )
+        try:
+            NetConfig(conv_channels=self.cfg.conv_channels, height=self.cfg.input_size_px, width=self.cfg.input_size_px).validate()
+        except ValueError as e:
+            raise ParameterError(f"parameter 'conv_channels'={list(self.cfg.conv_channels)}: {e}") from None
         if self.cfg.d_model % self.cfg.heads:
             raise ParameterError(
                 f"parameters 'd_model' ({self.cfg.d_model}) and 'heads' ({self.cfg.heads}): d_model must be divisible by heads"
