@@ -164,7 +164,8 @@ class TrainerNode(Node):
             learner=learner,
         )
         try:
-            NetConfig(conv_channels=self.cfg.conv_channels, height=self.cfg.input_size_px, width=self.cfg.input_size_px).validate()
+            px = self.cfg.input_size_px
+            NetConfig(conv_channels=self.cfg.conv_channels, height=px, width=px).validate()
         except ValueError as e:
             raise ParameterError(f"parameter 'conv_channels'={list(self.cfg.conv_channels)}: {e}") from None
         if self.cfg.d_model % self.cfg.heads:
