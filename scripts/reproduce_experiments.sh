@@ -18,7 +18,7 @@
 # eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions), an eighteenth
 # (round 16 on fresh seeds, both models), a nineteenth (choosing one seed of each group on validation
 # layouts), a twentieth (ten stacked depth frames) and a twenty-first (a two-layer trunk: 16 x 16 SAM
-# nodes). About 31 h on 2 cores.
+# nodes, and a CNN with the same trunk). About 32 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -602,14 +602,15 @@ two_arms r20frames10 $R20
 # Round 19's choice on validation layouts for round 20's runs as well (groups of two).
 choose_on_validation r20frames10 9 2 $R19/round20_frames10 $R20 $R20/cnn
 
-# Round 21: round 6's setting with a two-layer conv trunk (--conv-channels 16 32), SAM seeds 0-9: SAM
-# sees 16 x 16 nodes (each 4 x 4 px, 7.5 degrees of the 120 degree camera) instead of 8 x 8; against
-# round 6's 32 SAM seeds and round 6's CNN.
+# Round 21: round 6's setting with a two-layer conv trunk (--conv-channels 16 32), SAM and CNN seeds
+# 0-9: SAM sees 16 x 16 nodes (each 4 x 4 px, 7.5 degrees of the 120 degree camera) instead of 8 x 8;
+# SAM against round 6's 32 SAM seeds and round 6's CNN, the CNN against round 6's CNN, SAM against
+# the CNN.
 R21=docs/results/round21_nodes16
 model_ten r21nodes16 sam $R21 --conv-channels 16 32
+model_ten r21nodes16 cnn $R21/cnn --conv-channels 16 32
+two_arms r21nodes16 $R21
 for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R21/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
-    --a r21nodes16_sam --b tl300_sam > $R21/$p/against_round6_32_seeds.md
   python scripts/compare_models.py $R21/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
     --a r21nodes16_sam --b tl300_cnn > $R21/$p/against_round6_cnn.md
 done
