@@ -370,14 +370,14 @@ def main() -> int:
         NetConfig(**size_args).validate()
     except ValueError as e:
         ap.error(f"SAM sizes (--d-model, --heads, --relational-blocks, --mlp-hidden): {e}")
-    try:
-        NetConfig(conv_channels=tuple(a.conv_channels), height=a.input_size, width=a.input_size).validate()
-    except ValueError as e:
-        ap.error(f"--conv-channels: {e}")
     if any(not 1 <= n <= a.steps for n in a.save_weights_at):
         ap.error(f"--save-weights-at steps must lie in [1, --steps={a.steps}], got {a.save_weights_at}")
     if not 8 <= a.input_size <= 512:
         ap.error(f"--input-size must lie in [8, 512] px (policy_node's input_height/input_width range), got {a.input_size}")
+    try:  # after --input-size's own check: its message names the right option
+        NetConfig(conv_channels=tuple(a.conv_channels), height=a.input_size, width=a.input_size).validate()
+    except ValueError as e:
+        ap.error(f"--conv-channels: {e}")
     if not 1 <= a.frames <= MAX_FRAMES:
         ap.error(f"--frames must lie in [1, {MAX_FRAMES}] (policy_node's frame_stack range), got {a.frames}")
     if not 1 <= a.n_step <= MAX_N_STEP:
