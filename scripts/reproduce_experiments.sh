@@ -17,8 +17,9 @@
 # 6's setting on fresh seeds, flown alone and as ensembles of three), a sixteenth (every fourth or
 # eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions), an eighteenth
 # (round 16 on fresh seeds, both models), a nineteenth (choosing one seed of each group on validation
-# layouts), a twentieth (ten stacked depth frames) and a twenty-first (a two-layer trunk: 16 x 16 SAM
-# nodes, and a CNN with the same trunk). About 32 h on 2 cores.
+# layouts), a twentieth (ten stacked depth frames), a twenty-first (a two-layer trunk: 16 x 16 SAM
+# nodes, and a CNN with the same trunk) and a twenty-second (twice the updates per step). About 33 h
+# on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -613,4 +614,16 @@ two_arms r21nodes16 $R21
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R21/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
     --a r21nodes16_sam --b tl300_cnn > $R21/$p/against_round6_cnn.md
+done
+
+# Round 22: round 6's setting with twice the updates per environment step (--replay-ratio 0.5; the
+# default 0.25 gives about 7 250 updates in 30 000 steps), SAM and CNN seeds 0-9; SAM against round 6's
+# 32 SAM seeds and round 6's CNN, the CNN against round 6's CNN, SAM against the CNN.
+R22=docs/results/round22_replay_ratio
+model_ten r22rr05 sam $R22 --replay-ratio 0.5
+model_ten r22rr05 cnn $R22/cnn --replay-ratio 0.5
+two_arms r22rr05 $R22
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R22/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
+    --a r22rr05_sam --b tl300_cnn > $R22/$p/against_round6_cnn.md
 done
