@@ -18,7 +18,7 @@
 # eighth training episode in Basic), a seventeenth (layouts with 2-3 m partitions), an eighteenth
 # (round 16 on fresh seeds, both models), a nineteenth (choosing one seed of each group on validation
 # layouts), a twentieth (ten stacked depth frames), a twenty-first (a two-layer trunk: 16 x 16 SAM
-# nodes, and a CNN with the same trunk) and a twenty-second (twice the updates per step). About 33 h
+# nodes, and a CNN with the same trunk) and a twenty-second (twice the updates per step). About 35 h
 # on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -626,4 +626,25 @@ two_arms r22rr05 $R22
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R22/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
     --a r22rr05_sam --b tl300_cnn > $R22/$p/against_round6_cnn.md
+done
+# Round 22's SAM on ten more seeds (10-19), pooled with seeds 0-9 (sam_20_seeds/): against round 6's 32
+# SAM seeds, round 6's CNN and round 22's CNN.
+for s in 10 12 14 16 18; do
+  for k in "$s" $((s + 1)); do train r22rr05 sam "$k" "${ROUND6[@]}" --replay-ratio 0.5 & done
+  wait
+done
+W=()
+for s in $(seq 10 19); do W+=("runs/r22rr05_sam_seed$s/policy_sam.safetensors"); done
+eval_120 $R22/sam_seeds10_19 1 --model sam --weights "${W[@]}"
+for p in varied_start fixed_start; do
+  proto=()
+  [ $p = varied_start ] && proto=("${VARIED[@]}")
+  $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" --sim-arg hfov_deg:=120.0 \
+    --from-csv $R22/$p/results.csv $R22/sam_seeds10_19/$p/results.csv --out $R22/sam_20_seeds/$p
+  python scripts/compare_models.py $R22/sam_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+    --a r22rr05_sam --b tl300_sam > $R22/sam_20_seeds/$p/against_round6_32_seeds.md
+  python scripts/compare_models.py $R22/sam_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a r22rr05_sam --b tl300_cnn > $R22/sam_20_seeds/$p/against_round6_cnn.md
+  python scripts/compare_models.py $R22/sam_20_seeds/$p/results.csv $R22/cnn/$p/results.csv --by run \
+    --a r22rr05_sam --b r22rr05_cnn > $R22/sam_20_seeds/$p/against_cnn.md
 done
