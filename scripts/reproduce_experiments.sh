@@ -636,6 +636,9 @@ done
 W=()
 for s in $(seq 10 19); do W+=("runs/r22rr05_sam_seed$s/policy_sam.safetensors"); done
 eval_120 $R22/sam_seeds10_19 1 --model sam --weights "${W[@]}"
+mkdir -p $R22/sam_20_seeds/varied_start
+{ cat $R22/varied_start/crashes.csv; tail -n +2 $R22/sam_seeds10_19/varied_start/crashes.csv; } \
+  > $R22/sam_20_seeds/varied_start/crashes.csv
 for p in varied_start fixed_start; do
   proto=()
   [ $p = varied_start ] && proto=("${VARIED[@]}")
