@@ -37,10 +37,10 @@ train() {  # tag model seed [inprocess args]; the paper's 90 degree camera unles
     touch "$d/DONE"
   }
 }
-train_ten() {  # tag model [inprocess args]: seeds 0-9, two at a time
-  local tag=$1 model=$2 s k
+train_ten() {  # tag model [inprocess args]: ten seeds from FIRST (default 0), two at a time
+  local tag=$1 model=$2 first=${FIRST:-0} s k
   shift 2
-  for s in 0 2 4 6 8; do
+  for s in $(seq "$first" 2 $((first + 8))); do
     for k in "$s" $((s + 1)); do train "$tag" "$model" "$k" "$@" & done
     wait
   done
@@ -365,27 +365,31 @@ round_both in84 docs/results/round8_input84 0 against_64 --input-size 84
 R9=docs/results/round9_random_starts
 round_both rs50 $R9 1 against_round6 --random-start-fraction 0.5
 
-model_ten() {  # tag model folder [inprocess args]: seeds 0-9 of one model in round 6's setting plus
-  # the args, trained and evaluated (both tables, with a crash log)
-  local tag=$1 model=$2 out=$3 s w=()
+model_ten() {  # tag model folder [inprocess args]: ten seeds from FIRST (default 0) of one model in
+  # round 6's setting plus the args, trained and evaluated (both tables, with a crash log)
+  local tag=$1 model=$2 out=$3 first=${FIRST:-0} s w=()
   shift 3
   train_ten "$tag" "$model" "${ROUND6[@]}" "$@"
-  for s in $(seq 0 9); do w+=("runs/${tag}_${model}_seed$s/policy_$model.safetensors"); done
+  for s in $(seq "$first" $((first + 9))); do w+=("runs/${tag}_${model}_seed$s/policy_$model.safetensors"); done
   eval_120 "$out" 1 --model "$model" --weights "${w[@]}"
+}
+against_round6_cnn() {  # tag folder: per protocol, SAM (folder) against round 6's CNN
+  local p
+  for p in varied_start fixed_start; do
+    python scripts/compare_models.py "$2"/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
+      --a "$1_sam" --b tl300_cnn > "$2"/$p/against_round6_cnn.md
+  done
 }
 sam_ten() {  # tag folder [inprocess args]: model_ten for SAM, each table against round 6's SAM and
   # CNN (unpaired: against_round6{,_cnn}.md)
-  local tag=$1 out=$2 p m f
+  local tag=$1 out=$2 p
   shift 2
   model_ten "$tag" sam "$out" "$@"
   for p in varied_start fixed_start; do
-    for m in sam cnn; do
-      f=against_round6
-      [ "$m" = sam ] || f=against_round6_cnn
-      python scripts/compare_models.py "$out/$p/results.csv" docs/results/round6_time_limit/$p/results.csv \
-        --by run --a "${tag}_sam" --b "tl300_$m" > "$out/$p/$f.md"
-    done
+    python scripts/compare_models.py "$out/$p/results.csv" docs/results/round6_time_limit/$p/results.csv \
+      --by run --a "${tag}_sam" --b tl300_sam > "$out/$p/against_round6.md"
   done
+  against_round6_cnn "$tag" "$out"
 }
 
 # Round 9, second part: a fifth of the training episodes from a random place (SAM seeds 0-9);
@@ -532,17 +536,8 @@ two_arms r17part $R17
 # pooled with round 16's seeds 0-9 (twenty per model): tables of both models (pooled_20_seeds/), SAM
 # against CNN, SAM against round 6's 32 SAM seeds, CNN against round 6's CNN.
 R18=docs/results/round18_basic_mix_seeds10_19
-for m in sam cnn; do
-  for s in 10 12 14 16 18; do
-    for k in "$s" $((s + 1)); do train r16basic4 $m "$k" "${ROUND6[@]}" --world basic --world-every 4 & done
-    wait
-  done
-  W=()
-  for s in $(seq 10 19); do W+=("runs/r16basic4_${m}_seed$s/policy_$m.safetensors"); done
-  d=$R18
-  [ $m = sam ] || d=$R18/cnn
-  eval_120 $d 1 --model $m --weights "${W[@]}"
-done
+FIRST=10 model_ten r16basic4 sam $R18 --world basic --world-every 4
+FIRST=10 model_ten r16basic4 cnn $R18/cnn --world basic --world-every 4
 for p in varied_start fixed_start; do
   proto=()
   [ $p = varied_start ] && proto=("${VARIED[@]}")
@@ -611,10 +606,7 @@ R21=docs/results/round21_nodes16
 model_ten r21nodes16 sam $R21 --conv-channels 16 32
 model_ten r21nodes16 cnn $R21/cnn --conv-channels 16 32
 two_arms r21nodes16 $R21
-for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R21/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
-    --a r21nodes16_sam --b tl300_cnn > $R21/$p/against_round6_cnn.md
-done
+against_round6_cnn r21nodes16 $R21
 
 # Round 22: round 6's setting with twice the updates per environment step (--replay-ratio 0.5; the
 # default 0.25 gives about 7 250 updates in 30 000 steps), SAM and CNN seeds 0-9; SAM against round 6's
@@ -623,19 +615,10 @@ R22=docs/results/round22_replay_ratio
 model_ten r22rr05 sam $R22 --replay-ratio 0.5
 model_ten r22rr05 cnn $R22/cnn --replay-ratio 0.5
 two_arms r22rr05 $R22
-for p in varied_start fixed_start; do
-  python scripts/compare_models.py $R22/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
-    --a r22rr05_sam --b tl300_cnn > $R22/$p/against_round6_cnn.md
-done
+against_round6_cnn r22rr05 $R22
 # Round 22's SAM on ten more seeds (10-19), pooled with seeds 0-9 (sam_20_seeds/): against round 6's 32
 # SAM seeds, round 6's CNN and round 22's CNN.
-for s in 10 12 14 16 18; do
-  for k in "$s" $((s + 1)); do train r22rr05 sam "$k" "${ROUND6[@]}" --replay-ratio 0.5 & done
-  wait
-done
-W=()
-for s in $(seq 10 19); do W+=("runs/r22rr05_sam_seed$s/policy_sam.safetensors"); done
-eval_120 $R22/sam_seeds10_19 1 --model sam --weights "${W[@]}"
+FIRST=10 model_ten r22rr05 sam $R22/sam_seeds10_19 --replay-ratio 0.5
 mkdir -p $R22/sam_20_seeds/varied_start
 { cat $R22/varied_start/crashes.csv; tail -n +2 $R22/sam_seeds10_19/varied_start/crashes.csv; } \
   > $R22/sam_20_seeds/varied_start/crashes.csv
