@@ -74,6 +74,9 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
     wio.save_file(build_network(NetConfig(), seed=3), NetConfig(), w)
     args = ["--weights", str(w), "--worlds", "complex", "--steps", "60", "--params-dir", str(ROOT / "params")]
     args += ["--start-yaw-jitter-deg", "180", "--repeats", "2", "--sim-arg", "hfov_deg:=120.0"]
+    paper = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "paper"), domain="77")
+    # Half of each side: the floor enters the reward window 1.15 m ahead; both paths must see the change.
+    args += ["--sim-arg", "reward_window_fraction:=0.5"]
     ros = run_tool("uav_trainer", "evaluate", *args, "--out", str(tmp_path / "ros"), domain="77")
     local = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "local"), domain="77")
     assert ros.returncode == 0 and local.returncode == 0, ros.stderr[-2000:] + local.stderr[-2000:]
@@ -84,6 +87,11 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
     assert "Flight behaviour" in (tmp_path / "ros" / "results.md").read_text()
     for k in ("crashes", "mean_reward", "distance_m", "crash_sites", "turn_steps", "cells_visited"):
         assert a[0][k] == b[0][k], (k, a[0], b[0])
+    assert paper.returncode == 0, paper.stderr[-2000:]
+    c = next(csv.DictReader(open(tmp_path / "paper" / "results.csv")))
+    assert (
+        c["crashes"] == a[0]["crashes"] and float(a[0]["mean_reward"]) < float(c["mean_reward"]) - 0.5
+    )  # same flight, less reward
     bad = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--sim-arg", "weather:=rain", domain="77")
     assert bad.returncode == 2 and "--inprocess takes only --sim-arg hfov_deg" in bad.stderr
 

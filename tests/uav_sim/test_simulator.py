@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from uav_sim.camera import CameraIntrinsics
-from uav_sim.reward import center_window_min_depth
-from uav_sim.simulator import SimConfig, Simulator, obstacle_distance_m
+from uav_sim.reward import DELTA_M, center_window_min_depth, floor_beta_m
+from uav_sim.simulator import SimConfig, Simulator, obstacle_distance_m, reward_floor_problem
 from uav_sim.vehicle import BodyTwist, Pose, TwistLimits, integrate, twist_error
 from uav_sim.world import Obstacle, Weather, World, load_world
 
@@ -52,6 +52,36 @@ def test_out_of_range_is_positive_infinity(sims):
     depth = sim.render()
     assert np.isposinf(depth[32, 32])  # wall at 11.8 m, range 5 m
     assert np.isfinite(depth[-1, 32])  # the floor right below is in range
+
+
+def test_the_floor_caps_beta_where_floor_beta_m_says_and_150_degrees_punishes_every_step():
+    empty = World("empty", 40.0, 40.0, 3.0, (-15.0, 0.0, 1.0), 0.0, (), Weather())
+    for hfov, size in ((90.0, 64), (120.0, 64), (150.0, 64), (120.0, 84)):
+        cfg = SimConfig(hfov_deg=hfov, image_width=size, image_height=size)
+        sim = Simulator(empty, cfg)
+        try:
+            r = sim.observe()  # nothing but floor, ceiling and far walls in view
+        finally:
+            sim.close()
+        floor = floor_beta_m(1.0, size, size, hfov)
+        assert r.beta_m == pytest.approx(floor, rel=0.02), hfov
+        problem = reward_floor_problem(cfg, 1.0)
+        if hfov < 150.0:  # the floor stays beyond delta: open space earns the positive branch
+            assert floor > DELTA_M and r.reward > 3.0 and problem is None
+        else:  # 1.43 m: punished in an empty room
+            assert floor < DELTA_M and r.reward < 0.0
+            assert problem.startswith("hfov_deg=150 with 64x64 images shows the floor 1.43 m ahead")
+    assert floor_beta_m(1.0, 64, 64, 120.0, fraction=0.01) == math.inf  # a window above the horizon
+    narrow = SimConfig(hfov_deg=150.0, reward_window_fraction=0.078)  # 5 x 5 px
+    sim = Simulator(empty, narrow)
+    try:
+        r = sim.observe()
+    finally:
+        sim.close()
+    assert r.beta_m == pytest.approx(floor_beta_m(1.0, 64, 64, 150.0, 0.078), rel=0.02) and r.beta_m > 4.0
+    assert r.reward > 3.0 and reward_floor_problem(narrow, 1.0) is None
+    with pytest.raises(ValueError, match="reward_window_fraction=0.0 is invalid"):
+        SimConfig(reward_window_fraction=0.0).validate()
 
 
 def test_one_metre_per_second_for_one_second(sims):

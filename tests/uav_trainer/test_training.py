@@ -320,6 +320,31 @@ def test_a_two_layer_trunk_gives_sam_16_by_16_nodes_and_the_file_carries_it(tmp_
         assert e.value.code == 2 and f"--conv-channels: {said}" in capsys.readouterr().err
 
 
+def test_training_refuses_a_camera_whose_reward_window_sees_the_floor(tmp_path, monkeypatch, capsys):
+    from uav_sim.simulator import RewardWindowError
+    from uav_trainer import inprocess
+
+    run_dir = tmp_path / "wide"
+    monkeypatch.setattr("sys.argv", ["inprocess", "--steps", "10", "--hfov-deg", "150", "--run-dir", str(run_dir)])
+    with pytest.raises(SystemExit) as e:
+        inprocess.main()
+    said = capsys.readouterr().err
+    assert e.value.code == 2 and "hfov_deg=150 with 64x64 images shows the floor 1.43 m" in said
+    assert "smaller reward_window_fraction (now 0.2)" in said
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=10)
+    with pytest.raises(RewardWindowError, match="floor 1.43 m ahead"):
+        run_inprocess(cfg, str(run_dir), log=lambda s: None, hfov_deg=150.0, layout_per_episode=True)
+    assert not run_dir.exists()  # refused before anything was written
+    # A window of 5 x 5 px keeps about the 120 degree camera's angle: the floor is 4.3 m ahead, training runs.
+    lines = []
+    t = run_inprocess(cfg, str(run_dir), log=lines.append, hfov_deg=150.0, layout_per_episode=True, reward_window_fraction=0.078)
+    assert t.env_steps == 10 and any("reward the paper's, window 0.078;" in s for s in lines)
+    monkeypatch.setattr("sys.argv", ["inprocess", "--steps", "10", "--reward-window-fraction", "0"])
+    with pytest.raises(SystemExit) as e:
+        inprocess.main()
+    assert e.value.code == 2 and "--reward-window-fraction must lie in (0, 1], got 0.0" in capsys.readouterr().err
+
+
 def test_validation_keeps_the_best_network_without_changing_training(tmp_path):
     import csv
 

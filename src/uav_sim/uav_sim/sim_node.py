@@ -21,7 +21,7 @@ from std_srvs.srv import Trigger
 from . import contract
 from .node_runner import run
 from .ros_params import ParameterError, declare
-from .simulator import SimConfig, Simulator, StepResult
+from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
 from .vehicle import HOVER, BodyTwist, TwistLimits, twist_error
 from .world import EACH_EPISODE, PARTITIONS, WorldError, load_world, training_layouts
 
@@ -87,6 +87,14 @@ class SimNode(Node):
                 "Training: a random start keeps at least this distance from walls and obstacles (m)",
                 0.25,
                 5.0,
+            ),
+            reward_window_fraction=d(
+                "reward_window_fraction",
+                SimConfig.reward_window_fraction,
+                "The reward's central window (beta: its nearest depth), as a share of each image side: the paper's "
+                "0.2; wider than 120 deg the floor enters it unless smaller (a warning says so)",
+                0.01,
+                1.0,
             ),
             limits=TwistLimits(
                 max_speed_mps=d("max_speed_mps", 3.0, "Largest |linear.x| and |linear.y| accepted (m/s)", 0.1, 20.0),
@@ -160,6 +168,9 @@ class SimNode(Node):
         except ValueError as e:
             raise ParameterError(str(e)) from None
         self.cfg = cfg
+        floor = reward_floor_problem(cfg, world.start_xyz_m[2])
+        if floor:  # crash counts stay meaningful (evaluation); training on this reward does not
+            self.get_logger().warning(floor)
 
         q = contract.STREAM_QOS
         self.pub_depth = self.create_publisher(Image, contract.DEPTH_TOPIC, q)

@@ -21,7 +21,7 @@ import numpy as np
 import pybullet as p
 
 from .camera import CameraIntrinsics, DepthCamera
-from .reward import center_window_min_depth, step_reward
+from .reward import CENTER_WINDOW_FRACTION, DELTA_M, center_window_min_depth, floor_beta_m, step_reward
 from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from .weather import Particles
 from .world import Obstacle, World
@@ -50,6 +50,9 @@ class SimConfig:
     # of the world's start pose; 0 = always the world's start (evaluation always uses 0).
     random_start_fraction: float = 0.0
     random_start_clearance_m: float = 0.7
+    # The reward's central window (beta), as a share of each image side: the paper's 20 %. A camera
+    # wider than 120 degrees needs a smaller one, or the floor enters it (reward_floor_problem).
+    reward_window_fraction: float = CENTER_WINDOW_FRACTION
     limits: TwistLimits = TwistLimits()
     seed: int = 0
 
@@ -68,6 +71,7 @@ class SimConfig:
             ("max_episode_steps", self.max_episode_steps >= 0, "an integer >= 0 (0 = no time limit)"),
             ("random_start_fraction", 0.0 <= self.random_start_fraction <= 1.0, "in [0, 1]"),
             ("random_start_clearance_m", 0.25 <= self.random_start_clearance_m <= 5.0, "in [0.25, 5] m"),
+            ("reward_window_fraction", 0.0 < self.reward_window_fraction <= 1.0, "in (0, 1]"),
         ]
         for name, ok, valid in checks:
             if not ok:
@@ -99,6 +103,25 @@ def obstacle_distance_m(o: Obstacle, x: float, y: float) -> float:
     u = abs(dx * math.cos(yaw) + dy * math.sin(yaw)) - o.size_x_m / 2  # in the box's own frame
     v = abs(-dx * math.sin(yaw) + dy * math.cos(yaw)) - o.size_y_m / 2
     return math.hypot(max(u, 0.0), max(v, 0.0))
+
+
+class RewardWindowError(ValueError):
+    """The camera cannot train with the paper's reward (see reward_floor_problem)."""
+
+
+def reward_floor_problem(config: SimConfig, camera_height_m: float) -> str | None:
+    """Why the paper's reward cannot work with this camera, or None: a wide square image puts the
+    floor inside the reward's central window nearer than delta, so every step is punished even in
+    an empty room and training learns to end episodes by crashing (docs/RESULTS.md, round 24)."""
+    b = floor_beta_m(camera_height_m, config.image_height, config.image_width, config.hfov_deg, config.reward_window_fraction)
+    if b > DELTA_M:
+        return None
+    return (
+        f"hfov_deg={config.hfov_deg:g} with {config.image_width}x{config.image_height} images shows the floor "
+        f"{b:.2f} m ahead inside the reward's central window, under delta = {DELTA_M:g} m: every step's reward "
+        f"is negative even in an empty room, so training learns to crash early; use a narrower camera or a "
+        f"smaller reward_window_fraction (now {config.reward_window_fraction:g})"
+    )
 
 
 class Simulator:
@@ -226,7 +249,7 @@ class Simulator:
     def observe(self) -> StepResult:
         """The current frame as a StepResult without moving (the first frame of a run)."""
         depth = self.render()
-        beta = center_window_min_depth(depth, self.config.max_range_m)
+        beta = center_window_min_depth(depth, self.config.max_range_m, self.config.reward_window_fraction)
         return StepResult(
             depth,
             beta,
@@ -310,7 +333,7 @@ class Simulator:
                 self._new_episode()
         self.particles.update(cfg.step_duration_s, self.camera_xyz(), self.pose.yaw_rad)
         depth = self.render()
-        beta = center_window_min_depth(depth, cfg.max_range_m)
+        beta = center_window_min_depth(depth, cfg.max_range_m, cfg.reward_window_fraction)
         return StepResult(
             depth,
             beta,

@@ -195,16 +195,24 @@ def flown_hfov_deg(model: str, weights: str) -> float:
     return wio.camera_for(weights or wio.packaged_weights(model), SimConfig.hfov_deg)
 
 
-def sim_arg_hfov_deg(sim_args) -> float | None:
-    """The hfov_deg among sim_node arguments NAME:=VALUE, if one is given (ValueError if not a number)."""
+def sim_arg_number(sim_args, wanted: str) -> float | None:
+    """The value of `wanted` among sim_node arguments NAME:=VALUE, if one is given (ValueError if not a number)."""
     for arg in sim_args:
         name, _, value = arg.partition(":=")
-        if name == "hfov_deg":
+        if name == wanted:
             try:
                 return float(value)
             except ValueError:
-                raise ValueError(f"sim_node argument {arg!r}: hfov_deg must be a number") from None
+                raise ValueError(f"sim_node argument {arg!r}: {wanted} must be a number") from None
     return None
+
+
+def sim_arg_hfov_deg(sim_args) -> float | None:
+    """The hfov_deg among sim_node arguments NAME:=VALUE, if one is given (ValueError if not a number)."""
+    return sim_arg_number(sim_args, "hfov_deg")
+
+
+INPROCESS_SIM_ARGS = ("hfov_deg", "reward_window_fraction")  # the sim_node parameters --inprocess honours
 
 
 def evaluate_once(
@@ -316,12 +324,14 @@ def evaluate_inprocess(
     hfov_deg: float | None = None,
     net_cfg=None,
     crash_log: list | None = None,
+    reward_window_fraction: float | None = None,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
     `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
-    camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS)."""
+    camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
+    `reward_window_fraction` None: the paper's window (SimConfig's default)."""
     from uav_policy import weights as wio
     from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
@@ -346,6 +356,7 @@ def evaluate_inprocess(
         hfov_deg=hfov_deg,
         image_width=cfg.width,
         image_height=cfg.height,
+        reward_window_fraction=SimConfig.reward_window_fraction if reward_window_fraction is None else reward_window_fraction,
     )
     sim = Simulator(load_world(world), sim_cfg)
     stack = FrameStack(cfg.frames)
@@ -658,7 +669,7 @@ def main(argv=None) -> int:
         "--inprocess",
         action="store_true",
         help="measure without ROS (same simulator and network, one process): for screening; "
-        "takes --sim-arg hfov_deg:=X only, and --epsilon 0",
+        "takes --sim-arg hfov_deg:=X and reward_window_fraction:=F only, and --epsilon 0",
     )
     ap.add_argument(
         "--crash-log",
@@ -677,12 +688,15 @@ def main(argv=None) -> int:
         ap.error("--ensemble needs --inprocess (policy_node flies one weights file)")
     try:
         hfov_deg = sim_arg_hfov_deg(a.sim_arg)
+        window = sim_arg_number(a.sim_arg, "reward_window_fraction")
     except ValueError as e:
         ap.error(f"--sim-arg: {e}")
     if a.inprocess:
         for arg in a.sim_arg:
-            if arg.partition(":=")[0] != "hfov_deg":
-                ap.error(f"--inprocess takes only --sim-arg hfov_deg:=X, got {arg!r}")
+            if arg.partition(":=")[0] not in INPROCESS_SIM_ARGS:
+                ap.error(f"--inprocess takes only --sim-arg {':=X, '.join(INPROCESS_SIM_ARGS)}:=X, got {arg!r}")
+        if window is not None and not 0.0 < window <= 1.0:
+            ap.error(f"--sim-arg reward_window_fraction must lie in (0, 1], got {window:g}")
         if a.epsilon != 0.0:
             ap.error("--inprocess flies exploit-only: --epsilon must be 0")
         import torch
@@ -790,6 +804,7 @@ def main(argv=None) -> int:
                 hfov_deg=hfov,
                 net_cfg=net_cfg,
                 crash_log=crash_rows if a.crash_log else None,
+                reward_window_fraction=window,
             )
             bar.update(a.steps)
             return r

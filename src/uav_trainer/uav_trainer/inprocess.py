@@ -21,7 +21,7 @@ from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, NetConfig
-from uav_sim.simulator import SimConfig, Simulator
+from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
 
@@ -112,6 +112,7 @@ def run(
     max_episode_steps: int = 0,
     save_weights_at=(),
     random_start_fraction: float = 0.0,
+    reward_window_fraction: float = SimConfig.reward_window_fraction,
     world_every: int = 0,
     partitions: bool = False,
 ) -> Training:
@@ -135,6 +136,10 @@ def run(
     `random_start_fraction` > 0 starts that share of episodes at a random free place and heading
     in the room (SimConfig.random_start_fraction) instead of the layout's start pose.
 
+    `reward_window_fraction` sizes the reward's central window (SimConfig; the paper's 0.2). A
+    camera whose window sees the floor nearer than delta is refused (RewardWindowError) before
+    anything is written: every step would be punished and the run could only learn to crash.
+
     `save_weights_at` lists env steps at which the online network is also written to
     policy_<model>_step<N>.safetensors (snapshots along one run, e.g. to measure longer training
     without retraining the shorter budget: the first N steps of a longer run are the N-step run).
@@ -146,24 +151,33 @@ def run(
         raise ValueError("partitions changes the training layouts: it needs layout_per_episode")
     if any(n < 1 or n > cfg.total_steps for n in snapshots):
         raise ValueError(f"save_weights_at must lie in [1, total_steps={cfg.total_steps}], got {sorted(snapshots)}")
-    training = Training(cfg, run_dir, log=log, resume=resume)
-    training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
-    log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}; {replay_description(cfg)}")
-    validator = validation(training) if validation is not None else None
     sim_cfg = SimConfig(
         seed=cfg.seed,
         start_yaw_jitter_deg=start_yaw_jitter_deg,
         hfov_deg=hfov_deg,
         max_episode_steps=max_episode_steps,
         random_start_fraction=random_start_fraction,
+        reward_window_fraction=reward_window_fraction,
         image_width=cfg.input_size_px,  # the camera renders at the network's input size
         image_height=cfg.input_size_px,
     )
+    sim_cfg.validate()
+    layouts = None
     if layout_per_episode:
         layouts = training_layouts(cfg.seed, load_world(world) if world_every else None, world_every, partitions)
-        sim = Simulator(next(layouts), sim_cfg, next_worlds=layouts, redraw_heading=redraw_heading)
+    first = next(layouts) if layouts else load_world(world)
+    floor = reward_floor_problem(sim_cfg, first.start_xyz_m[2])
+    if floor:  # before anything is written: the run could only learn to crash
+        raise RewardWindowError(floor)
+    training = Training(cfg, run_dir, log=log, resume=resume)
+    training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
+    window = "" if reward_window_fraction == SimConfig.reward_window_fraction else f", window {reward_window_fraction:g}"
+    log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}{window}; {replay_description(cfg)}")
+    validator = validation(training) if validation is not None else None
+    if layouts:
+        sim = Simulator(first, sim_cfg, next_worlds=layouts, redraw_heading=redraw_heading)
     else:
-        sim = Simulator(load_world(world), sim_cfg)
+        sim = Simulator(first, sim_cfg)
     agent = Agent(training.learner.online, training.net_cfg, cfg.device, seed=cfg.seed)
     stack = FrameStack(training.net_cfg.frames)
     r = sim.observe()
@@ -266,6 +280,14 @@ def main() -> int:
         default=(),
         metavar="STEP",
         help="also write the network at these env steps to policy_<model>_step<STEP>.safetensors",
+    )
+    ap.add_argument(
+        "--reward-window-fraction",
+        type=float,
+        default=SimConfig.reward_window_fraction,
+        metavar="F",
+        help="experiment: the reward's central window as a share of each image side (the paper's 0.2); a camera "
+        "wider than 120 degrees needs a smaller one, or the floor enters it and training is refused",
     )
     ap.add_argument(
         "--random-start-fraction",
@@ -384,6 +406,8 @@ def main() -> int:
         ap.error(f"--n-step must lie in [1, {MAX_N_STEP}], got {a.n_step}")
     if not 0.0 <= a.priority_alpha <= 1.0 or not 0.0 <= a.priority_beta <= 1.0:
         ap.error(f"--priority-alpha and --priority-beta must lie in [0, 1], got {a.priority_alpha}, {a.priority_beta}")
+    if not 0.0 < a.reward_window_fraction <= 1.0:
+        ap.error(f"--reward-window-fraction must lie in (0, 1], got {a.reward_window_fraction}")
     if not 0.0 <= a.random_start_fraction <= 1.0:
         ap.error(f"--random-start-fraction must lie in [0, 1], got {a.random_start_fraction}")
     if a.world_every and (a.world_every < 2 or not a.layout_per_episode):
@@ -424,22 +448,26 @@ def main() -> int:
     validation = None
     if a.validate_every:
         validation = lambda t: Validation(t, a.validate_every, steps=a.validation_steps, log=log, hfov_deg=a.hfov_deg)  # noqa: E731
-    t = run(
-        cfg,
-        run_dir,
-        a.world,
-        resume=a.resume,
-        log=log,
-        layout_per_episode=a.layout_per_episode,
-        validation=validation,
-        hfov_deg=a.hfov_deg,
-        redraw_heading=a.redraw_heading,
-        max_episode_steps=a.max_episode_steps,
-        save_weights_at=a.save_weights_at,
-        random_start_fraction=a.random_start_fraction,
-        world_every=a.world_every,
-        partitions=a.layout_partitions,
-    )
+    try:
+        t = run(
+            cfg,
+            run_dir,
+            a.world,
+            resume=a.resume,
+            log=log,
+            layout_per_episode=a.layout_per_episode,
+            validation=validation,
+            hfov_deg=a.hfov_deg,
+            redraw_heading=a.redraw_heading,
+            max_episode_steps=a.max_episode_steps,
+            save_weights_at=a.save_weights_at,
+            random_start_fraction=a.random_start_fraction,
+            reward_window_fraction=a.reward_window_fraction,
+            world_every=a.world_every,
+            partitions=a.layout_partitions,
+        )
+    except RewardWindowError as e:
+        ap.error(f"--hfov-deg / --reward-window-fraction: {e}")
     print(f"weights: {t.policy_weights_path}")
     return 0
 
