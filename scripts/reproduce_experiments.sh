@@ -45,13 +45,15 @@ train_ten() {  # tag model [inprocess args]: ten seeds from FIRST (default 0), t
     wait
   done
 }
-eval_120() {  # folder crash-log(0|1) [evaluate args]: the random-start and the fixed-start tables, 120 degree camera
-  local out=$1 log=()
+eval_120() {  # folder crash-log(0|1) [evaluate args]: the random-start and the fixed-start tables, 120 degree
+  # camera (or HFOV degrees, with the reward window WINDOW when set)
+  local out=$1 log=() cam=(--sim-arg hfov_deg:=${HFOV:-120}.0)
   [ "$2" = 1 ] && log=(--crash-log)
+  [ -n "${WINDOW:-}" ] && cam+=(--sim-arg reward_window_fraction:=$WINDOW)
   shift 2
-  $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" --sim-arg hfov_deg:=120.0 \
+  $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" "${cam[@]}" \
     "${log[@]}" --out "$out/varied_start"
-  $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 --sim-arg hfov_deg:=120.0 --out "$out/fixed_start"
+  $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 "${cam[@]}" --out "$out/fixed_start"
 }
 weights() {  # tag -> sam=... cnn=... for every seed
   for m in sam cnn; do for s in $SEEDS; do echo "$m=runs/$1_${m}_seed$s/policy_$m.safetensors"; done; done
@@ -619,18 +621,55 @@ against_round6_cnn r22rr05 $R22
 # Round 22's SAM on ten more seeds (10-19), pooled with seeds 0-9 (sam_20_seeds/): against round 6's 32
 # SAM seeds, round 6's CNN and round 22's CNN.
 FIRST=10 model_ten r22rr05 sam $R22/sam_seeds10_19 --replay-ratio 0.5
-mkdir -p $R22/sam_20_seeds/varied_start
-{ cat $R22/varied_start/crashes.csv; tail -n +2 $R22/sam_seeds10_19/varied_start/crashes.csv; } \
-  > $R22/sam_20_seeds/varied_start/crashes.csv
+sam_twenty() {  # tag folder cnn-folder cnn-tag: SAM seeds 0-9 (folder) and 10-19 (folder/sam_seeds10_19) pooled
+  # in folder/sam_20_seeds with their crash log, against round 6's 32 SAM seeds, round 6's CNN and a CNN
+  local tag=$1 out=$2 p proto
+  mkdir -p $out/sam_20_seeds/varied_start
+  { cat $out/varied_start/crashes.csv; tail -n +2 $out/sam_seeds10_19/varied_start/crashes.csv; } \
+    > $out/sam_20_seeds/varied_start/crashes.csv
+  for p in varied_start fixed_start; do
+    proto=()
+    [ $p = varied_start ] && proto=("${VARIED[@]}")
+    $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" --sim-arg hfov_deg:=120.0 \
+      --from-csv $out/$p/results.csv $out/sam_seeds10_19/$p/results.csv --out $out/sam_20_seeds/$p
+    python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
+      --a ${tag}_sam --b tl300_sam > $out/sam_20_seeds/$p/against_round6_32_seeds.md
+    python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+      --by run --a ${tag}_sam --b tl300_cnn > $out/sam_20_seeds/$p/against_round6_cnn.md
+    python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $3/$p/results.csv --by run \
+      --a ${tag}_sam --b $4 > $out/sam_20_seeds/$p/against_cnn.md
+  done
+}
+sam_twenty r22rr05 $R22 $R22/cnn r22rr05_cnn
+
+# Round 23: round 22's twice the updates (--replay-ratio 0.5) with round 16's every fourth training
+# episode in Basic (--world basic --world-every 4), SAM seeds 0-19 (no CNN arm: neither change moved
+# the CNN), pooled as round 22's: against round 6's 32 SAM seeds, round 6's CNN and round 22's CNN
+# (against_cnn.md); against its two parents, round 22's and round 18's twenty SAM seeds, and round
+# 18's twenty CNN seeds.
+R23=docs/results/round23_basic_mix_rr05
+R23ARGS=(--replay-ratio 0.5 --world basic --world-every 4)
+model_ten r23mix05 sam $R23 "${R23ARGS[@]}"
+FIRST=10 model_ten r23mix05 sam $R23/sam_seeds10_19 "${R23ARGS[@]}"
+sam_twenty r23mix05 $R23 $R22/cnn r22rr05_cnn
 for p in varied_start fixed_start; do
-  proto=()
-  [ $p = varied_start ] && proto=("${VARIED[@]}")
-  $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" --sim-arg hfov_deg:=120.0 \
-    --from-csv $R22/$p/results.csv $R22/sam_seeds10_19/$p/results.csv --out $R22/sam_20_seeds/$p
-  python scripts/compare_models.py $R22/sam_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
-    --a r22rr05_sam --b tl300_sam > $R22/sam_20_seeds/$p/against_round6_32_seeds.md
-  python scripts/compare_models.py $R22/sam_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-    --by run --a r22rr05_sam --b tl300_cnn > $R22/sam_20_seeds/$p/against_round6_cnn.md
-  python scripts/compare_models.py $R22/sam_20_seeds/$p/results.csv $R22/cnn/$p/results.csv --by run \
-    --a r22rr05_sam --b r22rr05_cnn > $R22/sam_20_seeds/$p/against_cnn.md
+  python scripts/compare_models.py $R23/sam_20_seeds/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run \
+    --a r23mix05_sam --b r22rr05_sam > $R23/sam_20_seeds/$p/against_round22.md
+  for m in sam cnn; do
+    python scripts/compare_models.py $R23/sam_20_seeds/$p/results.csv $R18/pooled_20_seeds/$p/results.csv --by run \
+      --a r23mix05_sam --b r16basic4_$m > $R23/sam_20_seeds/$p/against_round18_$m.md
+  done
+done
+
+# Round 24: round 22's setting with a 150 degree camera (trained and flown at 150) and a reward window of
+# 5 x 5 px (--reward-window-fraction 0.078, about the 120 degree camera's angle; the paper's 0.2 would
+# see the floor 1.43 m ahead and punish every step), SAM seeds 0-9: against round 22's twenty SAM seeds
+# and its CNN (both 120 degrees).
+R24=docs/results/round24_fov150
+HFOV=150 WINDOW=0.078 model_ten r24fov150 sam $R24 --replay-ratio 0.5 --hfov-deg 150 --reward-window-fraction 0.078
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R24/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run \
+    --a r24fov150_sam --b r22rr05_sam > $R24/$p/against_round22.md
+  python scripts/compare_models.py $R24/$p/results.csv $R22/cnn/$p/results.csv --by run \
+    --a r24fov150_sam --b r22rr05_cnn > $R24/$p/against_round22_cnn.md
 done
