@@ -41,11 +41,20 @@ class Validation:
     held-out test worlds (random:101..103) use, so selecting on them leaves the test worlds unseen.
     """
 
-    def __init__(self, training: Training, every: int, worlds=VALIDATION_WORLDS, steps: int = 500, log=print, hfov_deg=90.0):
+    def __init__(
+        self,
+        training: Training,
+        every: int,
+        worlds=VALIDATION_WORLDS,
+        steps: int = 500,
+        log=print,
+        hfov_deg=90.0,
+        reward_window_fraction=None,
+    ):
         if every < 1 or steps < 1 or not worlds:
             raise ValueError(f"validation needs every >= 1, steps >= 1 and a world, got {every}, {steps}, {worlds}")
         self.training, self.every, self.worlds, self.steps, self.log = training, every, tuple(worlds), steps, log
-        self.hfov_deg = hfov_deg
+        self.hfov_deg, self.reward_window_fraction = hfov_deg, reward_window_fraction  # as training flies
         self.best: tuple[int, float] | None = None
         self.path = training.dir / f"policy_{training.cfg.model}_best.safetensors"
         path = training.dir / "validation.csv"
@@ -75,6 +84,7 @@ class Validation:
                 net_cfg=training.net_cfg,
                 start_yaw_jitter_deg=180.0,
                 hfov_deg=self.hfov_deg,
+                reward_window_fraction=self.reward_window_fraction,
             )
             for i, w in enumerate(self.worlds)
         ]
@@ -447,7 +457,14 @@ def main() -> int:
     run_dir = a.run_dir or f"runs/inproc_{a.model}_seed{a.seed}"
     validation = None
     if a.validate_every:
-        validation = lambda t: Validation(t, a.validate_every, steps=a.validation_steps, log=log, hfov_deg=a.hfov_deg)  # noqa: E731
+        validation = lambda t: Validation(  # noqa: E731
+            t,
+            a.validate_every,
+            steps=a.validation_steps,
+            log=log,
+            hfov_deg=a.hfov_deg,
+            reward_window_fraction=a.reward_window_fraction,
+        )
     try:
         t = run(
             cfg,
