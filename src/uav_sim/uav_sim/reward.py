@@ -19,7 +19,7 @@ COLLISION_REWARD = -10.0
 CENTER_WINDOW_FRACTION = 0.2
 
 
-def center_window_slices(height: int, width: int, fraction: float = CENTER_WINDOW_FRACTION) -> float:
+def center_window_slices(height: int, width: int, fraction: float = CENTER_WINDOW_FRACTION):
     """Row and column slices of the central window covering `fraction` of each side.
 
     The window is at least one pixel and is centred (for odd leftovers the extra pixel
