@@ -635,11 +635,10 @@ sam_twenty() {  # tag folder cnn-folder cnn-tag: SAM seeds 0-9 (folder) and 10-1
       --from-csv $out/$p/results.csv $out/sam_seeds10_19/$p/results.csv --out $out/sam_20_seeds/$p
     python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
       --a ${tag}_sam --b tl300_sam > $out/sam_20_seeds/$p/against_round6_32_seeds.md
-    python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
-      --by run --a ${tag}_sam --b tl300_cnn > $out/sam_20_seeds/$p/against_round6_cnn.md
     python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $3/$p/results.csv --by run \
       --a ${tag}_sam --b $4 > $out/sam_20_seeds/$p/against_cnn.md
   done
+  against_round6_cnn "$tag" $out/sam_20_seeds
 }
 sam_twenty r22rr05 $R22 $R22/cnn r22rr05_cnn
 
