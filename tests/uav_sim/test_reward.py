@@ -3,7 +3,14 @@ import math
 import numpy as np
 import pytest
 
-from uav_sim.reward import band_min_depth, center_window_min_depth, center_window_slices, clearance_penalty, step_reward
+from uav_sim.reward import (
+    band_min_depth,
+    center_window_min_depth,
+    center_window_slices,
+    clearance_penalty,
+    step_reward,
+    window_fov_rad,
+)
 
 
 def test_reward_hand_computed_values():
@@ -28,6 +35,14 @@ def test_center_window_is_central_20_percent():
     rows, cols = center_window_slices(100, 50)
     assert rows.stop - rows.start == 20 and cols.stop - cols.start == 10
     assert rows.start == 40 and cols.start == 20
+
+
+def test_window_fov_is_the_arc_of_the_window_columns():
+    assert math.degrees(window_fov_rad(64, 120.0, 1.0)) == pytest.approx(120.0)  # the whole image: the camera's fov
+    fx = 32 / math.tan(math.radians(60))  # 120 deg, 64 px; the window's 13 columns are 25..38, centre 32
+    expect = math.atan((38 - 32) / fx) - math.atan((25 - 32) / fx)
+    assert window_fov_rad(64, 120.0) == pytest.approx(expect) and math.degrees(expect) == pytest.approx(38.74, abs=0.01)
+    assert math.degrees(window_fov_rad(64, 150.0, 0.078)) == pytest.approx(32.41, abs=0.01)  # 5 columns at 150 deg
 
 
 def test_center_window_min_depth_reads_only_the_window_and_rep117():

@@ -76,6 +76,10 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     # The default camera: 120 deg horizontal, fx = (64 / 2) / tan(60 deg) = 18.475 px.
     assert abs(info.k[0] - 32.0 / math.tan(math.radians(60.0))) < 1e-9 and info.k[0] == info.k[4]
     assert info.header.frame_id == img.header.frame_id and contract.camera_info_hfov_deg(info) == pytest.approx(120.0)
+    # beta is read over columns 25-37 (13 of 64, edges 7 px left and 6 px right of the centre):
+    # atan(7 / fx) + atan(6 / fx) = 38.74 deg of arc, not 20 % of 120 deg.
+    fov = math.atan(7 / info.k[0]) + math.atan(6 / info.k[0])
+    assert rec.by_topic["outcome"][-1].field_of_view == pytest.approx(fov) and math.degrees(fov) == pytest.approx(38.74, abs=0.01)
     odom = rec.by_topic["odom"][-1]
     assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_link"
     assert abs(odom.pose.pose.position.x - (-6.0 + 5.0)) < 1e-3, "10 steps at 1 m/s x 0.5 s from x=-6"

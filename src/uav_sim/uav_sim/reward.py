@@ -58,6 +58,16 @@ def floor_beta_m(
     return camera_height_m / below if below > 0 else math.inf
 
 
+def window_fov_rad(width: int, hfov_deg: float, fraction: float = CENTER_WINDOW_FRACTION) -> float:
+    """The horizontal angle (rad) the central window's columns cover behind a pinhole camera: the arc
+    beta is read over (step_outcome's field_of_view). Not `fraction` of the field of view: at 120
+    degrees the paper's 20 % window (13 of 64 columns) spans 38.7 degrees, not 24."""
+    _, cols = center_window_slices(1, width, fraction)
+    t = math.tan(math.radians(hfov_deg) / 2)
+    left, right = ((c - width / 2) / (width / 2) * t for c in (cols.start, cols.stop))
+    return math.atan(right) - math.atan(left)
+
+
 def _image_shape(depth_m: np.ndarray) -> tuple[int, int]:
     if depth_m.ndim != 2:
         raise ValueError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")

@@ -20,6 +20,7 @@ from std_srvs.srv import Trigger
 
 from . import contract
 from .node_runner import run
+from .reward import window_fov_rad
 from .ros_params import ParameterError, declare
 from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
 from .vehicle import HOVER, BodyTwist, TwistLimits, twist_error
@@ -304,7 +305,7 @@ class SimNode(Node):
                 self.frame_id,
                 cfg.min_range_m,
                 cfg.max_range_m,
-                math.radians(cfg.hfov_deg) * 0.2,
+                window_fov_rad(cfg.image_width, cfg.hfov_deg, cfg.reward_window_fraction),
                 truncated=r.truncated,
             )
         )
