@@ -213,3 +213,24 @@ def test_the_trained_camera_is_recorded_and_hostile_entries_are_refused(tmp_path
             wio.read_file_config(tmp_path / "bad.safetensors")
     with pytest.raises(wio.WeightsError, match="camera_hfov_deg"):
         wio.to_bytes(net, SAM, 400.0)
+
+
+def test_the_reward_window_is_recorded_when_given_and_hostile_entries_are_refused(tmp_path):
+    net = build_network(SAM, seed=3)
+    wio.save_file(net, SAM, tmp_path / "w.safetensors", camera_hfov_deg=150.0, reward_window_fraction=0.078)
+    wio.save_file(net, SAM, tmp_path / "plain.safetensors", camera_hfov_deg=150.0)
+    assert wio.read_file_window(tmp_path / "w.safetensors") == 0.078
+    assert wio.read_file_window(tmp_path / "plain.safetensors") is None  # the paper's window is not recorded
+    assert wio.window_for(tmp_path / "w.safetensors", 0.2) == 0.078 and wio.window_for(tmp_path / "plain.safetensors", 0.2) == 0.2
+    assert wio.window_for(None, 0.2) == 0.2
+    wio.load_file(tmp_path / "w.safetensors", SAM)  # the entry does not change what loads
+    tensors = {k: v.contiguous() for k, v in net.state_dict().items()}
+    for bad in ("__import__('os')", "nan", "0", "-0.1", "1.5", ""):
+        b = st_save(tensors, metadata={"format": wio.FORMAT, "config": SAM.to_json(), "reward_window_fraction": bad})
+        with pytest.raises(wio.WeightsError, match="'reward_window_fraction' must be a share of the image side in"):
+            wio.load_bytes(b, SAM)
+        (tmp_path / "bad.safetensors").write_bytes(b)
+        with pytest.raises(wio.WeightsError, match="bad.safetensors: .*reward_window_fraction"):
+            wio.read_file_camera(tmp_path / "bad.safetensors")
+    with pytest.raises(wio.WeightsError, match="reward_window_fraction"):
+        wio.to_bytes(net, SAM, 150.0, 0.0)

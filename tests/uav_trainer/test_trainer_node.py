@@ -35,7 +35,8 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         TwistStamped, contract.ACTION_TOPIC, lambda m: actions.add(contract.stamp_ns(m.header.stamp)), deep_qos()
     )
     run_dir = tmp_path / "run"
-    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0", "-p", "hfov_deg:=100.0")
+    window = ("-p", "reward_window_fraction:=0.3")  # 19 of 64 px: the trainer reads it back from step_outcome
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0", "-p", "hfov_deg:=100.0", *window)
     policy = ros.start("uav_policy", "policy_node")
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
@@ -69,6 +70,9 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
     # The weights record the camera the trainer saw on depth/camera_info.
     assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 100.0
+    # And the reward window sim_node used (as whole pixels: 19 / 64), which is not the paper's.
+    assert wio.read_file_window(run_dir / "policy_sam.safetensors") == 19 / 64
+    assert "reward window: 0.296875 of each side, recorded in the weights files" in ros.log_of(trainer)
     again = ros.start("uav_trainer", "trainer_node", *trainer_args, name="trainer2")
     assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 30), ros.log_of(again)
     assert f"{t['env_steps']} env steps" in ros.log_of(again)
@@ -117,6 +121,8 @@ def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
     assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
     assert "reward: the paper's - 1 per turning step" in logs["trainer"]
     assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 120.0
+    assert wio.read_file_window(run_dir / "policy_sam.safetensors") is None  # the paper's window
+    assert "reward window:" not in logs["trainer"]
     rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
     assert {r["end"] for r in rows} <= {"crash", "time_limit"} and any(r["end"] == "time_limit" for r in rows)
     assert all(int(r["length"]) <= 4 for r in rows)
@@ -206,13 +212,14 @@ def test_launcher_rejects_a_bad_budget():
 def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes):
     """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
     random start heading, extra sim parameters, the weights' SAM readout, input size, layer sizes and frame stack
-    and, without an hfov_deg argument, the camera recorded in the weights reach the nodes)."""
+    and, without an hfov_deg argument, the camera recorded in the weights and the reward window it records reach the nodes)."""
     from uav_sim.simulator import SimConfig
     from uav_trainer.evaluate import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
     cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)
-    wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov)
+    window = 0.5 if trained_hfov is not None else None  # recorded with the camera: flown by both paths unasked
+    wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov, reward_window_fraction=window)
     os.environ["ROS_DOMAIN_ID"] = "74"
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
     over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args)
@@ -225,3 +232,5 @@ def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov
         fly = lambda **kw: evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, **kw)  # noqa: E731
         by_header, default = fly(), fly(hfov_deg=SimConfig.hfov_deg)
         assert by_header.mean_reward == local.mean_reward and default.mean_reward != local.mean_reward
+        paper_window = fly(reward_window_fraction=SimConfig.reward_window_fraction)  # same flight, another reward
+        assert paper_window.crashes == local.crashes and paper_window.mean_reward != local.mean_reward

@@ -339,6 +339,10 @@ def test_training_refuses_a_camera_whose_reward_window_sees_the_floor(tmp_path, 
     lines = []
     t = run_inprocess(cfg, str(run_dir), log=lines.append, hfov_deg=150.0, layout_per_episode=True, reward_window_fraction=0.078)
     assert t.env_steps == 10 and any("reward the paper's, window 0.078;" in s for s in lines)
+    # The weights record the window (evaluate measures the reward with it); the paper's is not recorded.
+    assert wio.read_file_window(t.policy_weights_path) == 0.078 and wio.read_file_camera(t.policy_weights_path) == 150.0
+    t = run_inprocess(cfg, str(tmp_path / "paper"), log=lambda s: None, hfov_deg=120.0, layout_per_episode=True)
+    assert wio.read_file_window(t.policy_weights_path) is None
     monkeypatch.setattr("sys.argv", ["inprocess", "--steps", "10", "--reward-window-fraction", "0"])
     with pytest.raises(SystemExit) as e:
         inprocess.main()

@@ -4,7 +4,10 @@ A weights blob is a safetensors file whose metadata holds `format` = uav_policy/
 `config` = the NetConfig JSON, so a file made for the other architecture is recognised, and
 optionally `camera_hfov_deg`: the horizontal field of view of the depth camera the network was
 trained with (a network flies worse behind another camera; policy_node warns, evaluate and the
-figures fly it with that camera). Files without it say nothing about their camera.
+figures fly it with that camera). Files without it say nothing about their camera. And optionally
+`reward_window_fraction`: the reward's central window the network was trained on, when it was
+not the paper's 20 % (evaluate measures Table 2's reward with it); files without it were trained
+with the paper's window.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from .networks import SIZE_FIELDS, NetConfig, build_network
 FORMAT = "uav_policy/1"
 MAX_BYTES = 64 * 1024 * 1024
 CAMERA_KEY = "camera_hfov_deg"
+WINDOW_KEY = "reward_window_fraction"
 HFOV_RANGE_DEG = (10.0, 170.0)  # sim_node's hfov_deg range
 
 
@@ -33,12 +37,17 @@ class WeightsError(ValueError):
     """Weights that cannot be used; the message says what was expected."""
 
 
-def to_bytes(net: torch.nn.Module, cfg: NetConfig, camera_hfov_deg: float | None = None) -> bytes:
-    """The safetensors blob; `camera_hfov_deg` (when known) records the camera the net was trained with."""
+def to_bytes(
+    net: torch.nn.Module, cfg: NetConfig, camera_hfov_deg: float | None = None, reward_window_fraction: float | None = None
+) -> bytes:
+    """The safetensors blob; `camera_hfov_deg` (when known) records the camera the net was trained with,
+    `reward_window_fraction` (when not None) the reward window it was trained on."""
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in net.state_dict().items()}
     meta = {"format": FORMAT, "config": cfg.to_json()}
     if camera_hfov_deg is not None:
         meta[CAMERA_KEY] = repr(_check_hfov(camera_hfov_deg))
+    if reward_window_fraction is not None:
+        meta[WINDOW_KEY] = repr(_check_window(reward_window_fraction))
     return _canonical(st_save(tensors, metadata=meta))
 
 
@@ -53,9 +62,15 @@ def _canonical(blob: bytes) -> bytes:
     return struct.pack("<Q", len(header)) + header + blob[8 + n :]
 
 
-def save_file(net: torch.nn.Module, cfg: NetConfig, path: str | os.PathLike, camera_hfov_deg: float | None = None) -> None:
+def save_file(
+    net: torch.nn.Module,
+    cfg: NetConfig,
+    path: str | os.PathLike,
+    camera_hfov_deg: float | None = None,
+    reward_window_fraction: float | None = None,
+) -> None:
     """Write atomically: a reader never sees a half-written file."""
-    write_atomic(Path(path), to_bytes(net, cfg, camera_hfov_deg))
+    write_atomic(Path(path), to_bytes(net, cfg, camera_hfov_deg, reward_window_fraction))
 
 
 def _check_hfov(value) -> float:
@@ -66,6 +81,16 @@ def _check_hfov(value) -> float:
     lo, hi = HFOV_RANGE_DEG
     if not lo <= v <= hi:
         raise WeightsError(f"'{CAMERA_KEY}' must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}")
+    return v
+
+
+def _check_window(value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan
+    if not 0.0 < v <= 1.0:
+        raise WeightsError(f"'{WINDOW_KEY}' must be a share of the image side in (0, 1], got {value!r}")
     return v
 
 
@@ -112,10 +137,18 @@ def read_header_camera(blob: bytes) -> float | None:
 
 
 def _camera_of(meta: dict) -> float | None:
-    if CAMERA_KEY not in meta:
+    return _entry_of(meta, CAMERA_KEY, _check_hfov)
+
+
+def _window_of(meta: dict) -> float | None:
+    return _entry_of(meta, WINDOW_KEY, _check_window)
+
+
+def _entry_of(meta: dict, key: str, check) -> float | None:
+    if key not in meta:
         return None
     try:
-        return _check_hfov(meta[CAMERA_KEY])
+        return check(meta[key])
     except WeightsError as e:
         raise WeightsError(f"weights metadata {e}") from None
 
@@ -139,7 +172,8 @@ def load_bytes(blob: bytes, expected: NetConfig, sizes_from_blob: bool = False) 
         raise WeightsError(f"weights are {len(blob)} bytes, more than the {MAX_BYTES} allowed")
     meta = _header_metadata(bytes(blob))
     cfg = _config_of(meta)
-    _camera_of(meta)  # a malformed camera entry is refused like any other bad metadata
+    _camera_of(meta)  # a malformed camera or window entry is refused like any other bad metadata
+    _window_of(meta)
     if sizes_from_blob:
         expected = with_sizes_of(expected, cfg)
     if cfg.model != expected.model:
@@ -195,6 +229,7 @@ def _read_file_metadata(path: str | os.PathLike) -> dict:
         meta = _header_metadata(blob)
         _config_of(meta)  # the whole header is checked, whichever part the caller wants
         _camera_of(meta)
+        _window_of(meta)
         return meta
     except WeightsError as e:
         raise WeightsError(f"{p}: {e}") from None
@@ -214,6 +249,17 @@ def camera_for(path: str | os.PathLike | None, default: float) -> float:
     """The field of view to fly weights with: the file's trained camera, else `default`."""
     hfov = read_file_camera(path) if path else None
     return default if hfov is None else hfov
+
+
+def read_file_window(path: str | os.PathLike) -> float | None:
+    """The reward window a weights file was trained on; None when the file does not say (the paper's)."""
+    return _window_of(_read_file_metadata(path))
+
+
+def window_for(path: str | os.PathLike | None, default: float) -> float:
+    """The reward window to measure weights' reward with: the file's, else `default`."""
+    w = read_file_window(path) if path else None
+    return default if w is None else w
 
 
 def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:

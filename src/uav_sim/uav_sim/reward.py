@@ -68,6 +68,13 @@ def window_fov_rad(width: int, hfov_deg: float, fraction: float = CENTER_WINDOW_
     return math.atan(right) - math.atan(left)
 
 
+def window_fraction_for_fov(width: int, hfov_deg: float, fov_rad: float) -> float:
+    """The window (share of the image side, whole pixels: n / width) whose arc window_fov_rad is nearest
+    `fov_rad`: reads a reward window back from step_outcome's field_of_view."""
+    n = min(range(1, width + 1), key=lambda k: abs(window_fov_rad(width, hfov_deg, k / width) - fov_rad))
+    return n / width
+
+
 def _image_shape(depth_m: np.ndarray) -> tuple[int, int]:
     if depth_m.ndim != 2:
         raise ValueError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")

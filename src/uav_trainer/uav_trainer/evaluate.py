@@ -195,6 +195,14 @@ def flown_hfov_deg(model: str, weights: str) -> float:
     return wio.camera_for(weights or wio.packaged_weights(model), SimConfig.hfov_deg)
 
 
+def recorded_window(model: str, weights: str) -> float | None:
+    """The reward window the weights file (or, without one, the packaged file) records: None for the paper's."""
+    from uav_policy import weights as wio
+
+    path = weights or wio.packaged_weights(model)
+    return wio.read_file_window(path) if path else None
+
+
 def sim_arg_number(sim_args, wanted: str) -> float | None:
     """The value of `wanted` among sim_node arguments NAME:=VALUE, if one is given (ValueError if not a number)."""
     for arg in sim_args:
@@ -231,10 +239,14 @@ def evaluate_once(
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
 
-    Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, and
-    without image_width/image_height it renders at their input size."""
+    Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
+    reward_window_fraction the reward window they record (if any), and without image_width/image_height
+    it renders at their input size."""
     if sim_arg_hfov_deg(sim_args) is None:
         sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, weights)}")
+    window = recorded_window(model, weights)
+    if window is not None and sim_arg_number(sim_args, "reward_window_fraction") is None:
+        sim_args = (*sim_args, f"reward_window_fraction:={window}")
     sim_args = (*sim_args, *image_size_args(model, weights, sim_args))
     import rclpy
     import rclpy.executors
@@ -331,7 +343,7 @@ def evaluate_inprocess(
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
     `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
     camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
-    `reward_window_fraction` None: the paper's window (SimConfig's default)."""
+    `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default)."""
     from uav_policy import weights as wio
     from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
@@ -349,6 +361,8 @@ def evaluate_inprocess(
         net = wio.load_file(path, cfg)
     if hfov_deg is None:  # with `net` and no file: the sim default
         hfov_deg = wio.camera_for(weights or path, SimConfig.hfov_deg)
+    if reward_window_fraction is None:
+        reward_window_fraction = wio.window_for(weights or path, SimConfig.reward_window_fraction)
     agent = Agent(net, cfg, seed=seed)
     sim_cfg = SimConfig(
         seed=seed,
@@ -356,7 +370,7 @@ def evaluate_inprocess(
         hfov_deg=hfov_deg,
         image_width=cfg.width,
         image_height=cfg.height,
-        reward_window_fraction=SimConfig.reward_window_fraction if reward_window_fraction is None else reward_window_fraction,
+        reward_window_fraction=reward_window_fraction,
     )
     sim = Simulator(load_world(world), sim_cfg)
     stack = FrameStack(cfg.frames)
@@ -407,9 +421,10 @@ def evaluate_inprocess(
 ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
 
 
-def load_ensemble(model: str, files: list[str], hfov_deg: float | None):
-    """(QEnsemble, its NetConfig, the camera to fly with) for weights files of one architecture. Without
-    hfov_deg the members' trained camera, which must then be the same for all (ValueError if not)."""
+def load_ensemble(model: str, files: list[str], hfov_deg: float | None, window: float | None = None):
+    """(QEnsemble, its NetConfig, the camera to fly with, the reward window) for weights files of one
+    architecture. Without hfov_deg the members' trained camera and without `window` their reward window,
+    each of which must then be the same for all (ValueError if not)."""
     from uav_policy import weights as wio
     from uav_policy.networks import QEnsemble
     from uav_sim.simulator import SimConfig
@@ -421,7 +436,14 @@ def load_ensemble(model: str, files: list[str], hfov_deg: float | None):
         if len(cameras) != 1:
             raise ValueError(f"members were trained with different cameras {sorted(cameras)}: give --sim-arg hfov_deg:=X")
         hfov_deg = cameras.pop()
-    return net, net.cfg, hfov_deg
+    if window is None:
+        windows = {wio.window_for(f, SimConfig.reward_window_fraction) for f in files}
+        if len(windows) != 1:
+            raise ValueError(
+                f"members were trained with different reward windows {sorted(windows)}: give --sim-arg reward_window_fraction:=F"
+            )
+        window = windows.pop()
+    return net, net.cfg, hfov_deg, window
 
 
 def pool(runs: list[EvalResult]) -> EvalResult:
@@ -757,18 +779,25 @@ def main(argv=None) -> int:
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
 
-    from uav_policy.weights import WeightsError, read_file_config
+    from uav_policy.weights import WeightsError, read_file_config, read_file_window
 
+    recorded_windows = set()
     for model, files in runs:  # unreadable weights fail here, before any node starts
         for path in files:
             try:
                 read_file_config(path)
+                recorded_windows.add(read_file_window(path))
             except WeightsError as e:
                 ap.error(f"--weights {model}={path}: {e}")
-    ensembles = {}  # weights column -> (network, its config, camera)
+    if window is None and recorded_windows - {None}:
+        protocol += (
+            " Reward: each weights file's reward window as recorded in its header (the paper's 20 % when it records none): "
+            f"{', '.join(f'{w:g}' for w in sorted(recorded_windows - {None}))}."
+        )
+    ensembles = {}  # weights column -> (network, its config, camera, reward window)
     for model, files in runs if a.ensemble > 1 else []:
         try:
-            ensembles[ENSEMBLE_SEP.join(files)] = load_ensemble(model, files, hfov_deg)
+            ensembles[ENSEMBLE_SEP.join(files)] = load_ensemble(model, files, hfov_deg, window)
         except ValueError as e:
             ap.error(f"--ensemble {a.ensemble}, {model}: {e}")
 
@@ -792,7 +821,7 @@ def main(argv=None) -> int:
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
                 )
-            net, net_cfg, hfov = ensembles.get(weights, (None, None, hfov_deg))
+            net, net_cfg, hfov, win = ensembles.get(weights, (None, None, hfov_deg, window))
             r = evaluate_inprocess(
                 model,
                 weights,
@@ -804,7 +833,7 @@ def main(argv=None) -> int:
                 hfov_deg=hfov,
                 net_cfg=net_cfg,
                 crash_log=crash_rows if a.crash_log else None,
-                reward_window_fraction=window,
+                reward_window_fraction=win,
             )
             bar.update(a.steps)
             return r

@@ -181,7 +181,9 @@ def run(
         raise RewardWindowError(floor)
     training = Training(cfg, run_dir, log=log, resume=resume)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
-    window = "" if reward_window_fraction == SimConfig.reward_window_fraction else f", window {reward_window_fraction:g}"
+    paper_window = reward_window_fraction == SimConfig.reward_window_fraction
+    training.reward_window_fraction = None if paper_window else reward_window_fraction  # likewise, when not the paper's
+    window = "" if paper_window else f", window {reward_window_fraction:g}"
     log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}{window}; {replay_description(cfg)}")
     validator = validation(training) if validation is not None else None
     if layouts:

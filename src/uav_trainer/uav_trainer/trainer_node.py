@@ -10,6 +10,7 @@ to the policy over policy_node/push_weights, epsilon through policy_node's param
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
 
@@ -28,6 +29,7 @@ from uav_policy.push import push_request
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim import contract
 from uav_sim.node_runner import run
+from uav_sim.reward import center_window_slices, window_fraction_for_fov
 from uav_sim.ros_params import ParameterError, declare
 
 from .learner import LearnerConfig
@@ -198,9 +200,12 @@ class TrainerNode(Node):
         hw = (self.training.net_cfg.height, self.training.net_cfg.width)
         self.pairing = TransitionAssembler(self.training, self.actions, self.step_ns, hw)
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self.pairing.add("frame", m), q)
-        self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self.pairing.add("outcome", m), q)
+        self.create_subscription(Range, contract.OUTCOME_TOPIC, self._on_outcome, q)
         self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self.pairing.add("action", m), q)
-        # The camera's field of view goes into every weights file (policy_node warns on a mismatch).
+        # The camera's field of view goes into every weights file (policy_node warns on a mismatch), and so
+        # does sim_node's reward window when it is not the paper's, read back from step_outcome's field_of_view.
+        self.camera_width_px = None
+        self.outcome_fov_rad = None
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
@@ -233,6 +238,27 @@ class TrainerNode(Node):
         if hfov != self.training.camera_hfov_deg:
             self.get_logger().info(f"depth camera: {hfov:g} deg horizontal field of view (recorded in the weights files)")
             self.training.camera_hfov_deg = hfov
+        self.camera_width_px = msg.width
+        self._update_window()
+
+    def _on_outcome(self, msg: Range) -> None:
+        self.pairing.add("outcome", msg)
+        if msg.field_of_view != self.outcome_fov_rad:
+            self.outcome_fov_rad = msg.field_of_view
+            self._update_window()
+
+    def _update_window(self) -> None:
+        """The reward window sim_node reads beta over, from its arc (step_outcome) and the camera (camera_info)."""
+        hfov, width, fov = self.training.camera_hfov_deg, self.camera_width_px, self.outcome_fov_rad
+        if hfov is None or not width or not math.isfinite(fov or math.nan) or not 0.0 < fov <= math.radians(hfov) + 1e-3:
+            return
+        fraction = window_fraction_for_fov(width, hfov, fov)
+        paper = center_window_slices(1, width)[1] == center_window_slices(1, width, fraction)[1]
+        window = None if paper else fraction
+        if window != self.training.reward_window_fraction:
+            what = "the paper's 20 %" if paper else f"{fraction:g} of each side, recorded in the weights files"
+            self.get_logger().info(f"reward window: {what} ({math.degrees(fov):.1f} deg of arc)")
+            self.training.reward_window_fraction = window
 
     # -- learning -----------------------------------------------------------------------
     def _learn_loop(self) -> None:

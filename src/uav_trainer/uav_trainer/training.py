@@ -163,6 +163,9 @@ class Training:
         # The depth camera's field of view, recorded in every weights file written; None until the
         # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
         self.camera_hfov_deg: float | None = None
+        # The reward window, recorded when it is not the paper's 20 % (inprocess.run sets it; over ROS
+        # the window is sim_node's and trainer_node reads it back from step_outcome's field of view).
+        self.reward_window_fraction: float | None = None
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), cfg.device)
         self.replay = ReplayMemory(
@@ -379,7 +382,7 @@ class Training:
         return blob
 
     def weights_blob(self) -> bytes:
-        return wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg)
+        return wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg, self.reward_window_fraction)
 
     # -- outputs ------------------------------------------------------------------------
     def counters(self) -> dict:
@@ -411,8 +414,10 @@ class Training:
         return path
 
     def save_weights(self, path, net=None) -> None:
-        """Write `net` (default: the online network) as a policy weights file, atomically, with this run's camera."""
-        wio.save_file(self.learner.online if net is None else net, self.net_cfg, path, self.camera_hfov_deg)
+        """Write `net` (default: the online network) as a policy weights file, atomically, with this run's
+        camera and (when not the paper's) reward window."""
+        net = self.learner.online if net is None else net
+        wio.save_file(net, self.net_cfg, path, self.camera_hfov_deg, self.reward_window_fraction)
 
     def metrics_row(self) -> dict:
         now = time.monotonic()
