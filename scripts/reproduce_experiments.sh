@@ -46,11 +46,17 @@ train_ten() {  # tag model [inprocess args]: ten seeds from FIRST (default 0), t
     wait
   done
 }
+camera_args() {  # sets CAM: the 120 degree camera (or HFOV degrees, with the reward window WINDOW when set)
+  CAM=(--sim-arg hfov_deg:=${HFOV:-120}.0)
+  [ -n "${WINDOW:-}" ] && CAM+=(--sim-arg reward_window_fraction:=$WINDOW)
+  return 0
+}
 eval_120() {  # folder crash-log(0|1) [evaluate args]: the random-start and the fixed-start tables, 120 degree
   # camera (or HFOV degrees, with the reward window WINDOW when set)
-  local out=$1 log=() cam=(--sim-arg hfov_deg:=${HFOV:-120}.0)
+  local out=$1 log=() cam
   [ "$2" = 1 ] && log=(--crash-log)
-  [ -n "${WINDOW:-}" ] && cam+=(--sim-arg reward_window_fraction:=$WINDOW)
+  camera_args
+  cam=("${CAM[@]}")
   shift 2
   $EVAL --inprocess "$@" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" "${cam[@]}" \
     "${log[@]}" --out "$out/varied_start"
@@ -624,14 +630,16 @@ against_round6_cnn r22rr05 $R22
 FIRST=10 model_ten r22rr05 sam $R22/sam_seeds10_19 --replay-ratio 0.5
 sam_twenty() {  # tag folder cnn-folder cnn-tag: SAM seeds 0-9 (folder) and 10-19 (folder/sam_seeds10_19) pooled
   # in folder/sam_20_seeds with their crash log, against round 6's 32 SAM seeds, round 6's CNN and a CNN
+  # (camera as eval_120's: HFOV, WINDOW)
   local tag=$1 out=$2 p proto
+  camera_args
   mkdir -p $out/sam_20_seeds/varied_start
   { cat $out/varied_start/crashes.csv; tail -n +2 $out/sam_seeds10_19/varied_start/crashes.csv; } \
     > $out/sam_20_seeds/varied_start/crashes.csv
   for p in varied_start fixed_start; do
     proto=()
     [ $p = varied_start ] && proto=("${VARIED[@]}")
-    $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" --sim-arg hfov_deg:=120.0 \
+    $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" "${CAM[@]}" \
       --from-csv $out/$p/results.csv $out/sam_seeds10_19/$p/results.csv --out $out/sam_20_seeds/$p
     python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
       --a ${tag}_sam --b tl300_sam > $out/sam_20_seeds/$p/against_round6_32_seeds.md
