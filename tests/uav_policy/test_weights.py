@@ -193,6 +193,18 @@ def test_missing_file_message(tmp_path):
         wio.load_file(tmp_path / "nope.safetensors", SAM)
 
 
+def assert_entry_refused(net, tmp_path, key, bad_values, message, read_header):
+    """Every one of `bad_values` as metadata `key` is refused when loading and by `read_header` on a file."""
+    tensors = {k: v.contiguous() for k, v in net.state_dict().items()}
+    for bad in bad_values:
+        b = st_save(tensors, metadata={"format": wio.FORMAT, "config": SAM.to_json(), key: bad})
+        with pytest.raises(wio.WeightsError, match=f"'{key}' {message}"):
+            wio.load_bytes(b, SAM)
+        (tmp_path / "bad.safetensors").write_bytes(b)
+        with pytest.raises(wio.WeightsError, match=f"bad.safetensors: .*{key}"):
+            read_header(tmp_path / "bad.safetensors")
+
+
 def test_the_trained_camera_is_recorded_and_hostile_entries_are_refused(tmp_path):
     net = build_network(SAM, seed=3)
     wio.save_file(net, SAM, tmp_path / "cam.safetensors", camera_hfov_deg=120.0)
@@ -203,14 +215,8 @@ def test_the_trained_camera_is_recorded_and_hostile_entries_are_refused(tmp_path
     assert wio.camera_for(tmp_path / "plain.safetensors", 90.0) == 90.0 and wio.camera_for(None, 75.0) == 75.0
     assert wio.read_header_camera(wio.to_bytes(net, SAM, 90.0)) == 90.0
     wio.load_file(tmp_path / "cam.safetensors", SAM)  # the entry does not change what loads
-    tensors = {k: v.contiguous() for k, v in net.state_dict().items()}
-    for bad in ("__import__('os')", "nan", "1e9", "5", ""):
-        b = st_save(tensors, metadata={"format": wio.FORMAT, "config": SAM.to_json(), "camera_hfov_deg": bad})
-        with pytest.raises(wio.WeightsError, match="'camera_hfov_deg' must be a number of degrees in"):
-            wio.load_bytes(b, SAM)
-        (tmp_path / "bad.safetensors").write_bytes(b)
-        with pytest.raises(wio.WeightsError, match="bad.safetensors: .*camera_hfov_deg"):
-            wio.read_file_config(tmp_path / "bad.safetensors")
+    bad = ("__import__('os')", "nan", "1e9", "5", "")
+    assert_entry_refused(net, tmp_path, "camera_hfov_deg", bad, "must be a number of degrees in", wio.read_file_config)
     with pytest.raises(wio.WeightsError, match="camera_hfov_deg"):
         wio.to_bytes(net, SAM, 400.0)
 
@@ -224,13 +230,9 @@ def test_the_reward_window_is_recorded_when_given_and_hostile_entries_are_refuse
     assert wio.window_for(tmp_path / "w.safetensors", 0.2) == 0.078 and wio.window_for(tmp_path / "plain.safetensors", 0.2) == 0.2
     assert wio.window_for(None, 0.2) == 0.2
     wio.load_file(tmp_path / "w.safetensors", SAM)  # the entry does not change what loads
-    tensors = {k: v.contiguous() for k, v in net.state_dict().items()}
-    for bad in ("__import__('os')", "nan", "0", "-0.1", "1.5", ""):
-        b = st_save(tensors, metadata={"format": wio.FORMAT, "config": SAM.to_json(), "reward_window_fraction": bad})
-        with pytest.raises(wio.WeightsError, match="'reward_window_fraction' must be a share of the image side in"):
-            wio.load_bytes(b, SAM)
-        (tmp_path / "bad.safetensors").write_bytes(b)
-        with pytest.raises(wio.WeightsError, match="bad.safetensors: .*reward_window_fraction"):
-            wio.read_file_camera(tmp_path / "bad.safetensors")
+    bad = ("__import__('os')", "nan", "0", "-0.1", "1.5", "")
+    assert_entry_refused(
+        net, tmp_path, "reward_window_fraction", bad, "must be a share of the image side in", wio.read_file_camera
+    )
     with pytest.raises(wio.WeightsError, match="reward_window_fraction"):
         wio.to_bytes(net, SAM, 150.0, 0.0)
