@@ -250,7 +250,7 @@ class TrainerNode(Node):
     def _update_window(self) -> None:
         """The reward window sim_node reads beta over, from its arc (step_outcome) and the camera (camera_info)."""
         hfov, width, fov = self.training.camera_hfov_deg, self.camera_width_px, self.outcome_fov_rad
-        if hfov is None or not width or not math.isfinite(fov or math.nan) or not 0.0 < fov <= math.radians(hfov) + 1e-3:
+        if hfov is None or not width or fov is None or not 0.0 < fov <= math.radians(hfov) + 1e-3:  # also NaN
             return
         fraction = window_fraction_for_fov(width, hfov, fov)
         paper = center_window_slices(1, width)[1] == center_window_slices(1, width, fraction)[1]
