@@ -19,8 +19,9 @@
 # (round 16 on fresh seeds, both models), a nineteenth (choosing one seed of each group on validation
 # layouts), a twentieth (ten stacked depth frames), a twenty-first (a two-layer trunk: 16 x 16 SAM
 # nodes, and a CNN with the same trunk), a twenty-second (twice the updates per step), a twenty-third
-# (the same with every fourth training episode in Basic) and a twenty-fourth (a 150 degree camera with a
-# smaller reward window). About 38 h on 2 cores.
+# (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
+# smaller reward window) and a twenty-fifth (the same on ten more SAM seeds, and a CNN arm). About
+# 40 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -680,4 +681,25 @@ for p in varied_start fixed_start; do
     --a r24fov150_sam --b r22rr05_sam > $R24/$p/against_round22.md
   python scripts/compare_models.py $R24/$p/results.csv $R22/cnn/$p/results.csv --by run \
     --a r24fov150_sam --b r22rr05_cnn > $R24/$p/against_round22_cnn.md
+done
+
+# Round 25: round 24 on SAM seeds 10-19 (sam_seeds10_19/) and a CNN arm (cnn/, seeds 0-9), same camera
+# and window. SAM's twenty seeds pooled (sam_20_seeds/) against round 6's 32 SAM seeds, round 6's CNN,
+# round 24's CNN (against_cnn.md), round 22's twenty SAM seeds and round 22's CNN; the CNN against
+# round 6's and round 22's CNN, and SAM seeds 0-9 against it (cnn/*/sam_against_cnn.md).
+R24ARGS=(--replay-ratio 0.5 --hfov-deg 150 --reward-window-fraction 0.078)
+HFOV=150 WINDOW=0.078 FIRST=10 model_ten r24fov150 sam $R24/sam_seeds10_19 "${R24ARGS[@]}"
+HFOV=150 WINDOW=0.078 model_ten r24fov150 cnn $R24/cnn "${R24ARGS[@]}"
+HFOV=150 WINDOW=0.078 sam_twenty r24fov150 $R24 $R24/cnn r24fov150_cnn
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R24/sam_20_seeds/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run \
+    --a r24fov150_sam --b r22rr05_sam > $R24/sam_20_seeds/$p/against_round22.md
+  for d in sam_20_seeds:sam cnn:cnn; do  # folder:model
+    python scripts/compare_models.py $R24/${d%:*}/$p/results.csv $R22/cnn/$p/results.csv --by run \
+      --a r24fov150_${d#*:} --b r22rr05_cnn > $R24/${d%:*}/$p/against_round22_cnn.md
+  done
+  python scripts/compare_models.py $R24/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
+    --a r24fov150_cnn --b tl300_cnn > $R24/cnn/$p/against_round6.md
+  python scripts/compare_models.py $R24/$p/results.csv $R24/cnn/$p/results.csv --by run \
+    --a r24fov150_sam --b r24fov150_cnn > $R24/cnn/$p/sam_against_cnn.md
 done
