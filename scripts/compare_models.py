@@ -21,12 +21,17 @@ seeds differ more from each other than the variants do. Only seeds present in bo
 and crashes summed, reward weighted by steps): e.g. twenty validation layouts as one score per seed.
 An ensemble (evaluate --ensemble) is paired with the same ensemble in b if b has it, else with the
 mean of b's rows for its members' seeds: does voting beat the members it is made of?
+`--bar basic=0,complex=1,turbulent=1` (`--bar paper`: the paper's SAM, these numbers) also counts the
+weights files of each group that are at or under the bar in every world named (crashes per 1000
+steps), with a two-sided Fisher exact test of the two shares: under the paper's fixed start a mean
+over seeds is mostly a few seeds repeating one failure, and this asks how many seeds fly the bar.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import math
 import re
 import sys
 from collections import defaultdict
@@ -108,6 +113,49 @@ def pool_worlds(rows: list[dict], name: str) -> list[dict]:
     return [{**p, "mean_reward": p["reward_sum"] / p["steps"]} for p in pooled.values()]
 
 
+PAPER_BAR = "basic=0,complex=1,turbulent=1"  # the paper's D3QN-SAM, crashes per 1000 steps
+
+
+def parse_bar(text: str) -> dict[str, float]:
+    """'basic=0,complex=1' (or 'paper') -> {'basic': 0.0, 'complex': 1.0}; ValueError naming the bad part."""
+    bar = {}
+    for part in (PAPER_BAR if text == "paper" else text).split(","):
+        world, eq, value = (x.strip() for x in part.partition("="))
+        try:
+            limit = float(value)
+        except ValueError:
+            limit = math.nan
+        if not (world and eq and limit >= 0):
+            raise ValueError(f"{part!r} is not WORLD=CRASHES_PER_1000 (a number >= 0)")
+        bar[world] = limit
+    return bar
+
+
+def fisher_exact(k1: int, n1: int, k2: int, n2: int) -> float:
+    """Two-sided Fisher exact p for k1 of n1 against k2 of n2: the probabilities of the tables with the
+    same margins (hypergeometric) that are no more likely than the observed one, summed."""
+    k = k1 + k2
+
+    def prob(x: int) -> float:
+        return math.comb(n1, x) * math.comb(n2, k - x) / math.comb(n1 + n2, k)
+
+    observed = prob(k1)
+    return min(1.0, sum(prob(x) for x in range(max(0, k - n2), min(k, n1) + 1) if prob(x) <= observed * (1 + 1e-9)))
+
+
+def seeds_at_bar(rows: list[dict], group_of, bar: dict[str, float]) -> dict[str, tuple[int, int]]:
+    """group -> (weights files at or under `bar` in every world of it, weights files with all its worlds)."""
+    rates: dict[tuple[str, str], dict[str, float]] = defaultdict(dict)
+    for r in rows:
+        rates[(group_of(r), r["weights"])][r["world"]] = 1000.0 * int(r["crashes"]) / int(r["steps"])
+    counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+    for (group, _), by_world in rates.items():
+        if all(w in by_world for w in bar):
+            counts[group][0] += all(by_world[w] <= limit + 1e-9 for w, limit in bar.items())
+            counts[group][1] += 1
+    return {g: (k, n) for g, (k, n) in counts.items()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("csv", nargs="+", help="evaluate results.csv file(s); rows are joined")
@@ -118,9 +166,21 @@ def main(argv=None) -> int:
     ap.add_argument("--by", choices=("model", "run"), default="model", help="group rows by model or by training run")
     ap.add_argument("--paired", action="store_true", help="with --by run: pair the two groups' rows by training seed")
     ap.add_argument("--pool-worlds", metavar="NAME", help="sum each weights file's rows over all worlds into one world NAME")
+    ap.add_argument(
+        "--bar",
+        metavar="WORLD=N,...",
+        help=f"also count the seeds at or under N crashes per 1000 steps in every world named ('paper': {PAPER_BAR}), "
+        "with a Fisher exact test",
+    )
     a = ap.parse_args(argv)
     if a.paired and a.by != "run":
         ap.error("--paired needs --by run (two variants trained on the same seeds)")
+    try:
+        bar = parse_bar(a.bar) if a.bar else None
+    except ValueError as e:
+        ap.error(f"--bar: {e}")
+    if bar and a.pool_worlds:
+        ap.error("--bar counts seeds per world: it does not go with --pool-worlds")
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     seeds: dict[tuple[str, str], list[tuple[int, ...] | None]] = defaultdict(list)  # in the order of values' rows
     worlds: list[str] = []
@@ -162,6 +222,19 @@ def main(argv=None) -> int:
     if missing:
         print(f"no world has two or more weights files {'(seeds) ' if a.paired else ''}of both {a.a} and {a.b}", file=sys.stderr)
         return 2
+    if bar:
+        group_of = (lambda r: r["model"]) if a.by == "model" else (lambda r: run_name(r["weights"]))
+        counts = seeds_at_bar(rows, group_of, bar)
+        (k1, n1), (k2, n2) = (counts.get(m, (0, 0)) for m in (a.a, a.b))
+        if not n1 or not n2:
+            print(f"--bar: {a.a} or {a.b} has no weights file measured in all of {', '.join(bar)}", file=sys.stderr)
+            return 2
+        limits = ", ".join(f"{w} {v:g}" for w, v in bar.items())
+        print()
+        print(
+            f"Seeds at or under the bar ({limits} crashes per 1000 steps, every world): {A} {k1} of {n1}, "
+            f"{B} {k2} of {n2}; Fisher exact two-sided p = {fisher_exact(k1, n1, k2, n2):.3f}."
+        )
     return 0
 
 

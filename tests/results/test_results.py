@@ -1,6 +1,7 @@
 """Issue 5: the evaluation harness, the figures, and the shipped pretrained weights."""
 
 import csv
+import importlib.util
 import os
 import subprocess
 import sys
@@ -167,7 +168,6 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
 
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):
     """--ensemble K groups the files in order; two copies of one network fly exactly as that network."""
-    import importlib.util
 
     from uav_trainer.evaluate import main
 
@@ -198,13 +198,19 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
         assert e.value.code == 2 and says in capsys.readouterr().err
     no_ros = run_tool("uav_trainer", "evaluate", "--ensemble", "2", "--weights", a, b, "--steps", "5")
     assert no_ros.returncode == 2 and "--ensemble needs --inprocess" in no_ros.stderr
-    spec = importlib.util.spec_from_file_location("compare_models", ROOT / "scripts" / "compare_models.py")
-    compare = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare)
+    compare = compare_models_module()
     assert compare.run_name(ens["weights"]) == "e_sam_ens2" and compare.seeds_of(ens["weights"]) == (0, 1)
     # --paired: an ensemble against the mean of its members (b = the single files)
     x, y = compare.partners([1.0, 5.0], [(0, 1), (2, 3)], [0.0, 4.0, 2.0], [(0,), (1,), (2,)])
     assert x.tolist() == [1.0] and y.tolist() == [2.0]  # (2, 3) has no partner: seed 3 is missing
+
+
+def compare_models_module():
+    """scripts/compare_models.py as a module (scripts/ is not a package)."""
+    spec = importlib.util.spec_from_file_location("compare_models", ROOT / "scripts" / "compare_models.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_compare_models_tells_a_real_difference_from_none(tmp_path):
@@ -295,6 +301,44 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
     assert float(paired[6]) < 0.01  # 8 equal signs: exact p = 2 / 256
     bad = subprocess.run([sys.executable, str(script), str(path), "--paired"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--by run" in bad.stderr
+
+
+def test_compare_models_counts_the_seeds_at_the_bar(tmp_path):
+    """--bar: a seed counts when it is at or under the bar in every world; the shares get a Fisher exact test."""
+    script = ROOT / "scripts" / "compare_models.py"
+    compare = compare_models_module()
+    assert compare.fisher_exact(3, 4, 1, 4) == pytest.approx(17 / 35)  # Fisher's tea tasting: two-sided 0.486
+    assert compare.fisher_exact(4, 4, 0, 4) == pytest.approx(2 / 70) and compare.fisher_exact(2, 4, 2, 4) == pytest.approx(1.0)
+    assert compare.parse_bar("paper") == {"basic": 0.0, "complex": 1.0, "turbulent": 1.0}
+    # seed: (basic, complex, turbulent) crashes in 1000 steps; "new" seeds 0-2 at the bar, 3 not (basic 1),
+    # "old" seed 0 at the bar, 1 not (complex 2), 2 not (turbulent 3); "new" seed 4 lacks turbulent: not counted.
+    new = {0: (0, 0, 0), 1: (0, 1, 1), 2: (0, 1, 0), 3: (1, 0, 0), 4: (0, 0, None)}
+    old = {0: (0, 1, 1), 1: (0, 2, 0), 2: (0, 0, 3)}
+    rows = [
+        ["sam", world, f"runs/{v}_sam_seed{i}/policy_sam.safetensors", 1000, c, 2.0]
+        for v, seeds in (("new", new), ("old", old))
+        for i, crashes in seeds.items()
+        for world, c in zip(("basic", "complex", "turbulent"), crashes, strict=True)
+        if c is not None
+    ]
+    path = tmp_path / "bar.csv"
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([["model", "world", "weights", "steps", "crashes", "mean_reward"], *rows])
+    run = lambda *extra: subprocess.run(  # noqa: E731
+        [sys.executable, str(script), str(path), "--by", "run", "--a", "new_sam", "--b", "old_sam", *extra],
+        capture_output=True,
+        text=True,
+    )
+    out = run("--bar", "paper")
+    assert out.returncode == 0, out.stderr
+    p = compare.fisher_exact(3, 4, 1, 3)
+    assert f"new_sam 3 of 4, old_sam 1 of 3; Fisher exact two-sided p = {p:.3f}." in out.stdout
+    two = run("--bar", "basic=0, complex=1")  # only the worlds named count: old seed 2 and new seed 4 now do
+    assert "new_sam 4 of 5, old_sam 2 of 3" in two.stdout, two.stdout
+    for bad in ("basic=-1", "basic", "=1", "basic=one"):
+        refused = run("--bar", bad)
+        assert refused.returncode == 2 and "is not WORLD=CRASHES_PER_1000" in refused.stderr
+    assert "does not go with --pool-worlds" in run("--bar", "paper", "--pool-worlds", "all").stderr
 
 
 def test_crash_map_draws_the_crashes_of_a_crash_log(tmp_path):
