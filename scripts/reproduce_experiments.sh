@@ -21,7 +21,7 @@
 # nodes, and a CNN with the same trunk), a twenty-second (twice the updates per step), a twenty-third
 # (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
 # smaller reward window) and a twenty-fifth (the same on ten more SAM seeds, and a CNN arm). About
-# 40 h on 2 cores.
+# 41 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -629,19 +629,25 @@ against_round6_cnn r22rr05 $R22
 # Round 22's SAM on ten more seeds (10-19), pooled with seeds 0-9 (sam_20_seeds/): against round 6's 32
 # SAM seeds, round 6's CNN and round 22's CNN.
 FIRST=10 model_ten r22rr05 sam $R22/sam_seeds10_19 --replay-ratio 0.5
-sam_twenty() {  # tag folder cnn-folder cnn-tag: SAM seeds 0-9 (folder) and 10-19 (folder/sam_seeds10_19) pooled
-  # in folder/sam_20_seeds with their crash log, against round 6's 32 SAM seeds, round 6's CNN and a CNN
-  # (camera as eval_120's: HFOV, WINDOW)
-  local tag=$1 out=$2 p proto
+pool_two() {  # folder-a folder-b out: two tables of ten seeds (both protocols, random starts with a crash log)
+  # joined into out (camera as eval_120's: HFOV, WINDOW)
+  local p proto
   camera_args
-  mkdir -p $out/sam_20_seeds/varied_start
-  { cat $out/varied_start/crashes.csv; tail -n +2 $out/sam_seeds10_19/varied_start/crashes.csv; } \
-    > $out/sam_20_seeds/varied_start/crashes.csv
+  mkdir -p $3/varied_start
+  { cat $1/varied_start/crashes.csv; tail -n +2 $2/varied_start/crashes.csv; } > $3/varied_start/crashes.csv
   for p in varied_start fixed_start; do
     proto=()
     [ $p = varied_start ] && proto=("${VARIED[@]}")
     $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" "${CAM[@]}" \
-      --from-csv $out/$p/results.csv $out/sam_seeds10_19/$p/results.csv --out $out/sam_20_seeds/$p
+      --from-csv $1/$p/results.csv $2/$p/results.csv --out $3/$p
+  done
+}
+sam_twenty() {  # tag folder cnn-folder cnn-tag: SAM seeds 0-9 (folder) and 10-19 (folder/sam_seeds10_19) pooled
+  # in folder/sam_20_seeds with their crash log, against round 6's 32 SAM seeds, round 6's CNN and a CNN
+  # (camera as eval_120's: HFOV, WINDOW)
+  local tag=$1 out=$2 p
+  pool_two $out $out/sam_seeds10_19 $out/sam_20_seeds
+  for p in varied_start fixed_start; do
     python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $R15/round6_32_seeds/$p/results.csv --by run \
       --a ${tag}_sam --b tl300_sam > $out/sam_20_seeds/$p/against_round6_32_seeds.md
     python scripts/compare_models.py $out/sam_20_seeds/$p/results.csv $3/$p/results.csv --by run \
@@ -683,23 +689,28 @@ for p in varied_start fixed_start; do
     --a r24fov150_sam --b r22rr05_cnn > $R24/$p/against_round22_cnn.md
 done
 
-# Round 25: round 24 on SAM seeds 10-19 (sam_seeds10_19/) and a CNN arm (cnn/, seeds 0-9), same camera
-# and window. SAM's twenty seeds pooled (sam_20_seeds/) against round 6's 32 SAM seeds, round 6's CNN,
-# round 24's CNN (against_cnn.md), round 22's twenty SAM seeds and round 22's CNN; the CNN against
-# round 6's and round 22's CNN, and SAM seeds 0-9 against it (cnn/*/sam_against_cnn.md).
+# Round 25: round 24 on SAM seeds 10-19 (sam_seeds10_19/) and a CNN arm, seeds 0-9 (cnn/) and 10-19
+# (cnn/seeds10_19/), same camera and window. Each model's twenty seeds pooled (sam_20_seeds/,
+# cnn_20_seeds/); SAM against round 6's 32 SAM seeds, round 6's CNN, its CNN (against_cnn.md, and
+# seeds_at_bar.md: the seeds at or under the paper's 0 / 1 / 1), round 22's twenty SAM seeds and round
+# 22's CNN; the CNN against round 6's and round 22's CNN.
 R24ARGS=(--replay-ratio 0.5 --hfov-deg 150 --reward-window-fraction 0.078)
-HFOV=150 WINDOW=0.078 FIRST=10 model_ten r24fov150 sam $R24/sam_seeds10_19 "${R24ARGS[@]}"
-HFOV=150 WINDOW=0.078 model_ten r24fov150 cnn $R24/cnn "${R24ARGS[@]}"
-HFOV=150 WINDOW=0.078 sam_twenty r24fov150 $R24 $R24/cnn r24fov150_cnn
+export HFOV=150 WINDOW=0.078
+FIRST=10 model_ten r24fov150 sam $R24/sam_seeds10_19 "${R24ARGS[@]}"
+model_ten r24fov150 cnn $R24/cnn "${R24ARGS[@]}"
+FIRST=10 model_ten r24fov150 cnn $R24/cnn/seeds10_19 "${R24ARGS[@]}"
+pool_two $R24/cnn $R24/cnn/seeds10_19 $R24/cnn_20_seeds
+sam_twenty r24fov150 $R24 $R24/cnn_20_seeds r24fov150_cnn
+unset HFOV WINDOW
 for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R24/sam_20_seeds/$p/results.csv $R24/cnn_20_seeds/$p/results.csv --by run \
+    --a r24fov150_sam --b r24fov150_cnn --bar paper > $R24/sam_20_seeds/$p/seeds_at_bar.md
   python scripts/compare_models.py $R24/sam_20_seeds/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run \
     --a r24fov150_sam --b r22rr05_sam > $R24/sam_20_seeds/$p/against_round22.md
-  for d in sam_20_seeds:sam cnn:cnn; do  # folder:model
+  for d in sam_20_seeds:sam cnn_20_seeds:cnn; do  # folder:model
     python scripts/compare_models.py $R24/${d%:*}/$p/results.csv $R22/cnn/$p/results.csv --by run \
       --a r24fov150_${d#*:} --b r22rr05_cnn > $R24/${d%:*}/$p/against_round22_cnn.md
   done
-  python scripts/compare_models.py $R24/cnn/$p/results.csv docs/results/round6_time_limit/$p/results.csv --by run \
-    --a r24fov150_cnn --b tl300_cnn > $R24/cnn/$p/against_round6.md
-  python scripts/compare_models.py $R24/$p/results.csv $R24/cnn/$p/results.csv --by run \
-    --a r24fov150_sam --b r24fov150_cnn > $R24/cnn/$p/sam_against_cnn.md
+  python scripts/compare_models.py $R24/cnn_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
+    --by run --a r24fov150_cnn --b tl300_cnn > $R24/cnn_20_seeds/$p/against_round6.md
 done
