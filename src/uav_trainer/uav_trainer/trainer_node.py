@@ -235,6 +235,8 @@ class TrainerNode(Node):
             self.get_logger().warning("ignoring malformed depth/camera_info (width or fx)", throttle_duration_sec=10.0)
             return
         hfov = round(hfov, 3)
+        if hfov == self.training.camera_hfov_deg and msg.width == self.camera_width_px:
+            return  # every step sends it; only a change is news
         if hfov != self.training.camera_hfov_deg:
             self.get_logger().info(f"depth camera: {hfov:g} deg horizontal field of view (recorded in the weights files)")
             self.training.camera_hfov_deg = hfov
