@@ -74,23 +74,22 @@ def save_file(
 
 
 def _check_hfov(value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
     lo, hi = HFOV_RANGE_DEG
-    if not lo <= v <= hi:
-        raise WeightsError(f"'{CAMERA_KEY}' must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}")
-    return v
+    return _checked_number(value, CAMERA_KEY, lambda v: lo <= v <= hi, f"a number of degrees in [{lo:g}, {hi:g}]")
 
 
 def _check_window(value) -> float:
+    return _checked_number(value, WINDOW_KEY, lambda v: 0.0 < v <= 1.0, "a share of the image side in (0, 1]")
+
+
+def _checked_number(value, key: str, ok, what: str) -> float:
+    """`value` as a float if `ok` holds for it (NaN and non-numbers never do), else WeightsError naming `key`."""
     try:
         v = float(value)
     except (TypeError, ValueError):
         v = math.nan
-    if not 0.0 < v <= 1.0:
-        raise WeightsError(f"'{WINDOW_KEY}' must be a share of the image side in (0, 1], got {value!r}")
+    if math.isnan(v) or not ok(v):
+        raise WeightsError(f"'{key}' must be {what}, got {value!r}")
     return v
 
 
