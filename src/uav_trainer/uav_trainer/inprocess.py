@@ -25,7 +25,7 @@ from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_fl
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world, training_layouts
 
-from .learner import LearnerConfig
+from .learner import MAX_SHIFT_PX, LearnerConfig
 from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
 
 VALIDATION_WORLDS = ("random:200", "random:201", "random:202", "random:203", "random:204")
@@ -372,6 +372,14 @@ def main() -> int:
         help="experiment: also keep a moving average of the weights (e.g. 0.999) as policy_<model>_ema.safetensors (0 = off)",
     )
     ap.add_argument(
+        "--augment-shift",
+        type=int,
+        default=LearnerConfig.augment_shift_px,
+        metavar="PX",
+        help=f"experiment: shift each sampled state and next state by up to PX pixels, 0..{MAX_SHIFT_PX} "
+        "(random-shift augmentation as DrQ; 0 = off, as the paper)",
+    )
+    ap.add_argument(
         "--lr-anneal",
         action="store_true",
         help="experiment: lower the learning rate linearly to 0.1x over the run's updates (default: constant, as the paper)",
@@ -416,6 +424,8 @@ def main() -> int:
         ap.error(f"--frames must lie in [1, {MAX_FRAMES}] (policy_node's frame_stack range), got {a.frames}")
     if not 1 <= a.n_step <= MAX_N_STEP:
         ap.error(f"--n-step must lie in [1, {MAX_N_STEP}], got {a.n_step}")
+    if not 0 <= a.augment_shift <= MAX_SHIFT_PX:
+        ap.error(f"--augment-shift must lie in [0, {MAX_SHIFT_PX}] px, got {a.augment_shift}")
     if not 0.0 <= a.priority_alpha <= 1.0 or not 0.0 <= a.priority_beta <= 1.0:
         ap.error(f"--priority-alpha and --priority-beta must lie in [0, 1], got {a.priority_alpha}, {a.priority_beta}")
     if not 0.0 < a.reward_window_fraction <= 1.0:
@@ -452,6 +462,7 @@ def main() -> int:
             LearnerConfig(),
             learning_rate=a.learning_rate,
             ema_decay=a.ema_decay,
+            augment_shift_px=a.augment_shift,
             lr_anneal_updates=max(1, int((a.steps - a.learning_starts) * a.replay_ratio)) if a.lr_anneal else 0,
         ),
     )

@@ -32,6 +32,11 @@ class LearnerConfig:
     # ema <- decay * ema + (1 - decay) * online after every update (0 = off). It never acts in
     # training; the trainer writes it as policy_<model>_ema.safetensors for evaluation.
     ema_decay: float = 0.0
+    # Random-shift augmentation (DrQ, Kostrikov et al. 2021; not in the paper): > 0 shifts every
+    # sampled state and next state by up to this many pixels in each direction before the update,
+    # edges repeated (0 = off, as the paper). The whole frame stack of a state moves together; the
+    # state and its next state draw their own shifts. Acting is never augmented.
+    augment_shift_px: int = 0
 
 
 def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
@@ -39,6 +44,25 @@ def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
     tensor (n-step returns: gamma^m)."""
     best = q_next_online.argmax(dim=1, keepdim=True)
     return reward + gamma * (1.0 - done) * q_next_target.gather(1, best).squeeze(1)
+
+
+# The largest random shift accepted (px): an eighth of the paper-sized 64 px input.
+MAX_SHIFT_PX = 8
+
+
+def random_shift(x: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Shift each sample of a (batch, frames, height, width) tensor by its own whole-pixel offset in
+    [-pad, pad] along each image axis, repeating the edge rows and columns (DrQ's pad-and-crop with
+    replicate padding); all frames of a sample move together. pad = 0 returns x."""
+    if pad <= 0:
+        return x
+    b, _, h, w = x.shape
+    dy, dx = torch.randint(-pad, pad + 1, (2, b, 1), generator=generator, device=x.device)
+    rows = (torch.arange(h, device=x.device) + dy).clamp_(0, h - 1)  # (b, h)
+    cols = (torch.arange(w, device=x.device) + dx).clamp_(0, w - 1)  # (b, w)
+    batch = torch.arange(b, device=x.device)[:, None, None]
+    # Advanced indices around the frames slice broadcast to (b, h, w) and come first: (b, h, w, frames).
+    return x[batch, :, rows[:, :, None], cols[:, None, :]].permute(0, 3, 1, 2).contiguous()
 
 
 class NonFiniteLoss(RuntimeError):
@@ -63,6 +87,8 @@ class Learner:
                 "lr_anneal_updates must be >= 0 and lr_end_fraction in (0, 1], "
                 f"got {cfg.lr_anneal_updates}, {cfg.lr_end_fraction}"
             )
+        if not 0 <= cfg.augment_shift_px <= MAX_SHIFT_PX:
+            raise ValueError(f"augment_shift_px must be in [0, {MAX_SHIFT_PX}], got {cfg.augment_shift_px}")
         self.ema = None
         if cfg.ema_decay > 0.0:
             self.ema = copy.deepcopy(self.online).eval()
@@ -94,6 +120,9 @@ class Learner:
         bootstraps with it instead of gamma; one with `weight` (prioritized replay) weights each
         sample's Huber loss by it."""
         s, a, r, done, s2 = self._tensors(batch)
+        if self.cfg.augment_shift_px > 0:  # the global torch RNG: checkpoints save and restore it
+            s = random_shift(s, self.cfg.augment_shift_px)
+            s2 = random_shift(s2, self.cfg.augment_shift_px)
         gamma = torch.from_numpy(batch["discount"]).to(self.device) if "discount" in batch else self.cfg.gamma
         with torch.no_grad():
             y = double_dqn_target(r, done, gamma, self.online(s2)[0], self.target(s2)[0])
