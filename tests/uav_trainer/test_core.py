@@ -5,7 +5,7 @@ import torch
 from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
-from uav_trainer.learner import Learner, LearnerConfig, double_dqn_target, linear_epsilon
+from uav_trainer.learner import Learner, LearnerConfig, double_dqn_target, linear_epsilon, random_shift
 from uav_trainer.replay import PRIORITY_FLOOR, ReplayMemory
 
 
@@ -346,7 +346,47 @@ def test_learning_rate_annealing_schedule_reaches_the_optimizer():
     assert Learner(NetConfig(model="cnn"), LearnerConfig()).learning_rate(10**6) == LearnerConfig.learning_rate
 
 
-@pytest.mark.parametrize("bad", [{"ema_decay": 1.0}, {"ema_decay": -0.1}, {"lr_anneal_updates": -1}, {"lr_end_fraction": 0.0}])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"ema_decay": 1.0},
+        {"ema_decay": -0.1},
+        {"lr_anneal_updates": -1},
+        {"lr_end_fraction": 0.0},
+        {"augment_shift_px": -1},
+        {"augment_shift_px": 9},
+    ],
+)
 def test_bad_averaging_or_annealing_settings_are_refused(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         Learner(NetConfig(model="cnn"), LearnerConfig(**bad))
+
+
+def test_random_shift_is_a_pad_and_crop_with_repeated_edges():
+    x = torch.arange(64 * 3 * 9 * 11, dtype=torch.float32).reshape(64, 3, 9, 11)
+    out = random_shift(x, 2, torch.Generator().manual_seed(7))
+    assert out.shape == x.shape and random_shift(x, 0) is x
+    padded = torch.nn.functional.pad(x, (2, 2, 2, 2), mode="replicate")
+    offsets = set()
+    for i in range(64):  # each sample is one of the 25 crops of its padded image, all frames alike
+        crops = [(dy, dx) for dy in range(5) for dx in range(5) if torch.equal(out[i], padded[i, :, dy : dy + 9, dx : dx + 11])]
+        assert len(crops) == 1, i
+        offsets.add(crops[0])
+    assert len(offsets) > 10  # samples draw their own shifts
+    assert (2, 2) in offsets or len(offsets) < 25  # the unshifted crop is one of them (not required)
+
+
+def test_shift_augmentation_changes_the_update_and_stays_reproducible_and_resumable(tmp_path):
+    cfg = NetConfig(model="sam")
+    plain = Learner(cfg, LearnerConfig(seed=2))
+    shifted = [Learner(cfg, LearnerConfig(seed=2, augment_shift_px=4)) for _ in range(2)]
+    losses = [[lr.update(small_batch(k))["loss"] for k in range(3)] for lr in [plain, *shifted]]
+    assert losses[1] == losses[2]  # seeded: the same shifts
+    assert losses[0] != losses[1]  # the augmentation reaches the update
+    # A checkpoint carries the random state the shifts are drawn from: a resumed learner goes on as
+    # the uninterrupted one.
+    path = checkpoint.save(tmp_path, shifted[0], {}, {})
+    after = shifted[0].update(small_batch(3))["loss"]
+    resumed = Learner(cfg, LearnerConfig(seed=9, augment_shift_px=4))
+    checkpoint.load(path, resumed)
+    assert resumed.update(small_batch(3))["loss"] == after

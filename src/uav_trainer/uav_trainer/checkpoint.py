@@ -65,6 +65,7 @@ def save(
     opt_tensors, groups = _optimizer_tensors(learner.optimizer)
     tensors.update(opt_tensors)
     tensors["rng.torch"] = torch.random.get_rng_state()
+    tensors["rng.shift"] = learner.shift_rng.get_state()
     save_file(tensors, str(tmp / "state.safetensors"))
     meta = {
         "format": "uav_trainer_checkpoint/1",
@@ -129,6 +130,8 @@ def load(path: Path, learner: Learner) -> dict:
     learner.optimizer.load_state_dict({"state": state, "param_groups": groups})
     learner.updates = int(meta["updates"])
     torch.random.set_rng_state(tensors["rng.torch"])
+    if "rng.shift" in tensors:  # checkpoints from before the augmentation keep the seeded stream
+        learner.shift_rng.set_state(tensors["rng.shift"])
     return meta
 
 

@@ -57,7 +57,7 @@ def random_shift(x: torch.Tensor, pad: int, generator: torch.Generator | None = 
     if pad <= 0:
         return x
     b, _, h, w = x.shape
-    dy, dx = torch.randint(-pad, pad + 1, (2, b, 1), generator=generator, device=x.device)
+    dy, dx = torch.randint(-pad, pad + 1, (2, b, 1), generator=generator).to(x.device)  # drawn on the CPU
     rows = (torch.arange(h, device=x.device) + dy).clamp_(0, h - 1)  # (b, h)
     cols = (torch.arange(w, device=x.device) + dx).clamp_(0, w - 1)  # (b, w)
     batch = torch.arange(b, device=x.device)[:, None, None]
@@ -89,6 +89,9 @@ class Learner:
             )
         if not 0 <= cfg.augment_shift_px <= MAX_SHIFT_PX:
             raise ValueError(f"augment_shift_px must be in [0, {MAX_SHIFT_PX}], got {cfg.augment_shift_px}")
+        # The shifts' own random stream (checkpointed), so that nothing else drawing from torch's
+        # global one changes them.
+        self.shift_rng = torch.Generator().manual_seed(cfg.seed)
         self.ema = None
         if cfg.ema_decay > 0.0:
             self.ema = copy.deepcopy(self.online).eval()
@@ -120,9 +123,9 @@ class Learner:
         bootstraps with it instead of gamma; one with `weight` (prioritized replay) weights each
         sample's Huber loss by it."""
         s, a, r, done, s2 = self._tensors(batch)
-        if self.cfg.augment_shift_px > 0:  # the global torch RNG: checkpoints save and restore it
-            s = random_shift(s, self.cfg.augment_shift_px)
-            s2 = random_shift(s2, self.cfg.augment_shift_px)
+        if self.cfg.augment_shift_px > 0:
+            s = random_shift(s, self.cfg.augment_shift_px, self.shift_rng)
+            s2 = random_shift(s2, self.cfg.augment_shift_px, self.shift_rng)
         gamma = torch.from_numpy(batch["discount"]).to(self.device) if "discount" in batch else self.cfg.gamma
         with torch.no_grad():
             y = double_dqn_target(r, done, gamma, self.online(s2)[0], self.target(s2)[0])

@@ -32,7 +32,7 @@ from uav_sim.node_runner import run
 from uav_sim.reward import center_window_slices, window_fraction_for_fov
 from uav_sim.ros_params import ParameterError, declare
 
-from .learner import LearnerConfig
+from .learner import MAX_SHIFT_PX, LearnerConfig
 from .pairing import TransitionAssembler
 from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
 
@@ -74,6 +74,14 @@ class TrainerNode(Node):
                 "> 0: also keep a moving average of the weights, written as policy_<model>_ema.safetensors (0 = off)",
                 0.0,
                 0.99999,
+            ),
+            augment_shift_px=d(
+                "augment_shift_px",
+                L.augment_shift_px,
+                "> 0: shift each sampled state and next state by up to this many pixels before an update "
+                "(random-shift augmentation, an extension; 0 = off, as the paper)",
+                0,
+                MAX_SHIFT_PX,
             ),
         )
         self.cfg = TrainerConfig(
