@@ -161,6 +161,8 @@ def test_trainer_rejects_bad_parameters():
     assert r.returncode == 2 and "n_step" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "priority_alpha:=1.5")
     assert r.returncode == 2 and "priority_alpha" in r.stderr
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", "augment_shift_px:=9")
+    assert r.returncode == 2 and "augment_shift_px" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "relational_blocks:=0")
     assert r.returncode == 2 and "relational_blocks" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "model:=cnn", "-p", "mlp_hidden:=192")
@@ -170,7 +172,7 @@ def test_trainer_rejects_bad_parameters():
 def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     """trainer_node builds SAM with its size parameters; policy_node (packaged default weights)
     takes the pushed network of other sizes and flies it. The trainer learns with the extensions on
-    (3-step returns, prioritized replay) and says so."""
+    (3-step returns, prioritized replay, shift augmentation) and says so."""
     from std_msgs.msg import Float32MultiArray
 
     diag = diagnostics(ros)
@@ -179,7 +181,7 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     ros.start("uav_sim", "sim_node")
     ros.start("uav_policy", "policy_node")
     sizes = ("-p", "d_model:=24", "-p", "heads:=2", "-p", "relational_blocks:=2", "-p", "mlp_hidden:=32", "-p", "n_step:=3")
-    sizes += ("-p", "priority_alpha:=0.6")
+    sizes += ("-p", "priority_alpha:=0.6", "-p", "augment_shift_px:=2")
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path}", "-p", "log_interval_s:=0.5", *sizes)
     pushed = lambda: int(diag.get("uav_trainer", {}).get("pushes_ok", 0)) >= 1  # noqa: E731
     assert ros.spin_until(pushed, 120), ros.log_of(trainer)[-2000:]
@@ -187,7 +189,10 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     assert ros.spin_until(lambda: att and att[-1].layout.dim[0].size == 2, 30), "the policy flies 2 heads"
     assert ros.spin_until(lambda: "uav_policy" in diag, 10)
     assert diag["uav_trainer"]["pushes_rejected"] == "0" and diag["uav_policy"]["pushes_rejected"] == "0"
-    assert "prioritized replay (alpha 0.6, beta 0.4 -> 1 over 30000 steps), 3-step returns" in ros.log_of(trainer)
+    assert (
+        "prioritized replay (alpha 0.6, beta 0.4 -> 1 over 30000 steps), 3-step returns, states shifted by up to 2 px"
+        in ros.log_of(trainer)
+    )
     assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
     made = wio.read_file_config(tmp_path / "policy_sam.safetensors")
     assert (made.d_model, made.heads, made.relational_blocks, made.mlp_hidden) == (24, 2, 2, 32)

@@ -504,3 +504,20 @@ def test_inprocess_world_every_flies_the_world_between_layouts(tmp_path, monkeyp
     assert entered[0::2] == ["complex"] * len(entered[0::2]) and all(n.startswith("random_partitions:") for n in entered[1::2])
     with pytest.raises(ValueError, match="layout_per_episode"):
         ip.run(cfg, str(tmp_path / "no2"), log=lambda s: None, partitions=True)
+
+
+def test_shift_augmentation_reaches_the_learner_from_the_command_line(tmp_path, monkeypatch, capsys):
+    from uav_trainer import inprocess
+
+    run = ["inprocess", "--model", "cnn", "--steps", "40", "--learning-starts", "20", "--run-dir", str(tmp_path / "r")]
+    made = []
+    monkeypatch.setattr(inprocess, "Training", lambda *a, **k: made.append(Training(*a, **k)) or made[-1])
+    monkeypatch.setattr("sys.argv", [*run, "--augment-shift", "3"])
+    inprocess.main()
+    assert made[0].cfg.learner.augment_shift_px == 3 and made[0].learner.updates > 0
+    assert "uniform replay, 1-step returns, states shifted by up to 3 px" in capsys.readouterr().out
+    assert (tmp_path / "r" / "policy_cnn.safetensors").is_file()
+    monkeypatch.setattr("sys.argv", [*run, "--augment-shift", "9"])
+    with pytest.raises(SystemExit) as e:
+        inprocess.main()
+    assert e.value.code == 2 and "--augment-shift must lie in [0, 8] px, got 9" in capsys.readouterr().err

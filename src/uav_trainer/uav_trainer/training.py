@@ -107,7 +107,8 @@ def replay_description(cfg: TrainerConfig) -> str:
             f"prioritized replay (alpha {cfg.priority_alpha:g}, beta {cfg.priority_beta:g} -> 1 "
             f"over {cfg.priority_beta_steps} steps)"
         )
-    return f"{sampling}, {cfg.n_step}-step returns"
+    shift = f", states shifted by up to {cfg.learner.augment_shift_px} px" if cfg.learner.augment_shift_px else ""
+    return f"{sampling}, {cfg.n_step}-step returns{shift}"
 
 
 def reward_description(cfg: TrainerConfig) -> str:
