@@ -1,11 +1,11 @@
 """Trainer figures: the cost of one batch-32 learner update by network input size (ratio against
-64 px, measured in the same run), the cost of sampling a batch from a full replay memory (batched
-stacking against one stack per slot, 3-step against 1-step returns, prioritized against uniform
-sampling with the priority write-back), environment steps/s and
-learner updates/s while training over ROS (capped and uncapped lockstep), and wall-clock on this
-machine from scratch until the SAM policy flies 1000 exploit steps in Basic with 0 crashes
-(in-process trainer, evaluated every --eval-every steps; evaluation time is included in the
-wall-clock).
+64 px, measured in the same run) and with random-shift augmentation (against without), the cost of
+sampling a batch from a full replay memory (batched stacking against one stack per slot, 3-step
+against 1-step returns, prioritized against uniform sampling with the priority write-back),
+environment steps/s and learner updates/s while training over ROS (capped and uncapped lockstep),
+and wall-clock on this machine from scratch until the SAM policy flies 1000 exploit steps in Basic
+with 0 crashes (in-process trainer, evaluated every --eval-every steps; evaluation time is included
+in the wall-clock).
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_trainer.py
 """
@@ -33,9 +33,10 @@ from uav_trainer.training import TrainerConfig
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def update_ms(model: str, size: int, n: int = 30) -> float:
-    """Median wall-clock of one Double DQN update (batch 32, targets included) at a size x size input."""
-    cfg = LearnerConfig()
+def update_ms(model: str, size: int, n: int = 30, shift_px: int = 0) -> float:
+    """Median wall-clock of one Double DQN update (batch 32, targets included) at a size x size input,
+    with shift_px of random-shift augmentation."""
+    cfg = LearnerConfig(augment_shift_px=shift_px)
     learner = Learner(NetConfig(model=model, height=size, width=size), cfg)
     rng = np.random.default_rng(0)
     frames = lambda: rng.uniform(0, 10, (cfg.batch_size, 5, size, size)).astype(np.float32)  # noqa: E731
@@ -160,6 +161,8 @@ def main() -> int:
         for size in a.input_sizes:
             ms = base if size == 64 else update_ms(model, size)
             print(f"[{model}] batch-32 update at {size}x{size} input ({a.threads} thread): {ms:.1f} ms, {ms / base:.2f}x 64x64")
+        ms = update_ms(model, 64, shift_px=4)
+        print(f"[{model}] the same at 64x64 with 4 px random shifts: {ms:.1f} ms, {ms / base:.2f}x without")
     ms = sample_ms()
     print(
         f"replay, full 50 000-frame memory: states of 32 transitions {ms['per_slot']:.2f} ms one slot at a time, "

@@ -20,8 +20,8 @@
 # layouts), a twentieth (ten stacked depth frames), a twenty-first (a two-layer trunk: 16 x 16 SAM
 # nodes, and a CNN with the same trunk), a twenty-second (twice the updates per step), a twenty-third
 # (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
-# smaller reward window) and a twenty-fifth (the same on ten more SAM seeds, and a CNN arm). About
-# 41 h on 2 cores.
+# smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm) and a
+# twenty-sixth (random-shift augmentation of the sampled states). About 43 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -713,4 +713,20 @@ for p in varied_start fixed_start; do
   done
   python scripts/compare_models.py $R24/cnn_20_seeds/$p/results.csv docs/results/round6_time_limit/$p/results.csv \
     --by run --a r24fov150_cnn --b tl300_cnn > $R24/cnn_20_seeds/$p/against_round6.md
+done
+
+# Round 26: round 22's setting with random-shift augmentation (--augment-shift 4: each sampled state and
+# next state moves by up to 4 px before an update, edges repeated, as DrQ), SAM seeds 0-19 pooled as round
+# 22's (sam_20_seeds/): against round 6's 32 SAM seeds, round 6's CNN and round 22's CNN (against_cnn.md,
+# and seeds_at_bar.md), and against round 22's twenty SAM seeds (the same recipe without the shifts).
+R26=docs/results/round26_shift
+R26ARGS=(--replay-ratio 0.5 --augment-shift 4)
+model_ten r26shift4 sam $R26 "${R26ARGS[@]}"
+FIRST=10 model_ten r26shift4 sam $R26/sam_seeds10_19 "${R26ARGS[@]}"
+sam_twenty r26shift4 $R26 $R22/cnn r22rr05_cnn
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R26/sam_20_seeds/$p/results.csv $R22/cnn/$p/results.csv --by run \
+    --a r26shift4_sam --b r22rr05_cnn --bar paper > $R26/sam_20_seeds/$p/seeds_at_bar.md
+  python scripts/compare_models.py $R26/sam_20_seeds/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run \
+    --a r26shift4_sam --b r22rr05_sam > $R26/sam_20_seeds/$p/against_round22.md
 done
