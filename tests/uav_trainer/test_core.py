@@ -357,7 +357,7 @@ def test_learning_rate_annealing_schedule_reaches_the_optimizer():
         {"augment_shift_px": 9},
     ],
 )
-def test_bad_averaging_or_annealing_settings_are_refused(bad):
+def test_bad_learner_settings_are_refused(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         Learner(NetConfig(model="cnn"), LearnerConfig(**bad))
 
@@ -373,7 +373,6 @@ def test_random_shift_is_a_pad_and_crop_with_repeated_edges():
         assert len(crops) == 1, i
         offsets.add(crops[0])
     assert len(offsets) > 10  # samples draw their own shifts
-    assert (2, 2) in offsets or len(offsets) < 25  # the unshifted crop is one of them (not required)
 
 
 def test_shift_augmentation_changes_the_update_and_stays_reproducible_and_resumable(tmp_path):
