@@ -143,11 +143,16 @@ def fisher_exact(k1: int, n1: int, k2: int, n2: int) -> float:
     return min(1.0, sum(prob(x) for x in range(max(0, k - n2), min(k, n1) + 1) if prob(x) <= observed * (1 + 1e-9)))
 
 
+def crash_rate(row: dict) -> float:
+    """A results row's crashes per 1000 steps, from its counts (not the rounded column)."""
+    return 1000.0 * int(row["crashes"]) / int(row["steps"])
+
+
 def seeds_at_bar(rows: list[dict], group_of, bar: dict[str, float]) -> dict[str, tuple[int, int]]:
     """group -> (weights files at or under `bar` in every world of it, weights files with all its worlds)."""
     rates: dict[tuple[str, str], dict[str, float]] = defaultdict(dict)
     for r in rows:
-        rates[(group_of(r), r["weights"])][r["world"]] = 1000.0 * int(r["crashes"]) / int(r["steps"])
+        rates[(group_of(r), r["weights"])][r["world"]] = crash_rate(r)
     counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     for (group, _), by_world in rates.items():
         if all(w in by_world for w in bar):
@@ -187,11 +192,12 @@ def main(argv=None) -> int:
     rows = [r for path in a.csv for r in csv.DictReader(open(path))]
     if a.pool_worlds:
         rows = pool_worlds(rows, a.pool_worlds)
+    group_of = (lambda r: r["model"]) if a.by == "model" else (lambda r: run_name(r["weights"]))
     for r in rows:
         if r["world"] not in worlds:
             worlds.append(r["world"])
-        group = r["model"] if a.by == "model" else run_name(r["weights"])
-        values[(group, r["world"], "crashes")].append(1000.0 * int(r["crashes"]) / int(r["steps"]))
+        group = group_of(r)
+        values[(group, r["world"], "crashes")].append(crash_rate(r))
         values[(group, r["world"], "reward")].append(float(r["mean_reward"]))
         seeds[(group, r["world"])].append(seeds_of(r["weights"]))
     rng = np.random.default_rng(a.seed)
@@ -223,7 +229,6 @@ def main(argv=None) -> int:
         print(f"no world has two or more weights files {'(seeds) ' if a.paired else ''}of both {a.a} and {a.b}", file=sys.stderr)
         return 2
     if bar:
-        group_of = (lambda r: r["model"]) if a.by == "model" else (lambda r: run_name(r["weights"]))
         counts = seeds_at_bar(rows, group_of, bar)
         (k1, n1), (k2, n2) = (counts.get(m, (0, 0)) for m in (a.a, a.b))
         if not n1 or not n2:

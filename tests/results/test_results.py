@@ -168,7 +168,6 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
 
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):
     """--ensemble K groups the files in order; two copies of one network fly exactly as that network."""
-
     from uav_trainer.evaluate import main
 
     def save(name, seed, cfg=NetConfig()):
