@@ -12,7 +12,8 @@ two models' seeds come from one distribution" (difference of means, model labels
 Both are seeded, so the output is reproducible. `--by run` compares two training variants instead
 of two models: a row's group is its weights file's folder without `_seed<N>` (runs/turn_sam_seed3/
 policy_sam.safetensors -> turn_sam; a snapshot policy_sam_step40000.safetensors -> turn_sam_step40000;
-an ensemble of three files, evaluate --ensemble 3 -> turn_sam_ens3).
+an ensemble of three files, evaluate --ensemble 3 -> turn_sam_ens3; three snapshots of one run as an
+ensemble -> turn_sam_snap3).
 `--paired` (with `--by run`) compares the same training seeds in both groups: the difference is the
 mean over seeds of a - b, its interval resamples seeds, and the p-value flips the signs of the
 per-seed differences (a sign-flip permutation test), which is stronger than the unpaired test when
@@ -44,13 +45,21 @@ ENSEMBLE_SEP = "+"  # evaluate.ENSEMBLE_SEP: an ensemble's weights column is its
 
 def run_name(weights: str) -> str:
     """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam; .../policy_sam_step40000.safetensors -> turn_sam_step40000;
-    an ensemble of three (evaluate --ensemble 3: files joined by '+') -> turn_sam_ens3"""
+    an ensemble of three (evaluate --ensemble 3: files joined by '+') -> turn_sam_ens3, or turn_sam_snap3
+    when all three are files of one run (snapshots of one training, scripts/export_checkpoint.py)"""
     if ENSEMBLE_SEP in weights:
         files = weights.split(ENSEMBLE_SEP)
+        if len({PurePath(f).parent for f in files}) == 1:
+            return f"{_run_folder(PurePath(files[0]))}_snap{len(files)}"
         return f"{run_name(files[0])}_ens{len(files)}"
     path = PurePath(weights)
     step = re.search(r"_step(\d+)\.safetensors$", path.name)
-    return re.sub(r"_seed\d+$", "", path.parent.name) + (f"_step{step.group(1)}" if step else "")
+    return _run_folder(path) + (f"_step{step.group(1)}" if step else "")
+
+
+def _run_folder(path: PurePath) -> str:
+    """The training run a weights file belongs to: its folder without `_seed<N>`."""
+    return re.sub(r"_seed\d+$", "", path.parent.name)
 
 
 def seeds_of(weights: str) -> tuple[int, ...] | None:

@@ -307,6 +307,37 @@ def test_only_complete_checkpoints_are_resumed(tmp_path):
     assert checkpoint.latest(tmp_path) == good
 
 
+def test_a_checkpoints_networks_export_as_policy_weights_and_bad_ones_are_refused(tmp_path):
+    from uav_policy import weights as wio
+
+    cfg = NetConfig(model="sam")
+    lr = Learner(cfg, LearnerConfig(seed=6, target_update_interval=100))
+    for k in range(3):
+        lr.update(small_batch(k))
+    path = checkpoint.save(tmp_path / "ck", lr, {"env_steps": 77}, {})
+    state = torch.ones(1, 5, 64, 64)
+    for net, source in (("online", lr.online), ("target", lr.target)):
+        out = tmp_path / f"{net}.safetensors"
+        assert checkpoint.export_weights(path, out, net, camera_hfov_deg=120.0) == cfg
+        assert wio.read_file_camera(out) == 120.0 and wio.read_file_window(out) is None
+        back = wio.load_file(out, cfg)
+        with torch.no_grad():
+            torch.testing.assert_close(back(state), source(state), rtol=0, atol=0)
+    # Online and target differ after updates (the target is synced only every 100), so the choice matters.
+    with torch.no_grad():
+        assert not torch.equal(lr.online(state)[0], lr.target(state)[0])
+    with pytest.raises(ValueError, match="no 'ema' network"):  # the run kept no average
+        checkpoint.export_weights(path, tmp_path / "ema.safetensors", "ema")
+    with pytest.raises(ValueError, match="net must be one of"):
+        checkpoint.export_weights(path, tmp_path / "x.safetensors", "best")
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        checkpoint.export_weights(tmp_path, tmp_path / "x.safetensors")
+    (path / "state.safetensors").write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{not json}")
+    with pytest.raises(ValueError, match="corrupt|readable"):
+        checkpoint.export_weights(path, tmp_path / "x.safetensors")
+    assert not (tmp_path / "x.safetensors").exists()
+
+
 def test_confidence_interval_matches_a_hand_computed_t_interval():
     from uav_trainer.evaluate import mean_ci95
 

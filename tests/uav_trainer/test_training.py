@@ -521,3 +521,29 @@ def test_shift_augmentation_reaches_the_learner_from_the_command_line(tmp_path, 
     with pytest.raises(SystemExit) as e:
         inprocess.main()
     assert e.value.code == 2 and "--augment-shift must lie in [0, 8] px, got 9" in capsys.readouterr().err
+
+
+def test_export_checkpoint_script_writes_the_runs_own_weights_from_its_last_checkpoint(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "export_checkpoint.py"
+    spec = importlib.util.spec_from_file_location("export_checkpoint", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(t, 120)
+    while t.learn_once():
+        pass
+    last = t.save_checkpoint()
+    t.close()
+    assert script.main([str(last)]) == 0
+    out = tmp_path / "policy_cnn_step120.safetensors"
+    assert out.read_bytes() == (tmp_path / "policy_cnn.safetensors").read_bytes()  # camera and window copied too
+    assert script.main([str(last), "--net", "target", "--out-dir", str(tmp_path / "x")]) == 0
+    target = wio.load_file(tmp_path / "x" / "policy_cnn_step120_target.safetensors", NetConfig(model="cnn"))
+    for a, b in zip(target.parameters(), t.learner.target.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    capsys.readouterr()
+    assert script.main([str(tmp_path)]) == 2  # the run folder, not a checkpoint
+    assert "export_checkpoint:" in capsys.readouterr().err

@@ -19,7 +19,9 @@ import numpy as np
 import safetensors.numpy
 import torch
 from safetensors.torch import load_file, save_file
+from safetensors.torch import save as st_save
 
+from uav_policy import weights as wio
 from uav_policy.networks import NetConfig
 from uav_policy.weights import write_atomic
 
@@ -133,6 +135,46 @@ def load(path: Path, learner: Learner) -> dict:
     if "rng.shift" in tensors:  # checkpoints from before the augmentation keep the seeded stream
         learner.shift_rng.set_state(tensors["rng.shift"])
     return meta
+
+
+NETS = ("online", "target", "ema")
+
+
+def export_weights(
+    path: Path,
+    out: str | os.PathLike,
+    net: str = "online",
+    camera_hfov_deg: float | None = None,
+    reward_window_fraction: float | None = None,
+) -> NetConfig:
+    """Write one network of checkpoint `path` (`online`, `target`, or `ema` when the run kept an
+    average) as a policy weights file `out` (atomically), recording the camera and reward window when
+    given. Returns its config. Raises ValueError for a directory that is not a checkpoint or lacks
+    that network; the tensors are checked as any weights file is (uav_policy.weights)."""
+    if net not in NETS:
+        raise ValueError(f"net must be one of {', '.join(NETS)}, got {net!r}")
+    path = Path(path)
+    try:
+        meta = json.loads((path / "meta.json").read_text())
+        tensors = load_file(str(path / "state.safetensors"))
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
+    except Exception as e:  # safetensors raises its own error on a corrupt file
+        raise ValueError(f"{path}: state.safetensors is corrupt ({e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != "uav_trainer_checkpoint/1":
+        raise ValueError(f"{path}: not a uav_trainer checkpoint")
+    try:
+        cfg = NetConfig.from_json(json.dumps(meta["net_config"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: checkpoint network config is invalid: {e}") from None
+    prefix = f"{net}."
+    state = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
+    if not state:
+        raise ValueError(f"{path}: the checkpoint holds no '{net}' network")
+    blob = st_save(state, metadata={"format": wio.FORMAT, "config": cfg.to_json()})
+    model = wio.load_bytes(blob, cfg)  # names, shapes, dtypes and finiteness checked like any weights file
+    wio.save_file(model, cfg, out, camera_hfov_deg, reward_window_fraction)
+    return cfg
 
 
 def load_replay(path: Path) -> dict[str, np.ndarray] | None:
