@@ -2,7 +2,8 @@
 
     python scripts/export_checkpoint.py runs/sam_seed0/checkpoints/ckpt-*
 
-A run keeps its last three checkpoints (every 1000 environment steps by default); each holds the
+A run keeps its last three checkpoints (one every 1000 updates, checkpoint_interval_updates, and one
+at the end of training); each holds the
 online and target networks (and the weight average when the run kept one). For every checkpoint
 given this writes policy_<model>_step<N>.safetensors (N: the checkpoint's environment steps; with
 `--net target` or `ema` the name ends in _target / _ema) into the run's folder, or `--out-dir`.

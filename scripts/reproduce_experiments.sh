@@ -20,8 +20,9 @@
 # layouts), a twentieth (ten stacked depth frames), a twenty-first (a two-layer trunk: 16 x 16 SAM
 # nodes, and a CNN with the same trunk), a twenty-second (twice the updates per step), a twenty-third
 # (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
-# smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm) and a
-# twenty-sixth (random-shift augmentation of the sampled states). About 43 h on 2 cores.
+# smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm), a
+# twenty-sixth (random-shift augmentation of the sampled states) and a twenty-seventh (each run's last
+# three checkpoints flown as one policy). About 45 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -729,4 +730,72 @@ for p in varied_start fixed_start; do
     --a r26shift4_sam --b r22rr05_cnn --bar paper > $R26/sam_20_seeds/$p/seeds_at_bar.md
   python scripts/compare_models.py $R26/sam_20_seeds/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run \
     --a r26shift4_sam --b r22rr05_sam > $R26/sam_20_seeds/$p/against_round22.md
+done
+
+# Round 27: no training. The last three checkpoints of rounds 22, 25 and 26 (26 999, 28 999 and 30 000
+# steps), exported as weights (scripts/export_checkpoint.py) and flown as one policy each, the mean of
+# their Q-values (evaluate --ensemble 3): against each run's own final network (paired), SAM against CNN
+# trained the same way; the single snapshots at 26 999 and 28 999 steps of rounds 26 and 25's SAM as a
+# control.
+R27=docs/results/round27_snapshots
+snap_eval() {  # tag model first last folder: the three snapshots of each seed's run as one policy
+  local w=() s d
+  for s in $(seq "$3" "$4"); do
+    d=runs/$1_$2_seed$s
+    python scripts/export_checkpoint.py "$d"/checkpoints/ckpt-* > /dev/null
+    w+=("$d"/policy_$2_step{26999,28999,30000}.safetensors)
+  done
+  eval_120 "$5" 1 --model "$2" --ensemble 3 --weights "${w[@]}"
+}
+snap_eval r22rr05 sam 0 19 $R27/round22_sam
+snap_eval r22rr05 cnn 0 9 $R27/round22_cnn
+snap_eval r26shift4 sam 0 19 $R27/round26_sam
+HFOV=150 WINDOW=0.078 snap_eval r24fov150 sam 0 19 $R27/round25_sam
+HFOV=150 WINDOW=0.078 snap_eval r24fov150 cnn 0 19 $R27/round25_cnn
+for n in 26999 28999; do  # the control: SAM's earlier snapshots flown alone
+  W=() V=()
+  for s in $(seq 0 19); do
+    W+=("runs/r26shift4_sam_seed$s/policy_sam_step$n.safetensors")
+    V+=("runs/r24fov150_sam_seed$s/policy_sam_step$n.safetensors")
+  done
+  eval_120 $R27/round26_sam_step$n 1 --model sam --weights "${W[@]}"
+  HFOV=150 WINDOW=0.078 eval_120 $R27/round25_sam_step$n 1 --model sam --weights "${V[@]}"
+done
+for p in varied_start fixed_start; do
+  for r in round22_sam:r22rr05_sam:$R22/sam_20_seeds round22_cnn:r22rr05_cnn:$R22/cnn \
+    round26_sam:r26shift4_sam:$R26/sam_20_seeds round25_sam:r24fov150_sam:$R24/sam_20_seeds \
+    round25_cnn:r24fov150_cnn:$R24/cnn_20_seeds; do  # folder:run:its final networks' tables
+    IFS=: read -r f run final <<< "$r"
+    python scripts/compare_models.py $R27/$f/$p/results.csv $final/$p/results.csv --by run --paired \
+      --a ${run}_snap3 --b $run > $R27/$f/$p/against_final.md
+  done
+  for r in round22_sam:r22rr05_sam:round22_cnn:r22rr05_cnn round26_sam:r26shift4_sam:round22_cnn:r22rr05_cnn \
+    round25_sam:r24fov150_sam:round25_cnn:r24fov150_cnn; do  # SAM folder:run:CNN folder:run
+    IFS=: read -r f run cf crun <<< "$r"
+    python scripts/compare_models.py $R27/$f/$p/results.csv $R27/$cf/$p/results.csv --by run \
+      --a ${run}_snap3 --b ${crun}_snap3 --bar paper > $R27/$f/$p/against_cnn.md
+  done
+  for n in 26999 28999; do
+    for r in round26_sam:r26shift4_sam round25_sam:r24fov150_sam; do  # folder:run
+      python scripts/compare_models.py $R27/${r%:*}/$p/results.csv $R27/${r%:*}_step$n/$p/results.csv --by run \
+        --paired --a ${r#*:}_snap3 --b ${r#*:}_step$n > $R27/${r%:*}/$p/against_step$n.md
+    done
+  done
+done
+# The three SAM sets pooled (60 seeds, renumbered: round 22's seeds as they are, round 25's + 100, round
+# 26's + 200), snapshot ensembles against the final networks, paired.
+pool_sam() {  # protocol folder table-of-round-22 table-of-round-25 table-of-round-26 -> one table
+  local p=$1 r f t o
+  head -1 "$2/$p/results.csv"
+  for r in "$2:r22rr05:0" "$3:r24fov150:100" "$4:r26shift4:200"; do
+    IFS=: read -r f t o <<< "$r"
+    tail -n +2 "$f/$p/results.csv" | perl -pe "s/${t}_sam_seed(\d+)/'pool_sam_seed'.(\$1+$o)/ge"
+  done
+}
+for p in varied_start fixed_start; do
+  mkdir -p $R27/sam_60_seeds/$p
+  pool_sam $p $R27/round22_sam $R27/round25_sam $R27/round26_sam > $R27/sam_60_seeds/$p/snap3.csv
+  pool_sam $p $R22/sam_20_seeds $R24/sam_20_seeds $R26/sam_20_seeds > $R27/sam_60_seeds/$p/final.csv
+  python scripts/compare_models.py $R27/sam_60_seeds/$p/snap3.csv $R27/sam_60_seeds/$p/final.csv --by run --paired \
+    --a pool_sam_snap3 --b pool_sam > $R27/sam_60_seeds/$p/against_final.md
 done

@@ -183,6 +183,8 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
     assert main([*proto, "--ensemble", "2", "--weights", a, a_copy, "--out", str(tmp_path / "ens")]) == 0
     one, ens = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("one", "ens"))
     assert ens["weights"] == f"{a}+{a_copy}"
+    assert "Each policy is 2 weights files flown as one" in (tmp_path / "ens" / "results.md").read_text()
+    assert "flown as one" not in (tmp_path / "one" / "results.md").read_text()
     for key in ("steps", "crashes", "mean_reward", "distance_m", "turn_steps", "cells_visited"):
         assert ens[key] == one[key], key
     assert main([*proto, "--ensemble", "2", "--weights", a, b, "--out", str(tmp_path / "mixed")]) == 0

@@ -746,6 +746,11 @@ def main(argv=None) -> int:
         )
     if a.inprocess:
         protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
+    if a.ensemble > 1:
+        protocol += (
+            f" Each policy is {a.ensemble} weights files flown as one, acting on the mean of their Q-values"
+            f" (--ensemble {a.ensemble}); means and intervals are over these policies."
+        )
     if a.from_csv:
         rows = [r for path in a.from_csv for r in csv.DictReader(open(path))]
         results = [
