@@ -2,13 +2,14 @@
 
     python scripts/export_checkpoint.py runs/sam_seed0/checkpoints/ckpt-*
 
-A run keeps its last three checkpoints (one every 1000 updates, checkpoint_interval_updates, and one
-at the end of training); each holds the
-online and target networks (and the weight average when the run kept one). For every checkpoint
-given this writes policy_<model>_step<N>.safetensors (N: the checkpoint's environment steps; with
-`--net target` or `ema` the name ends in _target / _ema) into the run's folder, or `--out-dir`.
-The camera and reward window recorded in the files are taken from the run's own
-policy_<model>.safetensors when it exists, else from the options. Nothing is unpickled.
+A run keeps its last three checkpoints (one every 1000 updates, checkpoint_interval_updates, and
+one at the end of training); each holds the online and target networks (and the weight average
+when the run kept one). For every checkpoint given this writes policy_<model>_step<N>.safetensors
+(N: the checkpoint's environment steps; with `--net target` or `ema` the name ends in _target /
+_ema) into the run's folder, or `--out-dir`. The camera and reward window recorded in the files
+are taken from the run's own policy_<model>.safetensors when it exists, else from the options.
+Nothing is unpickled; the tensors are checked as any weights file is. Exit code 2 names a
+checkpoint that cannot be exported.
 """
 
 from __future__ import annotations

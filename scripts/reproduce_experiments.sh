@@ -784,7 +784,7 @@ for p in varied_start fixed_start; do
 done
 # The three SAM sets pooled (60 seeds, renumbered: round 22's seeds as they are, round 25's + 100, round
 # 26's + 200), snapshot ensembles against the final networks, paired.
-pool_sam() {  # protocol folder table-of-round-22 table-of-round-25 table-of-round-26 -> one table
+pool_sam() {  # protocol folder-of-round-22 folder-of-round-25 folder-of-round-26: their tables as one, on stdout
   local p=$1 r f t o
   head -1 "$2/$p/results.csv"
   for r in "$2:r22rr05:0" "$3:r24fov150:100" "$4:r26shift4:200"; do
