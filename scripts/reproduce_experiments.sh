@@ -732,18 +732,17 @@ for p in varied_start fixed_start; do
     --a r26shift4_sam --b r22rr05_sam > $R26/sam_20_seeds/$p/against_round22.md
 done
 
-# Round 27: no training. The last three checkpoints of rounds 22, 25 and 26 (26 999, 28 999 and 30 000
-# steps), exported as weights (scripts/export_checkpoint.py) and flown as one policy each, the mean of
-# their Q-values (evaluate --ensemble 3): against each run's own final network (paired), SAM against CNN
-# trained the same way; the single snapshots at 26 999 and 28 999 steps of rounds 26 and 25's SAM as a
-# control.
+# Round 27: no training. The last three checkpoints of the runs of rounds 22, 25, 26, 16/18 and 23 (26 999,
+# 28 999 and 30 000 steps; 24 997, 28 997, 30 000 in rounds 16/18), exported as weights
+# (scripts/export_checkpoint.py) and flown as one policy each, the mean of their Q-values (evaluate
+# --ensemble 3): against each run's own final network (paired), SAM against CNN trained the same way;
+# the single snapshots at 26 999 and 28 999 steps of rounds 26 and 25's SAM as a control.
 R27=docs/results/round27_snapshots
-snap_eval() {  # tag model first last folder: the three snapshots of each seed's run as one policy
-  local w=() s d
+snap_eval() {  # tag model first last folder: the last three checkpoints of each seed's run as one policy
+  local w=() s out f
   for s in $(seq "$3" "$4"); do
-    d=runs/$1_$2_seed$s
-    python scripts/export_checkpoint.py "$d"/checkpoints/ckpt-* > /dev/null
-    w+=("$d"/policy_$2_step{26999,28999,30000}.safetensors)
+    out=$(python scripts/export_checkpoint.py runs/$1_$2_seed$s/checkpoints/ckpt-*)  # one "FILE: ..." line each
+    while read -r f; do w+=("${f%%: *}"); done <<< "$out"
   done
   eval_120 "$5" 1 --model "$2" --ensemble 3 --weights "${w[@]}"
 }
@@ -752,6 +751,9 @@ snap_eval r22rr05 cnn 0 9 $R27/round22_cnn
 snap_eval r26shift4 sam 0 19 $R27/round26_sam
 HFOV=150 WINDOW=0.078 snap_eval r24fov150 sam 0 19 $R27/round25_sam
 HFOV=150 WINDOW=0.078 snap_eval r24fov150 cnn 0 19 $R27/round25_cnn
+snap_eval r16basic4 sam 0 19 $R27/round18_sam  # rounds 16 and 18: checkpoints at 24 997, 28 997, 30 000 steps
+snap_eval r16basic4 cnn 0 19 $R27/round18_cnn
+snap_eval r23mix05 sam 0 19 $R27/round23_sam
 for n in 26999 28999; do  # the control: SAM's earlier snapshots flown alone
   W=() V=()
   for s in $(seq 0 19); do
@@ -764,13 +766,15 @@ done
 for p in varied_start fixed_start; do
   for r in round22_sam:r22rr05_sam:$R22/sam_20_seeds round22_cnn:r22rr05_cnn:$R22/cnn \
     round26_sam:r26shift4_sam:$R26/sam_20_seeds round25_sam:r24fov150_sam:$R24/sam_20_seeds \
-    round25_cnn:r24fov150_cnn:$R24/cnn_20_seeds; do  # folder:run:its final networks' tables
+    round25_cnn:r24fov150_cnn:$R24/cnn_20_seeds round18_sam:r16basic4_sam:$R18/pooled_20_seeds \
+    round18_cnn:r16basic4_cnn:$R18/pooled_20_seeds round23_sam:r23mix05_sam:$R23/sam_20_seeds; do  # folder:run:its final networks' tables
     IFS=: read -r f run final <<< "$r"
     python scripts/compare_models.py $R27/$f/$p/results.csv $final/$p/results.csv --by run --paired \
       --a ${run}_snap3 --b $run > $R27/$f/$p/against_final.md
   done
   for r in round22_sam:r22rr05_sam:round22_cnn:r22rr05_cnn round26_sam:r26shift4_sam:round22_cnn:r22rr05_cnn \
-    round25_sam:r24fov150_sam:round25_cnn:r24fov150_cnn; do  # SAM folder:run:CNN folder:run
+    round25_sam:r24fov150_sam:round25_cnn:r24fov150_cnn round18_sam:r16basic4_sam:round18_cnn:r16basic4_cnn; do
+    # SAM folder:run:CNN folder:run
     IFS=: read -r f run cf crun <<< "$r"
     python scripts/compare_models.py $R27/$f/$p/results.csv $R27/$cf/$p/results.csv --by run \
       --a ${run}_snap3 --b ${crun}_snap3 --bar paper > $R27/$f/$p/against_cnn.md
@@ -782,20 +786,30 @@ for p in varied_start fixed_start; do
     done
   done
 done
-# The three SAM sets pooled (60 seeds, renumbered: round 22's seeds as they are, round 25's + 100, round
-# 26's + 200), snapshot ensembles against the final networks, paired.
-pool_sam() {  # protocol folder-of-round-22 folder-of-round-25 folder-of-round-26: their tables as one, on stdout
+# The SAM sets pooled, snapshot ensembles against the final networks, paired: rounds 22, 25 and 26 (60
+# seeds), and with rounds 18 and 23 (100). Seeds renumbered: round 22's as they are, round 25's + 100,
+# 26's + 200, 18's + 300, 23's + 400.
+pool_sam() {  # protocol folder:tag:offset ...: the tables' SAM rows as one table, on stdout
   local p=$1 r f t o
-  head -1 "$2/$p/results.csv"
-  for r in "$2:r22rr05:0" "$3:r24fov150:100" "$4:r26shift4:200"; do
+  shift
+  head -1 "${1%%:*}/$p/results.csv"
+  for r in "$@"; do
     IFS=: read -r f t o <<< "$r"
-    tail -n +2 "$f/$p/results.csv" | perl -pe "s/${t}_sam_seed(\d+)/'pool_sam_seed'.(\$1+$o)/ge"
+    grep "/${t}_sam_seed" "$f/$p/results.csv" | perl -pe "s/${t}_sam_seed(\d+)/'pool_sam_seed'.(\$1+$o)/ge"
   done
 }
 for p in varied_start fixed_start; do
-  mkdir -p $R27/sam_60_seeds/$p
-  pool_sam $p $R27/round22_sam $R27/round25_sam $R27/round26_sam > $R27/sam_60_seeds/$p/snap3.csv
-  pool_sam $p $R22/sam_20_seeds $R24/sam_20_seeds $R26/sam_20_seeds > $R27/sam_60_seeds/$p/final.csv
-  python scripts/compare_models.py $R27/sam_60_seeds/$p/snap3.csv $R27/sam_60_seeds/$p/final.csv --by run --paired \
-    --a pool_sam_snap3 --b pool_sam > $R27/sam_60_seeds/$p/against_final.md
+  for n in 60 100; do
+    mkdir -p $R27/sam_${n}_seeds/$p
+    S=("$R27/round22_sam:r22rr05:0" "$R27/round25_sam:r24fov150:100" "$R27/round26_sam:r26shift4:200")
+    F=("$R22/sam_20_seeds:r22rr05:0" "$R24/sam_20_seeds:r24fov150:100" "$R26/sam_20_seeds:r26shift4:200")
+    if [ $n = 100 ]; then
+      S+=("$R27/round18_sam:r16basic4:300" "$R27/round23_sam:r23mix05:400")
+      F+=("$R18/pooled_20_seeds:r16basic4:300" "$R23/sam_20_seeds:r23mix05:400")
+    fi
+    pool_sam $p "${S[@]}" > $R27/sam_${n}_seeds/$p/snap3.csv
+    pool_sam $p "${F[@]}" > $R27/sam_${n}_seeds/$p/final.csv
+    python scripts/compare_models.py $R27/sam_${n}_seeds/$p/snap3.csv $R27/sam_${n}_seeds/$p/final.csv --by run \
+      --paired --a pool_sam_snap3 --b pool_sam > $R27/sam_${n}_seeds/$p/against_final.md
+  done
 done
