@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reward-window-fraction", type=float, default=None, help="when the run's weights file does not say")
     a = ap.parse_args(argv)
     for ckpt in a.checkpoints:
-        run = ckpt.resolve().parent.parent
+        run = Path(os.path.relpath(ckpt.resolve().parent.parent))  # printed as given: runs/X, not /abs/runs/X
         try:
             model = json.loads((ckpt / "meta.json").read_text())["net_config"]["model"]
             own = run / f"policy_{model}.safetensors"
