@@ -15,7 +15,6 @@ checkpoint that cannot be exported.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -27,8 +26,9 @@ from uav_policy import weights as wio  # noqa: E402
 from uav_trainer import checkpoint  # noqa: E402
 
 
-def out_name(ckpt: Path, model: str, net: str) -> str:
-    steps = int(json.loads((ckpt / "meta.json").read_text())["counters"]["env_steps"])
+def out_name(meta: dict, net: str) -> str:
+    """policy_<model>_step<N>[_<net>].safetensors for a checkpoint's meta.json."""
+    model, steps = meta["net_config"]["model"], int(meta["counters"]["env_steps"])
     return f"policy_{model}_step{steps}" + ("" if net == "online" else f"_{net}") + ".safetensors"
 
 
@@ -43,13 +43,13 @@ def main(argv=None) -> int:
     for ckpt in a.checkpoints:
         run = Path(os.path.relpath(ckpt.resolve().parent.parent))  # printed as given: runs/X, not /abs/runs/X
         try:
-            model = json.loads((ckpt / "meta.json").read_text())["net_config"]["model"]
-            own = run / f"policy_{model}.safetensors"
+            meta, _ = checkpoint.read_meta(ckpt)
+            own = run / f"policy_{meta['net_config']['model']}.safetensors"
             camera, window = a.camera_hfov_deg, a.reward_window_fraction
             if own.is_file():
                 camera = wio.read_file_camera(own) if camera is None else camera
                 window = wio.read_file_window(own) if window is None else window
-            out = (a.out_dir or run) / out_name(ckpt, model, a.net)
+            out = (a.out_dir or run) / out_name(meta, a.net)
             out.parent.mkdir(parents=True, exist_ok=True)
             cfg = checkpoint.export_weights(ckpt, out, a.net, camera, window)
         except (OSError, KeyError, TypeError, ValueError) as e:

@@ -20,6 +20,16 @@ sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_sim", "uav_policy", "uav_tr
 _domains = itertools.count(1 + (os.getpid() * 7) % 60)
 
 
+def script_module(name: str):
+    """scripts/<name>.py as a module (scripts/ is not a package), to call its functions in-process."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def deep_qos():
     """Reliable with a deep reader history: a slow Python reader loses nothing to the 250 Hz loop."""
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy

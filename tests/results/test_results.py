@@ -1,14 +1,13 @@
 """Issue 5: the evaluation harness, the figures, and the shipped pretrained weights."""
 
 import csv
-import importlib.util
 import os
 import subprocess
 import sys
 
 import pytest
 
-from conftest import ROOT, executable
+from conftest import ROOT, executable, script_module
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_trainer.evaluate import Behaviour, evaluate_once
@@ -199,21 +198,13 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
         assert e.value.code == 2 and says in capsys.readouterr().err
     no_ros = run_tool("uav_trainer", "evaluate", "--ensemble", "2", "--weights", a, b, "--steps", "5")
     assert no_ros.returncode == 2 and "--ensemble needs --inprocess" in no_ros.stderr
-    compare = compare_models_module()
+    compare = script_module("compare_models")
     assert compare.run_name(ens["weights"]) == "e_sam_ens2" and compare.seeds_of(ens["weights"]) == (0, 1)
     snaps = "runs/t_sam_seed4/policy_sam_step28999.safetensors+runs/t_sam_seed4/policy_sam.safetensors"
     assert compare.run_name(snaps) == "t_sam_snap2" and compare.seeds_of(snaps) == (4, 4)
     # --paired: an ensemble against the mean of its members (b = the single files)
     x, y = compare.partners([1.0, 5.0], [(0, 1), (2, 3)], [0.0, 4.0, 2.0], [(0,), (1,), (2,)])
     assert x.tolist() == [1.0] and y.tolist() == [2.0]  # (2, 3) has no partner: seed 3 is missing
-
-
-def compare_models_module():
-    """scripts/compare_models.py as a module (scripts/ is not a package)."""
-    spec = importlib.util.spec_from_file_location("compare_models", ROOT / "scripts" / "compare_models.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_compare_models_tells_a_real_difference_from_none(tmp_path):
@@ -309,7 +300,7 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
 def test_compare_models_counts_the_seeds_at_the_bar(tmp_path):
     """--bar: a seed counts when it is at or under the bar in every world; the shares get a Fisher exact test."""
     script = ROOT / "scripts" / "compare_models.py"
-    compare = compare_models_module()
+    compare = script_module("compare_models")
     assert compare.fisher_exact(3, 4, 1, 4) == pytest.approx(17 / 35)  # Fisher's tea tasting: two-sided 0.486
     assert compare.fisher_exact(4, 4, 0, 4) == pytest.approx(2 / 70) and compare.fisher_exact(2, 4, 2, 4) == pytest.approx(1.0)
     assert compare.parse_bar("paper") == {"basic": 0.0, "complex": 1.0, "turbulent": 1.0}

@@ -524,13 +524,9 @@ def test_shift_augmentation_reaches_the_learner_from_the_command_line(tmp_path, 
 
 
 def test_export_checkpoint_script_writes_the_runs_own_weights_from_its_last_checkpoint(tmp_path, capsys):
-    import importlib.util
-    from pathlib import Path
+    from conftest import script_module
 
-    path = Path(__file__).resolve().parents[2] / "scripts" / "export_checkpoint.py"
-    spec = importlib.util.spec_from_file_location("export_checkpoint", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = script_module("export_checkpoint")
     t = Training(small_cfg(), tmp_path, log=lambda s: None)
     feed(t, 120)
     while t.learn_once():

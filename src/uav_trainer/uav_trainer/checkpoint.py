@@ -106,12 +106,21 @@ def latest(dir_: str | os.PathLike) -> Path | None:
     return p if (p / "meta.json").is_file() and (p / "state.safetensors").is_file() else None
 
 
+def read_meta(path: Path) -> tuple[dict, NetConfig]:
+    """A checkpoint's meta.json and its network config. Raises ValueError when it is not a checkpoint
+    (OSError when it cannot be read)."""
+    meta = json.loads((path / "meta.json").read_text())
+    if not isinstance(meta, dict) or meta.get("format") != "uav_trainer_checkpoint/1":
+        raise ValueError(f"{path}: not a uav_trainer checkpoint")
+    try:
+        return meta, NetConfig.from_json(json.dumps(meta["net_config"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: checkpoint network config is invalid: {e}") from None
+
+
 def load(path: Path, learner: Learner) -> dict:
     """Restore a learner in place; returns the meta (counters, rng). Raises ValueError on mismatch."""
-    meta = json.loads((path / "meta.json").read_text())
-    if meta.get("format") != "uav_trainer_checkpoint/1":
-        raise ValueError(f"{path}: not a uav_trainer checkpoint")
-    cfg = NetConfig.from_json(json.dumps(meta["net_config"]))
+    meta, cfg = read_meta(path)
     if cfg != learner.net_cfg:
         raise ValueError(f"{path}: checkpoint network {cfg.to_json()} differs from {learner.net_cfg.to_json()}")
     tensors = load_file(str(path / "state.safetensors"))
@@ -155,18 +164,15 @@ def export_weights(
         raise ValueError(f"net must be one of {', '.join(NETS)}, got {net!r}")
     path = Path(path)
     try:
-        meta = json.loads((path / "meta.json").read_text())
+        _, cfg = read_meta(path)
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
+    try:
         tensors = load_file(str(path / "state.safetensors"))
     except (OSError, ValueError) as e:
         raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
     except Exception as e:  # safetensors raises its own error on a corrupt file
         raise ValueError(f"{path}: state.safetensors is corrupt ({e})") from None
-    if not isinstance(meta, dict) or meta.get("format") != "uav_trainer_checkpoint/1":
-        raise ValueError(f"{path}: not a uav_trainer checkpoint")
-    try:
-        cfg = NetConfig.from_json(json.dumps(meta["net_config"]))
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{path}: checkpoint network config is invalid: {e}") from None
     prefix = f"{net}."
     state = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
     if not state:
