@@ -1,5 +1,6 @@
-"""Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN; lockstep
-steps/s of sim_node <-> policy_node over ROS against the same loop in-process; weight-push latency.
+"""Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN, alone and as
+ensembles of 3 and 10 networks; lockstep steps/s of sim_node <-> policy_node over ROS against the
+same loop in-process; weight-push latency.
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_policy.py
 """
@@ -18,15 +19,17 @@ from uav_policy import weights as wio
 from uav_policy.actions import PAPER_ACTIONS
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
-from uav_policy.networks import NetConfig, build_network
+from uav_policy.networks import NetConfig, QEnsemble, build_network
 from uav_sim.simulator import Simulator
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world
 
 
-def inference_latency(model: str, n: int = 2000) -> tuple[float, float]:
+def inference_latency(model: str, n: int = 2000, members: int = 1) -> tuple[float, float]:
+    """(p50, p99) ms of one act() at batch 1; `members` > 1: an ensemble (policy_node weights:=A,B,...)."""
     cfg = NetConfig(model=model)
-    agent = Agent(build_network(cfg, seed=0), cfg)
+    nets = [build_network(cfg, seed=i) for i in range(members)]
+    agent = Agent(nets[0] if members == 1 else QEnsemble(nets), cfg)
     state = np.random.default_rng(0).uniform(0, 10, (5, 64, 64)).astype(np.float32)
     for _ in range(50):
         agent.act(state, 0.0)
@@ -107,6 +110,9 @@ def main() -> int:
     for model in ("sam", "cnn"):
         p50, p99 = inference_latency(model)
         print(f"[{model}] inference batch 1: p50 {p50:.3f} ms, p99 {p99:.3f} ms")
+        for k in (3, 10):  # ensembles of k networks (policy_node weights:=A,B,...): cost against one
+            e50, e99 = inference_latency(model, n=500, members=k)
+            print(f"[{model}] ensemble of {k}: p50 {e50:.3f} ms ({e50 / p50:.1f}x one network), p99 {e99:.3f} ms")
     for i, model in enumerate(("sam", "cnn")):
         base = in_process_loop(model, a.steps)
         ros, lat, size = ros_loop_and_pushes(model, a.seconds, a.pushes, 80 + (os.getpid() + i) % 10)

@@ -75,11 +75,13 @@ def seeds_of(weights: str) -> tuple[int, ...] | None:
 
 
 def partners(xa: list[float], sa: list, xb: list[float], sb: list) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs for --paired: a's row with the b row of the same seeds, else (an ensemble against single
-    files) with the mean of the b rows of its members' seeds; rows without a partner are left out."""
-    by_seeds = dict(zip(sb, xb, strict=True))
+    """Pairs for --paired: a's row with the b row of the same seeds (snapshot ensembles of one run: the
+    same seed, however many snapshots), else (an ensemble against single files) with the mean of the b
+    rows of its members' seeds; rows without a partner are left out."""
+    seeds = lambda key: tuple(sorted(set(key)))  # noqa: E731
+    by_seeds = dict(zip(map(seeds, sb), xb, strict=True))
     pairs = []
-    for x, key in zip(xa, sa, strict=True):
+    for x, key in zip(xa, map(seeds, sa), strict=True):
         if key in by_seeds:
             pairs.append((key, x, by_seeds[key]))
         elif len(key) > 1 and all((k,) in by_seeds for k in key):

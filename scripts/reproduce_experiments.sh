@@ -21,8 +21,9 @@
 # nodes, and a CNN with the same trunk), a twenty-second (twice the updates per step), a twenty-third
 # (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
 # smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm), a
-# twenty-sixth (random-shift augmentation of the sampled states) and a twenty-seventh (each run's last
-# three checkpoints flown as one policy). About 45 h on 2 cores.
+# twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
+# three checkpoints flown as one policy) and a twenty-eighth (five and ten snapshots per run). About 47 h
+# on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -811,5 +812,51 @@ for p in varied_start fixed_start; do
     pool_sam $p "${F[@]}" > $R27/sam_${n}_seeds/$p/final.csv
     python scripts/compare_models.py $R27/sam_${n}_seeds/$p/snap3.csv $R27/sam_${n}_seeds/$p/final.csv --by run \
       --paired --a pool_sam_snap3 --b pool_sam > $R27/sam_${n}_seeds/$p/against_final.md
+  done
+done
+
+# Round 28: round 22's twenty SAM runs trained again with a weights snapshot every 1000 steps from
+# 21 000 (the final networks and the 26 999 / 28 999-step ones come out byte-identical to round 22's
+# and round 27's), flown as ensembles of the last five (26 000-30 000) and the last ten (21 000-30 000)
+# networks; against round 27's three (26 999, 28 999, 30 000) and the final networks alone, paired by
+# seed. Each table measured in two halves (seeds 0-9, 10-19: two at a time on 2 cores) and joined.
+R28=docs/results/round28_more_snapshots
+SNAPS=(21000 22000 23000 24000 25000 26000 26999 27000 28000 28999 29000)
+for s in $(seq 0 2 18); do
+  for k in "$s" $((s + 1)); do
+    train r28snap sam "$k" "${ROUND6[@]}" --replay-ratio 0.5 --save-weights-at "${SNAPS[@]}" &
+  done
+  wait
+done
+for s in $(seq 0 19); do  # the same training as round 22's, bit for bit
+  cmp runs/r28snap_sam_seed$s/policy_sam.safetensors runs/r22rr05_sam_seed$s/policy_sam.safetensors
+done
+snap_group() {  # K first last: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on)
+  local s n
+  for s in $(seq "$2" "$3"); do
+    for n in $(seq $((31000 - 1000 * $1)) 1000 29000); do echo "runs/r28snap_sam_seed$s/policy_sam_step$n.safetensors"; done
+    echo "runs/r28snap_sam_seed$s/policy_sam.safetensors"
+  done
+}
+for k in 5 10; do
+  for h in 0:9 10:19; do
+    mapfile -t W < <(snap_group $k ${h%:*} ${h#*:})
+    eval_120 $R28/snap$k/seeds${h/:/_} 1 --model sam --ensemble $k --weights "${W[@]}"
+  done
+  for p in varied_start fixed_start; do
+    V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+    $EVAL --from-csv $R28/snap$k/seeds{0_9,10_19}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=120.0 --inprocess \
+      --ensemble $k --out $R28/snap$k/$p
+  done
+  { cat $R28/snap$k/seeds0_9/varied_start/crashes.csv; tail -n +2 $R28/snap$k/seeds10_19/varied_start/crashes.csv; } \
+    > $R28/snap$k/varied_start/crashes.csv
+  rm -r $R28/snap$k/seeds0_9 $R28/snap$k/seeds10_19
+  for p in varied_start fixed_start; do
+    python scripts/compare_models.py $R28/snap$k/$p/results.csv $R27/round22_sam/$p/results.csv --by run --paired \
+      --a r28snap_sam_snap$k --b r22rr05_sam_snap3 > $R28/snap$k/$p/against_snap3.md
+    python scripts/compare_models.py $R28/snap$k/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run --paired \
+      --a r28snap_sam_snap$k --b r22rr05_sam > $R28/snap$k/$p/against_final.md
+    python scripts/compare_models.py $R28/snap$k/$p/results.csv $R27/round22_cnn/$p/results.csv --by run \
+      --a r28snap_sam_snap$k --b r22rr05_cnn_snap3 --bar paper > $R28/snap$k/$p/against_cnn.md
   done
 done

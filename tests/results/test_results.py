@@ -2,6 +2,7 @@
 
 import csv
 import os
+import shutil
 import subprocess
 import sys
 
@@ -196,8 +197,18 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
         with pytest.raises(SystemExit) as e:
             main([*proto, *bad])
         assert e.value.code == 2 and says in capsys.readouterr().err
-    no_ros = run_tool("uav_trainer", "evaluate", "--ensemble", "2", "--weights", a, b, "--steps", "5")
-    assert no_ros.returncode == 2 and "--ensemble needs --inprocess" in no_ros.stderr
+    comma = tmp_path / "a,b.safetensors"
+    shutil.copy(a, comma)
+    refused = run_tool("uav_trainer", "evaluate", "--weights", str(comma), "--steps", "5", domain="78")
+    assert refused.returncode == 2 and "cannot take a path with a comma" in refused.stderr
+    # Through the ROS nodes (policy_node gets both files as its weights list): the same flight.
+    ros_args = [*proto[1:], "--params-dir", str(ROOT / "params"), "--out", str(tmp_path / "ros")]
+    ros = run_tool("uav_trainer", "evaluate", *ros_args, "--ensemble", "2", "--weights", a, b, domain="78")
+    assert ros.returncode == 0, ros.stderr[-3000:]
+    local, over_ros = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("mixed", "ros"))
+    assert over_ros["weights"] == f"{a}+{b}" and "Measured in-process" not in (tmp_path / "ros" / "results.md").read_text()
+    for key in ("steps", "crashes", "mean_reward", "distance_m", "crash_sites", "turn_steps", "cells_visited"):
+        assert over_ros[key] == local[key], (key, over_ros, local)
     compare = script_module("compare_models")
     assert compare.run_name(ens["weights"]) == "e_sam_ens2" and compare.seeds_of(ens["weights"]) == (0, 1)
     snaps = "runs/t_sam_seed4/policy_sam_step28999.safetensors+runs/t_sam_seed4/policy_sam.safetensors"
@@ -205,6 +216,8 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
     # --paired: an ensemble against the mean of its members (b = the single files)
     x, y = compare.partners([1.0, 5.0], [(0, 1), (2, 3)], [0.0, 4.0, 2.0], [(0,), (1,), (2,)])
     assert x.tolist() == [1.0] and y.tolist() == [2.0]  # (2, 3) has no partner: seed 3 is missing
+    x, y = compare.partners([1.0, 5.0], [(4, 4, 4, 4, 4), (5, 5, 5, 5, 5)], [3.0, 7.0], [(5, 5, 5), (4, 4, 4)])
+    assert x.tolist() == [1.0, 5.0] and y.tolist() == [7.0, 3.0]  # snapshot ensembles of one run pair by its seed
 
 
 def test_compare_models_tells_a_real_difference_from_none(tmp_path):

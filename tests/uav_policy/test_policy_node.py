@@ -118,14 +118,14 @@ def call_push(ros, blob: bytes, timeout_s=30.0):
     return fut.result().results[0]
 
 
-def forcing_action(index: int, camera_hfov_deg: float | None = None, cfg: NetConfig = SAM) -> bytes:
-    """Weights whose advantage stream always prefers `index`."""
+def forcing_action(index: int, camera_hfov_deg: float | None = None, cfg: NetConfig = SAM, margin: float = 5.0) -> bytes:
+    """Weights whose advantage stream always prefers `index` (by `margin` over the other actions)."""
     net = build_network(cfg, seed=0)
     with torch.no_grad():
         last = net.dueling_head.advantage[-1]
         last.weight.zero_()
         last.bias.zero_()
-        last.bias[index] = 5.0
+        last.bias[index] = margin
     return wio.to_bytes(net, cfg, camera_hfov_deg)
 
 
@@ -150,6 +150,28 @@ def test_layer_sizes_come_from_the_weights_file_and_from_pushes(ros, tmp_path):
     assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
     # Messages from before the push may still be queued here: wait for a three-head one.
     assert ros.spin_until(lambda: weights[-1].layout.dim[0].size == 3, 10), "three heads again"
+
+
+def test_a_list_of_weights_files_flies_as_one_policy_on_the_mean_q_values(ros, tmp_path):
+    """weights:=b,a: b alone would fly a0 (by 2), a alone a3 (by 5); their mean Q picks a3. The
+    attention carries both members' heads; a push replaces the ensemble."""
+    a, b = tmp_path / "a3.safetensors", tmp_path / "a0.safetensors"
+    a.write_bytes(forcing_action(3, camera_hfov_deg=120.0))
+    b.write_bytes(forcing_action(0, camera_hfov_deg=120.0, margin=2.0))
+    w = Watch(ros, actions_only=True)
+    heads = []
+    ros.node.create_subscription(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, heads.append, 10)
+    proc = start_pair(ros, "-p", f"weights:={b},{a}")
+    assert ros.spin_until(lambda: len(w.actions) >= 20 and heads, 60), ros.log_of(proc)
+    assert all(m.twist.linear.x == 2.0 for m in w.actions[-10:]), "the mean Q-values prefer a3 (forward 2 m/s)"
+    assert heads[-1].layout.dim[0].size == 2 * SAM.heads, "each member's heads"
+    assert f"an ensemble of 2 weights files acting on their mean Q-values: {b}, {a}" in ros.log_of(proc)
+    r = call_push(ros, forcing_action(0))
+    assert r.successful, r.reason
+    all_a0 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 1.0 for m in w.actions[-20:])  # noqa: E731
+    assert ros.spin_until(all_a0, 20), "after the push every action should be a0 (forward 1 m/s)"
+    assert ros.spin_until(lambda: heads[-1].layout.dim[0].size == SAM.heads, 10), "one network's heads again"
+    assert "pushed weights replace the ensemble of 2 networks" in ros.log_of(proc)
 
 
 def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes_actions(ros):
@@ -214,6 +236,20 @@ def test_policy_start_up_errors(tmp_path):
     r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={deep}")
     assert r.returncode == 2 and "the file stacks 10 frames: set frame_stack:=10" in r.stderr
     assert "input_height" not in r.stderr.split("parameter 'weights'")[1]
+    # A list of files (an ensemble) must share the model, the layer sizes and the camera.
+    sam90, sam120 = tmp_path / "sam90.safetensors", tmp_path / "sam120.safetensors"
+    sam90.write_bytes(forcing_action(0, camera_hfov_deg=90.0))
+    sam120.write_bytes(forcing_action(0, camera_hfov_deg=120.0))
+    for files, says in (
+        ([sam120, cnn], "model 'cnn'"),
+        ([sam120, big], "set input_height:=84 input_width:=84"),
+        ([sam90, sam120], "different cameras (90 deg, 120 deg)"),
+        ([sam120, tmp_path / "missing.safetensors"], "cannot read"),
+    ):
+        r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={','.join(map(str, files))}")
+        assert r.returncode == 2 and "parameter 'weights'" in r.stderr and says in r.stderr, (files, r.stderr[-500:])
+    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={sam90},,{sam90}")
+    assert r.returncode == 2 and "parameter 'weights': an empty file name in the list" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
     assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")

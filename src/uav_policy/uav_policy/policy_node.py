@@ -8,6 +8,12 @@ topics. New weights arrive on the ~/push_weights service (rcl_interfaces/srv/Set
 one BYTE_ARRAY parameter named 'weights' holding a safetensors blob). It also listens to
 depth/camera_info and warns when the camera's field of view is not the one the weights were
 trained with (a network flies worse behind another camera).
+
+Given several files (-p weights:=a.safetensors,b.safetensors) it flies them as one policy
+that acts on the mean of their Q-values (docs/RESULTS.md, round 27: flown so, a run's last
+checkpoints crash less than its final network alone). q_values is then the mean; attention/weights
+carries each member's heads in turn and the attention maps average over all of them. A weight push
+replaces the ensemble.
 """
 
 from __future__ import annotations
@@ -36,7 +42,16 @@ from .actions import PAPER_ACTIONS, make_actions
 from .agent import Agent
 from .attention import attention_map, overlay
 from .frame_stack import FrameStack, fit_to_network
-from .networks import MAX_FRAMES, SAM_READOUTS, SIZE_FIELDS, NetConfig, build_network, parameter_count
+from .networks import MAX_FRAMES, SAM_READOUTS, SIZE_FIELDS, NetConfig, QEnsemble, build_network, parameter_count
+
+
+def weights_files(value: str) -> list[str]:
+    """The 'weights' parameter as a list of files: [] (the packaged weights), one file, or several
+    separated by commas (an ensemble)."""
+    files = [f.strip() for f in value.split(",")] if value.strip() else []
+    if not all(files):
+        raise ParameterError(f"parameter 'weights': an empty file name in the list {value!r}")
+    return files
 
 
 def resolve_device(name: str) -> str:
@@ -52,7 +67,13 @@ class PolicyNode(Node):
         super().__init__("policy_node")
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         model = d("model", "sam", "Q-network: sam (D3QN-SAM, attention) or cnn (D3QN-CNN)", choices=("sam", "cnn"))
-        weights_path = d("weights", "", "safetensors weights file; empty: the packaged weights, else a seeded random init")
+        weights_arg = d(
+            "weights",
+            "",
+            "safetensors weights file, or several separated by commas, flown as one policy on the mean of their "
+            "Q-values (e.g. a run's last checkpoints, scripts/export_checkpoint.py); empty: the packaged weights, "
+            "else a seeded random init",
+        )
         self.epsilon = d(
             "epsilon", 0.0, "Probability of a random action (exploration); the trainer decays it", 0.0, 1.0, read_only=False
         )
@@ -92,7 +113,7 @@ class PolicyNode(Node):
             sam_readout=readout,
         )
         device = resolve_device(device)
-        net, source, self.weights_hfov_deg = self._initial_network(weights_path, seed)
+        net, source, self.weights_hfov_deg = self._initial_network(weights_files(weights_arg), seed)
         self.camera_hfov_deg = None  # from depth/camera_info
         self._camera_warned = None
         self.agent = Agent(net, self.cfg, device, seed)
@@ -133,13 +154,10 @@ class PolicyNode(Node):
             )
         )
 
-    def _initial_network(self, path: str, seed: int):
+    def _initial_network(self, paths: list[str], seed: int):
         """(network, where it came from, the camera field of view it was trained with or None)."""
-        if path:
-            try:
-                return self._load_file(path), f"weights from {path}", wio.read_file_camera(path)
-            except wio.WeightsError as e:
-                raise ParameterError(f"parameter 'weights': {e}{self._size_hint(path)}") from None
+        if paths:
+            return self._from_files(paths)
         packaged = wio.packaged_weights(self.cfg.model)
         if packaged is not None:
             try:
@@ -149,6 +167,30 @@ class PolicyNode(Node):
                 self.get_logger().warning(f"packaged weights unusable ({e}); using a random initialisation")
         net = build_network(self.cfg, seed=seed)
         return net, f"no weights given or packaged: seeded random initialisation (seed {seed})", None
+
+    def _from_files(self, paths: list[str]):
+        """_initial_network for the 'weights' files: one network, or several as one QEnsemble (they
+        must share architecture and camera)."""
+        nets = []
+        for path in paths:
+            try:
+                nets.append(self._load_file(path))
+            except wio.WeightsError as e:
+                raise ParameterError(f"parameter 'weights': {e}{self._size_hint(path)}") from None
+        try:
+            net = nets[0] if len(nets) == 1 else QEnsemble(nets)
+            cameras = {wio.read_file_camera(p) for p in paths}
+        except ValueError as e:  # WeightsError included
+            raise ParameterError(f"parameter 'weights': {e}") from None
+        if len(cameras) != 1:
+            known = sorted(c for c in cameras if c is not None)
+            shown = ", ".join(["none recorded"] * (None in cameras) + [f"{c:g} deg" for c in known])
+            raise ParameterError(f"parameter 'weights': the files were trained with different cameras ({shown})")
+        if len(nets) == 1:
+            source = f"weights from {paths[0]}"
+        else:
+            source = f"an ensemble of {len(paths)} weights files acting on their mean Q-values: {', '.join(paths)}"
+        return net, source, cameras.pop()
 
     def _load_file(self, path) -> torch.nn.Module:
         """The file's network, with the layer sizes the file was made with (networks.SIZE_FIELDS: no
@@ -348,7 +390,10 @@ class PolicyNode(Node):
             try:
                 # The trainer owns the layer sizes: a push may bring others (the interface must match).
                 net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True))
+                replaced = self.agent.net
                 self.agent.swap(net)
+                if isinstance(replaced, QEnsemble):
+                    self.get_logger().info(f"pushed weights replace the ensemble of {len(replaced.members)} networks")
                 if net.cfg != self.cfg:
                     sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
                     self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")

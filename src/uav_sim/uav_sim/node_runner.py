@@ -31,7 +31,9 @@ def run(node_factory, args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as e:
-        if not interrupted(e):
+        # Shutting down (Ctrl-C invalidates the context) while rclpy takes a message, pybind11 may
+        # raise a bare RuntimeError ("Unable to convert call argument '0'"): the shutdown, not a bug.
+        if not (interrupted(e) or not rclpy.ok()):
             raise
     finally:
         if node is not None:

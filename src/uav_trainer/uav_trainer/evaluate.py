@@ -220,6 +220,9 @@ def sim_arg_hfov_deg(sim_args) -> float | None:
     return sim_arg_number(sim_args, "hfov_deg")
 
 
+ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
+
+
 INPROCESS_SIM_ARGS = ("hfov_deg", "reward_window_fraction")  # the sim_node parameters --inprocess honours
 
 
@@ -241,13 +244,16 @@ def evaluate_once(
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
     reward_window_fraction the reward window they record (if any), and without image_width/image_height
-    it renders at their input size."""
+    it renders at their input size. `weights` may be an ensemble's files joined by ENSEMBLE_SEP (which
+    must share architecture, camera and reward window: load_ensemble checks): policy_node gets the list."""
+    files = weights.split(ENSEMBLE_SEP) if weights else []
+    first = files[0] if files else ""
     if sim_arg_hfov_deg(sim_args) is None:
-        sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, weights)}")
-    window = recorded_window(model, weights)
+        sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, first)}")
+    window = recorded_window(model, first)
     if window is not None and sim_arg_number(sim_args, "reward_window_fraction") is None:
         sim_args = (*sim_args, f"reward_window_fraction:={window}")
-    sim_args = (*sim_args, *image_size_args(model, weights, sim_args))
+    sim_args = (*sim_args, *image_size_args(model, first, sim_args))
     import rclpy
     import rclpy.executors
     from nav_msgs.msg import Odometry
@@ -283,7 +289,7 @@ def evaluate_once(
                 raise RuntimeError(f"sim_node exited with code {sim.returncode} before its first frame")
             if time.monotonic() > ready_by:
                 raise TimeoutError("no first frame from sim_node within 60 s")
-        wargs = [f"weights:={weights}", *architecture_args(model, weights)] if weights else []
+        wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
         procs.start(
             "policy",
             "uav_policy",
@@ -416,9 +422,6 @@ def evaluate_inprocess(
     return EvalResult(
         model, world, weights, steps, crashes, reward / steps, dist, len(sites), behaviour.turn_steps, len(behaviour.cells)
     )
-
-
-ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
 
 
 def load_ensemble(model: str, files: list[str], hfov_deg: float | None, window: float | None = None):
@@ -675,8 +678,9 @@ def main(argv=None) -> int:
         type=int,
         default=1,
         metavar="K",
-        help="with --inprocess: fly each K consecutive weights files of a model as one policy, the mean of their "
-        "Q-values (an extension; one results row per group, its weights column the files joined by '+')",
+        help="fly each K consecutive weights files of a model as one policy, the mean of their Q-values (an "
+        "extension; policy_node gets the K files as its weights, comma-separated; one results row per group, its weights column "
+        "the files joined by '+')",
     )
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
@@ -706,8 +710,6 @@ def main(argv=None) -> int:
         ap.error("--repeats and --steps must be >= 1")
     if a.ensemble < 1:
         ap.error("--ensemble must be >= 1")
-    if a.ensemble > 1 and not a.inprocess:
-        ap.error("--ensemble needs --inprocess (policy_node flies one weights file)")
     try:
         hfov_deg = sim_arg_hfov_deg(a.sim_arg)
         window = sim_arg_number(a.sim_arg, "reward_window_fraction")
@@ -789,6 +791,8 @@ def main(argv=None) -> int:
     recorded_windows = set()
     for model, files in runs:  # unreadable weights fail here, before any node starts
         for path in files:
+            if "," in path and not a.inprocess:  # policy_node reads commas as separating files
+                ap.error(f"--weights {model}={path}: policy_node cannot take a path with a comma (rename it, or --inprocess)")
             try:
                 read_file_config(path)
                 recorded_windows.add(read_file_window(path))
