@@ -7,8 +7,8 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 "$PY" -c 'import sys; assert sys.version_info >= (3, 11), "Python >= 3.11 is required"'
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -r requirements.txt
+.venv/bin/python -m pip install -q --no-cache-dir --upgrade pip
+.venv/bin/python -m pip install -q --no-cache-dir -r requirements.txt
 # colcon must run from the same venv as the ROS wheels so the node scripts get its interpreter.
 . .venv/bin/activate
 colcon build --base-paths src --event-handlers console_cohesion- summary+ 2>&1 | tail -n 3
