@@ -831,32 +831,58 @@ done
 for s in $(seq 0 19); do  # the same training as round 22's, bit for bit
   cmp runs/r28snap_sam_seed$s/policy_sam.safetensors runs/r22rr05_sam_seed$s/policy_sam.safetensors
 done
-snap_group() {  # K first last: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on)
+snap_group() {  # tag K first last: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on)
   local s n
-  for s in $(seq "$2" "$3"); do
-    for n in $(seq $((31000 - 1000 * $1)) 1000 29000); do echo "runs/r28snap_sam_seed$s/policy_sam_step$n.safetensors"; done
-    echo "runs/r28snap_sam_seed$s/policy_sam.safetensors"
+  for s in $(seq "$3" "$4"); do
+    for n in $(seq $((31000 - 1000 * $2)) 1000 29000); do echo "runs/$1_sam_seed$s/policy_sam_step$n.safetensors"; done
+    echo "runs/$1_sam_seed$s/policy_sam.safetensors"
+  done
+}
+snap_ensembles() {  # tag K folder snap3-folder:tag final-folder:tag cnn-folder:tag: each seed's last K snapshots
+  # as one policy (camera as eval_120's), measured in two halves (seeds 0-9, 10-19) and joined, then
+  # paired by seed against the same runs' last three checkpoints and final networks, and against a CNN
+  local tag=$1 k=$2 out=$3 h p V W
+  for h in 0:9 10:19; do
+    mapfile -t W < <(snap_group "$tag" "$k" ${h%:*} ${h#*:})
+    eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$k" --weights "${W[@]}"
+  done
+  camera_args
+  for p in varied_start fixed_start; do
+    V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+    $EVAL --from-csv $out/seeds{0_9,10_19}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$k" --out $out/$p
+  done
+  { cat $out/seeds0_9/varied_start/crashes.csv; tail -n +2 $out/seeds10_19/varied_start/crashes.csv; } \
+    > $out/varied_start/crashes.csv
+  rm -r $out/seeds0_9 $out/seeds10_19
+  for p in varied_start fixed_start; do
+    python scripts/compare_models.py $out/$p/results.csv ${4%:*}/$p/results.csv --by run --paired \
+      --a ${tag}_sam_snap$k --b ${4#*:} > $out/$p/against_snap3.md
+    python scripts/compare_models.py $out/$p/results.csv ${5%:*}/$p/results.csv --by run --paired \
+      --a ${tag}_sam_snap$k --b ${5#*:} > $out/$p/against_final.md
+    python scripts/compare_models.py $out/$p/results.csv ${6%:*}/$p/results.csv --by run \
+      --a ${tag}_sam_snap$k --b ${6#*:} --bar paper > $out/$p/against_cnn.md
   done
 }
 for k in 5 10; do
-  for h in 0:9 10:19; do
-    mapfile -t W < <(snap_group $k ${h%:*} ${h#*:})
-    eval_120 $R28/snap$k/seeds${h/:/_} 1 --model sam --ensemble $k --weights "${W[@]}"
-  done
-  for p in varied_start fixed_start; do
-    V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-    $EVAL --from-csv $R28/snap$k/seeds{0_9,10_19}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=120.0 --inprocess \
-      --ensemble $k --out $R28/snap$k/$p
-  done
-  { cat $R28/snap$k/seeds0_9/varied_start/crashes.csv; tail -n +2 $R28/snap$k/seeds10_19/varied_start/crashes.csv; } \
-    > $R28/snap$k/varied_start/crashes.csv
-  rm -r $R28/snap$k/seeds0_9 $R28/snap$k/seeds10_19
-  for p in varied_start fixed_start; do
-    python scripts/compare_models.py $R28/snap$k/$p/results.csv $R27/round22_sam/$p/results.csv --by run --paired \
-      --a r28snap_sam_snap$k --b r22rr05_sam_snap3 > $R28/snap$k/$p/against_snap3.md
-    python scripts/compare_models.py $R28/snap$k/$p/results.csv $R22/sam_20_seeds/$p/results.csv --by run --paired \
-      --a r28snap_sam_snap$k --b r22rr05_sam > $R28/snap$k/$p/against_final.md
-    python scripts/compare_models.py $R28/snap$k/$p/results.csv $R27/round22_cnn/$p/results.csv --by run \
-      --a r28snap_sam_snap$k --b r22rr05_cnn_snap3 --bar paper > $R28/snap$k/$p/against_cnn.md
-  done
+  snap_ensembles r28snap $k $R28/snap$k $R27/round22_sam:r22rr05_sam_snap3 $R22/sam_20_seeds:r22rr05_sam \
+    $R27/round22_cnn:r22rr05_cnn_snap3
 done
+
+# Round 29: round 25's twenty SAM runs (150 degree camera, 5 x 5 px reward window) trained again with
+# round 28's snapshots (the same training, checked below), flown as ensembles of the last ten networks
+# (21 000-30 000); against round 27's three checkpoints of the same runs, their final networks and round
+# 25's CNN (three checkpoints), as round 28.
+R29=docs/results/round29_fov150_snapshots
+for s in $(seq 0 2 18); do
+  for k in "$s" $((s + 1)); do
+    train r29snap150 sam "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --save-weights-at "${SNAPS[@]}" &
+  done
+  wait
+done
+for s in $(seq 0 19); do  # the same training as round 25's, bit for bit
+  cmp runs/r29snap150_sam_seed$s/policy_sam.safetensors runs/r24fov150_sam_seed$s/policy_sam.safetensors
+done
+export HFOV=150 WINDOW=0.078
+snap_ensembles r29snap150 10 $R29/snap10 $R27/round25_sam:r24fov150_sam_snap3 $R24/sam_20_seeds:r24fov150_sam \
+  $R27/round25_cnn:r24fov150_cnn_snap3
+unset HFOV WINDOW
