@@ -65,6 +65,27 @@ def test_training_writes_outputs_and_resumes(tmp_path):
     assert starts[1]["processor"] and starts[1]["torch_threads"] == torch.get_num_threads()
 
 
+def test_the_lag_behind_the_replay_ratio_is_measured_and_warned_of(tmp_path):
+    from uav_trainer.trainer_node import lag_warning
+
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(t, 40)
+    assert t.learning_lag() == (0, 0)  # before learning_starts nothing is due
+    feed(t, 80, seed=1)  # 120 steps: (120 - 50) x 0.5 updates due, none done (acting ran on alone)
+    assert t.learning_lag() == (35, 35)
+    for _ in range(20):
+        t.learn_once()
+    assert t.learning_lag() == (15, 35)
+    while t.learn_once():
+        pass
+    assert t.learning_lag() == (0, 35)
+    t.close()
+    assert lag_warning(0, 35, 0.5) is None and lag_warning(49, 60, 0.5) is None  # under 50 updates: quiet
+    assert lag_warning(90, 1000, 0.25) is None  # under a tenth of what is due
+    text = lag_warning(400, 1000, 0.25)
+    assert text and "400 updates behind replay_ratio 0.25 (600 of 1000 done)" in text and "--max-rate-hz" in text
+
+
 def test_a_stop_keeps_the_replay_memory_and_a_resume_learns_on_at_once(tmp_path):
     t = Training(small_cfg(), tmp_path, log=lambda s: None)
     feed(t, 120)

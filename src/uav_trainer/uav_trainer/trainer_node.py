@@ -36,6 +36,20 @@ from .learner import MAX_SHIFT_PX, LearnerConfig
 from .pairing import TransitionAssembler
 from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
 
+LAG_MIN_UPDATES, LAG_FRACTION = 50, 0.1  # warn when the learner is this far behind replay_ratio
+
+
+def lag_warning(behind: int, due: int, ratio: float) -> str | None:
+    """A warning when the learner is well behind replay_ratio x env steps, or None. Acting does not wait
+    for learning over ROS, so on a busy machine a run gets fewer updates than asked and learns less."""
+    if behind < max(LAG_MIN_UPDATES, LAG_FRACTION * due):
+        return None
+    return (
+        f"the learner is {behind} updates behind replay_ratio {ratio:g} ({due - behind} of {due} done): acting does "
+        "not wait for learning, so this run learns from fewer updates than asked; lower the step rate (train "
+        "--max-rate-hz, sim_node max_rate_hz) or give the trainer more CPU"
+    )
+
 
 class TrainerNode(Node):
     def __init__(self):
@@ -330,6 +344,7 @@ class TrainerNode(Node):
             "epsilon": f"{t.epsilon():.3f}",
             "loss": f"{t.last_loss:.4f}",
             "replay_transitions": len(t.replay),
+            "updates_behind": t.learning_lag()[0],
             "push_latency_p50_ms": f"{lat[len(lat) // 2]:.1f}" if lat else "nan",
             "total_steps": self.cfg.total_steps,
             **self.pairing.report(),
@@ -357,6 +372,9 @@ class TrainerNode(Node):
             f" | unpaired {unpaired} breaks {st['chain_breaks']} "
             f"out-of-order {st['out_of_order']}"
         )
+        warning = lag_warning(*self.training.learning_lag(), self.cfg.replay_ratio)
+        if warning:
+            self.get_logger().warning(warning, throttle_duration_sec=60.0)
 
     def _shutdown(self) -> None:
         rclpy.try_shutdown(context=self.context)

@@ -337,15 +337,29 @@ class Training:
         return self.cfg.total_steps > 0 and self.env_steps >= self.cfg.total_steps
 
     # -- learning side ------------------------------------------------------------------
+    def _updates_due(self) -> tuple[bool, float]:
+        """(enough transitions since start-up, the updates replay_ratio x env steps allows so far)."""
+        with self.lock:
+            ready = len(self.replay) >= min(self.cfg.learning_starts, self.cfg.replay_capacity - 10)
+            fresh_steps = self.env_steps - self._steps_at_start - self.cfg.learning_starts
+        return ready, self._updates_at_start + fresh_steps * self.cfg.replay_ratio
+
     def can_learn(self) -> bool:
         """Enough transitions since start-up, and updates below replay_ratio x env steps."""
         if self.failed:
             return False
-        with self.lock:
-            ready = len(self.replay) >= min(self.cfg.learning_starts, self.cfg.replay_capacity - 10)
-            fresh_steps = self.env_steps - self._steps_at_start - self.cfg.learning_starts
-        allowed = self._updates_at_start + fresh_steps * self.cfg.replay_ratio
+        ready, allowed = self._updates_due()
         return ready and self.learner.updates < allowed
+
+    def learning_lag(self) -> tuple[int, int]:
+        """(updates the learner is short of replay_ratio x env steps, updates due since learning began).
+        In process acting waits for learning, so this stays 0; over ROS acting runs on and the learner
+        can fall behind on a busy machine."""
+        ready, allowed = self._updates_due()
+        due = int(allowed) - self._updates_at_start
+        if not ready or due <= 0:
+            return 0, 0
+        return max(0, int(allowed) - self.learner.updates), due
 
     def learn_once(self) -> bool:
         """One update if allowed now; handles push and checkpoint cadence. False if nothing done."""
