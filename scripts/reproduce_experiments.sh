@@ -22,8 +22,8 @@
 # (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
 # smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm), a
 # twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
-# three checkpoints flown as one policy) and a twenty-eighth (five and ten snapshots per run). About 47 h
-# on 2 cores.
+# three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run) and a
+# twenty-ninth (round 25's runs retrained with ten snapshots). About 49 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -840,8 +840,9 @@ snap_group() {  # tag K first last: the last K snapshots of each seed's run (K =
 }
 snap_ensembles() {  # tag K folder snap3-folder:tag final-folder:tag cnn-folder:tag: each seed's last K snapshots
   # as one policy (camera as eval_120's), measured in two halves (seeds 0-9, 10-19) and joined, then
-  # paired by seed against the same runs' last three checkpoints and final networks, and against a CNN
-  local tag=$1 k=$2 out=$3 h p V W
+  # against the same runs' last three checkpoints and final networks (paired by seed unless PAIRED is
+  # set empty), and against a CNN
+  local tag=$1 k=$2 out=$3 paired=${PAIRED---paired} h p V W
   for h in 0:9 10:19; do
     mapfile -t W < <(snap_group "$tag" "$k" ${h%:*} ${h#*:})
     eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$k" --weights "${W[@]}"
@@ -855,9 +856,9 @@ snap_ensembles() {  # tag K folder snap3-folder:tag final-folder:tag cnn-folder:
     > $out/varied_start/crashes.csv
   rm -r $out/seeds0_9 $out/seeds10_19
   for p in varied_start fixed_start; do
-    python scripts/compare_models.py $out/$p/results.csv ${4%:*}/$p/results.csv --by run --paired \
+    python scripts/compare_models.py $out/$p/results.csv ${4%:*}/$p/results.csv --by run $paired \
       --a ${tag}_sam_snap$k --b ${4#*:} > $out/$p/against_snap3.md
-    python scripts/compare_models.py $out/$p/results.csv ${5%:*}/$p/results.csv --by run --paired \
+    python scripts/compare_models.py $out/$p/results.csv ${5%:*}/$p/results.csv --by run $paired \
       --a ${tag}_sam_snap$k --b ${5#*:} > $out/$p/against_final.md
     python scripts/compare_models.py $out/$p/results.csv ${6%:*}/$p/results.csv --by run \
       --a ${tag}_sam_snap$k --b ${6#*:} --bar paper > $out/$p/against_cnn.md
@@ -869,9 +870,10 @@ for k in 5 10; do
 done
 
 # Round 29: round 25's twenty SAM runs (150 degree camera, 5 x 5 px reward window) trained again with
-# round 28's snapshots (the same training, checked below), flown as ensembles of the last ten networks
-# (21 000-30 000); against round 27's three checkpoints of the same runs, their final networks and round
-# 25's CNN (three checkpoints), as round 28.
+# round 28's snapshots, flown as ensembles of the last ten networks (21 000-30 000); against round 27's
+# three checkpoints of round 25's runs, round 25's final networks and round 25's CNN (three
+# checkpoints), unpaired: unlike round 28's, these runs did not come out identical to the earlier ones
+# (their final networks fly other rows than round 25's; RESULTS, round 29).
 R29=docs/results/round29_fov150_snapshots
 for s in $(seq 0 2 18); do
   for k in "$s" $((s + 1)); do
@@ -879,10 +881,11 @@ for s in $(seq 0 2 18); do
   done
   wait
 done
-for s in $(seq 0 19); do  # the same training as round 25's, bit for bit
-  cmp runs/r29snap150_sam_seed$s/policy_sam.safetensors runs/r24fov150_sam_seed$s/policy_sam.safetensors
-done
 export HFOV=150 WINDOW=0.078
-snap_ensembles r29snap150 10 $R29/snap10 $R27/round25_sam:r24fov150_sam_snap3 $R24/sam_20_seeds:r24fov150_sam \
+mapfile -t W < <(for s in $(seq 0 19); do echo "runs/r29snap150_sam_seed$s/policy_sam.safetensors"; done)
+camera_args
+$EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 "${CAM[@]}" \
+  --out $R29/final/fixed_start  # the final networks alone: other rows than round 25's
+PAIRED= snap_ensembles r29snap150 10 $R29/snap10 $R27/round25_sam:r24fov150_sam_snap3 $R24/sam_20_seeds:r24fov150_sam \
   $R27/round25_cnn:r24fov150_cnn_snap3
 unset HFOV WINDOW
