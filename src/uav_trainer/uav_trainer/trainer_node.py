@@ -334,7 +334,7 @@ class TrainerNode(Node):
             self.eps_sent = eps
 
     # -- reporting ----------------------------------------------------------------------
-    def _status(self) -> dict:
+    def _status(self, updates_behind: int) -> dict:
         t = self.training
         lat = sorted(self.push_latency_ms[-100:])
         return {
@@ -344,7 +344,7 @@ class TrainerNode(Node):
             "epsilon": f"{t.epsilon():.3f}",
             "loss": f"{t.last_loss:.4f}",
             "replay_transitions": len(t.replay),
-            "updates_behind": t.learning_lag()[0],
+            "updates_behind": updates_behind,
             "push_latency_p50_ms": f"{lat[len(lat) // 2]:.1f}" if lat else "nan",
             "total_steps": self.cfg.total_steps,
             **self.pairing.report(),
@@ -353,7 +353,8 @@ class TrainerNode(Node):
 
     def _report(self) -> None:
         row = self.training.metrics_row()
-        st = self._status()
+        behind, due = self.training.learning_lag()
+        st = self._status(behind)
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         level = DiagnosticStatus.ERROR if self.training.failed else DiagnosticStatus.OK
@@ -372,7 +373,7 @@ class TrainerNode(Node):
             f" | unpaired {unpaired} breaks {st['chain_breaks']} "
             f"out-of-order {st['out_of_order']}"
         )
-        warning = lag_warning(*self.training.learning_lag(), self.cfg.replay_ratio)
+        warning = lag_warning(behind, due, self.cfg.replay_ratio)
         if warning:
             self.get_logger().warning(warning, throttle_duration_sec=60.0)
 
