@@ -181,6 +181,8 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
     proto = ["--inprocess", "--worlds", "basic", "--steps", "40", "--start-yaw-jitter-deg", "180"]
     assert main([*proto, "--weights", a, "--out", str(tmp_path / "one")]) == 0
     assert main([*proto, "--ensemble", "2", "--weights", a, a_copy, "--out", str(tmp_path / "ens")]) == 0
+    progress = [line for line in capsys.readouterr().out.splitlines() if line.startswith("sam basic ")]
+    assert progress[-1].startswith(f"sam basic      ensemble of 2 ({a} ... {a_copy}): "), progress  # not every file
     one, ens = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("one", "ens"))
     assert ens["weights"] == f"{a}+{a_copy}"
     assert "Each policy is 2 weights files flown as one" in (tmp_path / "ens" / "results.md").read_text()

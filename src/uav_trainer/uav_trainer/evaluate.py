@@ -223,6 +223,14 @@ def sim_arg_hfov_deg(sim_args) -> float | None:
 ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
 
 
+def weights_label(files: list[str]) -> str:
+    """How progress lines name a policy: its file, "packaged", or an ensemble's size, first and last file
+    (the weights column of results.csv keeps every file)."""
+    if len(files) > 1:
+        return f"ensemble of {len(files)} ({files[0]} ... {files[-1]})"
+    return files[0] if files else "packaged"
+
+
 INPROCESS_SIM_ARGS = ("hfov_deg", "reward_window_fraction")  # the sim_node parameters --inprocess honours
 
 
@@ -854,7 +862,7 @@ def main(argv=None) -> int:
                 r = pool([measure(model, weights, world, a.seed + i) for i in range(a.repeats)])
                 results.append(r)
                 bar.write(
-                    f"{model:3s} {world:10s} {weights or 'packaged'}: {r.crashes} crashes at {r.crash_sites} sites, "
+                    f"{model:3s} {world:10s} {weights_label(files)}: {r.crashes} crashes at {r.crash_sites} sites, "
                     f"mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                 )
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
