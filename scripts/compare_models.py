@@ -13,7 +13,7 @@ Both are seeded, so the output is reproducible. `--by run` compares two training
 of two models: a row's group is its weights file's folder without `_seed<N>` (runs/turn_sam_seed3/
 policy_sam.safetensors -> turn_sam; a snapshot policy_sam_step40000.safetensors -> turn_sam_step40000;
 an ensemble of three files, evaluate --ensemble 3 -> turn_sam_ens3; three snapshots of one run as an
-ensemble -> turn_sam_snap3).
+ensemble -> turn_sam_snap3; ten snapshots of each of two runs -> turn_sam_snap10_ens2).
 `--paired` (with `--by run`) compares the same training seeds in both groups: the difference is the
 mean over seeds of a - b, its interval resamples seeds, and the p-value flips the signs of the
 per-seed differences (a sign-flip permutation test), which is stronger than the unpaired test when
@@ -46,11 +46,17 @@ ENSEMBLE_SEP = "+"  # evaluate.ENSEMBLE_SEP: an ensemble's weights column is its
 def run_name(weights: str) -> str:
     """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam; .../policy_sam_step40000.safetensors -> turn_sam_step40000;
     an ensemble of three (evaluate --ensemble 3: files joined by '+') -> turn_sam_ens3, or turn_sam_snap3
-    when all three are files of one run (snapshots of one training, scripts/export_checkpoint.py)"""
+    when all three are files of one run (snapshots of one training, scripts/export_checkpoint.py), or
+    turn_sam_snap10_ens2 for ten snapshots of each of two runs"""
     if ENSEMBLE_SEP in weights:
         files = weights.split(ENSEMBLE_SEP)
-        if len({PurePath(f).parent for f in files}) == 1:
+        folders = [PurePath(f).parent for f in files]
+        runs = len(set(folders))
+        if runs == 1:
             return f"{_run_folder(PurePath(files[0]))}_snap{len(files)}"
+        per_run = len(files) // runs
+        if per_run > 1 and all(folders.count(d) == per_run for d in set(folders)):
+            return f"{_run_folder(PurePath(files[0]))}_snap{per_run}_ens{runs}"
         return f"{run_name(files[0])}_ens{len(files)}"
     path = PurePath(weights)
     step = re.search(r"_step(\d+)\.safetensors$", path.name)

@@ -838,23 +838,28 @@ snap_group() {  # tag K first last: the last K snapshots of each seed's run (K =
     echo "runs/$1_sam_seed$s/policy_sam.safetensors"
   done
 }
-snap_ensembles() {  # tag K folder snap3-folder:tag final-folder:tag cnn-folder:tag: each seed's last K snapshots
-  # as one policy (camera as eval_120's), measured in two halves (seeds 0-9, 10-19) and joined, then
-  # against the same runs' last three checkpoints and final networks (paired by seed unless PAIRED is
-  # set empty), and against a CNN
-  local tag=$1 k=$2 out=$3 paired=${PAIRED---paired} h p V W
+snap_halves() {  # tag K folder N: seeds 0-19's last K snapshots flown N networks to a policy (N = K: one
+  # seed's; 2K: seeds 2j and 2j+1 together; camera as eval_120's), measured in two halves (seeds 0-9,
+  # 10-19) and joined into folder/{varied,fixed}_start
+  local tag=$1 k=$2 out=$3 n=$4 h p V W
   for h in 0:9 10:19; do
     mapfile -t W < <(snap_group "$tag" "$k" ${h%:*} ${h#*:})
-    eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$k" --weights "${W[@]}"
+    eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$n" --weights "${W[@]}"
   done
   camera_args
   for p in varied_start fixed_start; do
     V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-    $EVAL --from-csv $out/seeds{0_9,10_19}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$k" --out $out/$p
+    $EVAL --from-csv $out/seeds{0_9,10_19}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$n" --out $out/$p
   done
   { cat $out/seeds0_9/varied_start/crashes.csv; tail -n +2 $out/seeds10_19/varied_start/crashes.csv; } \
     > $out/varied_start/crashes.csv
   rm -r $out/seeds0_9 $out/seeds10_19
+}
+snap_ensembles() {  # tag K folder snap3-folder:tag final-folder:tag cnn-folder:tag: each seed's last K snapshots
+  # as one policy (snap_halves), against the same runs' last three checkpoints and final networks
+  # (paired by seed unless PAIRED is set empty), and against a CNN
+  local tag=$1 k=$2 out=$3 paired=${PAIRED---paired} p
+  snap_halves "$tag" "$k" "$out" "$k"
   for p in varied_start fixed_start; do
     python scripts/compare_models.py $out/$p/results.csv ${4%:*}/$p/results.csv --by run $paired \
       --a ${tag}_sam_snap$k --b ${4#*:} > $out/$p/against_snap3.md
@@ -888,4 +893,16 @@ $EVAL --inprocess --model sam --weights "${W[@]}" --worlds basic complex turbule
   --out $R29/final/fixed_start  # the final networks alone: other rows than round 25's
 PAIRED= snap_ensembles r29snap150 10 $R29/snap10 $R27/round25_sam:r24fov150_sam_snap3 $R24/sam_20_seeds:r24fov150_sam \
   $R27/round25_cnn:r24fov150_cnn_snap3
+
+# Round 30: round 29's runs flown two seeds to a policy: seeds 2j and 2j+1, ten snapshots each (20
+# networks, ten policies); against the same seeds' ten-snapshot ensembles (paired: a pair against the
+# mean of its two seeds) and round 25's CNN (three checkpoints).
+R30=docs/results/round30_seed_pairs
+snap_halves r29snap150 10 $R30 20
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R30/$p/results.csv $R29/snap10/$p/results.csv --by run --paired \
+    --a r29snap150_sam_snap10_ens2 --b r29snap150_sam_snap10 > $R30/$p/against_snap10.md
+  python scripts/compare_models.py $R30/$p/results.csv $R27/round25_cnn/$p/results.csv --by run \
+    --a r29snap150_sam_snap10_ens2 --b r24fov150_cnn_snap3 --bar paper > $R30/$p/against_cnn.md
+done
 unset HFOV WINDOW

@@ -215,6 +215,9 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
     assert compare.run_name(ens["weights"]) == "e_sam_ens2" and compare.seeds_of(ens["weights"]) == (0, 1)
     snaps = "runs/t_sam_seed4/policy_sam_step28999.safetensors+runs/t_sam_seed4/policy_sam.safetensors"
     assert compare.run_name(snaps) == "t_sam_snap2" and compare.seeds_of(snaps) == (4, 4)
+    two_runs = snaps + "+" + snaps.replace("seed4", "seed5")
+    assert compare.run_name(two_runs) == "t_sam_snap2_ens2" and compare.seeds_of(two_runs) == (4, 4, 5, 5)
+    assert compare.run_name(f"{a}+{a_copy}+{b.replace('policy_sam', 'policy_sam_step9')}") == "e_sam_ens3"  # one file a run
     # --paired: an ensemble against the mean of its members (b = the single files)
     x, y = compare.partners([1.0, 5.0], [(0, 1), (2, 3)], [0.0, 4.0, 2.0], [(0,), (1,), (2,)])
     assert x.tolist() == [1.0] and y.tolist() == [2.0]  # (2, 3) has no partner: seed 3 is missing
