@@ -23,7 +23,8 @@
 # smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm), a
 # twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
 # three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run) and a
-# twenty-ninth (round 25's runs retrained with ten snapshots). About 49 h on 2 cores.
+# twenty-ninth (round 25's runs retrained with ten snapshots) and a thirtieth (those runs flown two
+# seeds to a policy). About 50 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
