@@ -22,7 +22,7 @@
 # (the same with every fourth training episode in Basic), a twenty-fourth (a 150 degree camera with a
 # smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm), a
 # twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
-# three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run) and a
+# three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run), a
 # twenty-ninth (round 25's runs retrained with ten snapshots) and a thirtieth (those runs flown two
 # seeds to a policy). About 50 h on 2 cores.
 set -euo pipefail
@@ -879,7 +879,8 @@ done
 # round 28's snapshots, flown as ensembles of the last ten networks (21 000-30 000); against round 27's
 # three checkpoints of round 25's runs, round 25's final networks and round 25's CNN (three
 # checkpoints), unpaired: unlike round 28's, these runs did not come out identical to the earlier ones
-# (their final networks fly other rows than round 25's; RESULTS, round 29).
+# (their final networks fly other rows than round 25's, which were trained on another machine: the code
+# at both commits trains byte-identical weights on one machine; RESULTS, round 29).
 R29=docs/results/round29_fov150_snapshots
 for s in $(seq 0 2 18); do
   for k in "$s" $((s + 1)); do

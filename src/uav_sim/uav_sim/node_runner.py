@@ -33,7 +33,7 @@ def run(node_factory, args=None) -> int:
     except Exception as e:
         # Shutting down (Ctrl-C invalidates the context) while rclpy takes a message, pybind11 may
         # raise a bare RuntimeError ("Unable to convert call argument '0'"): the shutdown, not a bug.
-        if not (interrupted(e) or not rclpy.ok()):
+        if rclpy.ok() and not interrupted(e):
             raise
     finally:
         if node is not None:
