@@ -23,8 +23,9 @@
 # smaller reward window), a twenty-fifth (the same on ten more SAM seeds, and a CNN arm), a
 # twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
 # three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run), a
-# twenty-ninth (round 25's runs retrained with ten snapshots) and a thirtieth (those runs flown two
-# seeds to a policy). About 50 h on 2 cores.
+# twenty-ninth (round 25's runs retrained with ten snapshots), a thirtieth (those runs flown two
+# seeds to a policy) and a thirty-first (those runs flown as round 27 flew round 25's). About 50 h on
+# 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -832,10 +833,11 @@ done
 for s in $(seq 0 19); do  # the same training as round 22's, bit for bit
   cmp runs/r28snap_sam_seed$s/policy_sam.safetensors runs/r22rr05_sam_seed$s/policy_sam.safetensors
 done
-snap_group() {  # tag K first last: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on)
-  local s n
+snap_group() {  # tag K first last: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on;
+  # STEPS, when set, names the snapshots flown before the final network instead)
+  local s n steps=${STEPS:-$(seq $((31000 - 1000 * $2)) 1000 29000)}
   for s in $(seq "$3" "$4"); do
-    for n in $(seq $((31000 - 1000 * $2)) 1000 29000); do echo "runs/$1_sam_seed$s/policy_sam_step$n.safetensors"; done
+    for n in $steps; do echo "runs/$1_sam_seed$s/policy_sam_step$n.safetensors"; done
     echo "runs/$1_sam_seed$s/policy_sam.safetensors"
   done
 }
@@ -906,5 +908,26 @@ for p in varied_start fixed_start; do
     --a r29snap150_sam_snap10_ens2 --b r29snap150_sam_snap10 > $R30/$p/against_snap10.md
   python scripts/compare_models.py $R30/$p/results.csv $R27/round25_cnn/$p/results.csv --by run \
     --a r29snap150_sam_snap10_ens2 --b r24fov150_cnn_snap3 --bar paper > $R30/$p/against_cnn.md
+done
+
+# Round 31: round 29's runs flown as round 27 flew round 25's (26 999, 28 999 and 30 000 steps as one
+# policy): a second draw of the set that met the paper's bar from the fixed start; against round 25's
+# (unpaired), the same runs' ten snapshots (paired) and round 25's CNN; then both draws pooled (40 seeds).
+R31=docs/results/round31_snap3_second_draw
+STEPS="26999 28999" snap_halves r29snap150 3 $R31 3
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R31/$p/results.csv $R27/round25_sam/$p/results.csv --by run \
+    --a r29snap150_sam_snap3 --b r24fov150_sam_snap3 > $R31/$p/against_round25.md
+  python scripts/compare_models.py $R31/$p/results.csv $R29/snap10/$p/results.csv --by run --paired \
+    --a r29snap150_sam_snap3 --b r29snap150_sam_snap10 > $R31/$p/against_snap10.md
+  python scripts/compare_models.py $R31/$p/results.csv $R27/round25_cnn/$p/results.csv --by run \
+    --a r29snap150_sam_snap3 --b r24fov150_cnn_snap3 --bar paper > $R31/$p/against_cnn.md
+  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+  mkdir -p $R31/pooled_40_seeds/$p
+  pool_sam $p "$R27/round25_sam:r24fov150:0" "$R31:r29snap150:100" > $R31/pooled_40_seeds/$p/pool.csv
+  $EVAL --from-csv $R31/pooled_40_seeds/$p/pool.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble 3 --out $R31/pooled_40_seeds/$p
+  rm $R31/pooled_40_seeds/$p/pool.csv
+  python scripts/compare_models.py $R31/pooled_40_seeds/$p/results.csv $R27/round25_cnn/$p/results.csv --by run \
+    --a pool_sam_snap3 --b r24fov150_cnn_snap3 --bar paper > $R31/pooled_40_seeds/$p/against_cnn.md
 done
 unset HFOV WINDOW
