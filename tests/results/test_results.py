@@ -436,3 +436,56 @@ def test_select_runs_chooses_on_validation_and_reports_the_test_worlds(tmp_path)
     assert "not an evaluate results.csv: missing column(s) model" in run(str(tmp_path / "bad.csv"), "--group", "1").stderr
     nameless = write(tmp_path / "nameless" / "results.csv", [["sam", "random:1", "p.safetensors", 1000, 0, 2.0, 0]])
     assert "must sit in a runs/<name>_seed<N>/ folder" in run(nameless, "--group", "1").stderr
+
+
+def test_bar_odds_draws_sets_of_seeds_and_counts_those_at_the_bar(tmp_path):
+    """Four seeds flown two ways. Fixed start: seed 3 loops in Complex (8 crashes); random starts:
+    seed 0 crashes once in Basic. A set of one seed meets the bar in a table when it avoids that
+    table's bad seed (3 in 4), in both when it avoids both (2 in 4); a set of all four never does."""
+    script = ROOT / "scripts" / "bar_odds.py"
+    w = "runs/v_sam_seed{}/policy_sam.safetensors"
+    fixed = {0: (0, 0, 0), 1: (0, 1, 1), 2: (0, 0, 0), 3: (0, 8, 0)}
+    random = {0: (1, 0, 0), 1: (0, 0, 0), 2: (0, 1, 0), 3: (0, 0, 1)}
+
+    def write(name, seeds, extra=()):
+        rows = [
+            ["sam", world, w.format(s), 1000, c, 2.0]
+            for s, crashes in seeds.items()
+            for world, c in zip(("basic", "complex", "turbulent"), crashes, strict=True)
+        ]
+        rows += [["cnn", "basic", w.format(0), 1000, 50, 1.0], *extra]  # another model's rows are not read
+        path = tmp_path / name / "results.csv"
+        path.parent.mkdir()
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows([["model", "world", "weights", "steps", "crashes", "mean_reward"], *rows])
+        return str(path)
+
+    seed9 = [["sam", world, w.format(9), 1000, 0, 2.0] for world in ("basic", "complex", "turbulent")]
+    paths = [write("fixed_start", fixed, seed9[:1]), write("varied_start", random, seed9)]
+    run = lambda *a: subprocess.run([sys.executable, str(script), *a], capture_output=True, text=True)  # noqa: E731
+
+    def table(out):
+        assert out.returncode == 0, out.stderr
+        rows = [line for line in out.stdout.splitlines() if line.startswith("| ") and "---" not in line][1:]
+        return {r.strip("|").split("|")[0].strip(): [c.strip() for c in r.strip("|").split("|")[1:]] for r in rows}
+
+    one = table(run(*paths, "--set-size", "1", "--draws", "40000"))
+    share = lambda cell: float(cell.rstrip(" %")) / 100  # noqa: E731
+    assert one["fixed_start"][:2] == ["0.00 / 2.25 / 0.25", "no"] and one["varied_start"][:2] == ["0.25 / 0.25 / 0.25", "no"]
+    assert share(one["fixed_start"][3]) == pytest.approx(0.75, abs=0.02)  # Complex: all but seed 3
+    assert share(one["fixed_start"][2]) == 1.0 and share(one["fixed_start"][5]) == pytest.approx(0.75, abs=0.02)
+    assert share(one["varied_start"][5]) == pytest.approx(0.75, abs=0.02)  # all but seed 0
+    assert one["every table"][1] == "no" and share(one["every table"][-1]) == pytest.approx(0.5, abs=0.02)
+    four = run(*paths, "--labels", "fixed", "random")
+    assert four.stderr.splitlines() == [  # seed 9: only Basic from the fixed start
+        "fixed: 1 weights file(s) without all of basic, complex, turbulent left out",
+        "random: 1 weights file(s) not in every table left out",
+    ]
+    assert share(table(four)["every table"][-1]) < 0.2  # four draws of four: a bad seed is rarely missed
+    assert table(run(*paths, "--bar", "basic=1,complex=8,turbulent=1"))["every table"][1:] == ["yes", "", "", "", "100.0 %"]
+    assert run(*paths, "--draws", "1000").stdout == run(*paths, "--draws", "1000").stdout  # seeded
+    # Bad input: a one-line message and a non-zero exit.
+    assert "is not WORLD=CRASHES_PER_1000" in run(*paths, "--bar", "basic=x").stderr
+    assert "--labels: 1 names for 2 tables" in run(*paths, "--labels", "a").stderr
+    assert "no cnn weights file has all of basic" in run(*paths, "--model", "cnn").stderr
+    assert run(paths[0], "--set-size", "0").returncode == 2
