@@ -24,7 +24,8 @@
 # twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
 # three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run), a
 # twenty-ninth (round 25's runs retrained with ten snapshots), a thirtieth (those runs flown two
-# seeds to a policy) and a thirty-first (those runs flown as round 27 flew round 25's). About 50 h on
+# seeds to a policy), a thirty-first (those runs flown as round 27 flew round 25's) and a thirty-second
+# (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar). About 52 h on
 # 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -841,22 +842,22 @@ snap_group() {  # tag K first last: the last K snapshots of each seed's run (K =
     echo "runs/$1_sam_seed$s/policy_sam.safetensors"
   done
 }
-snap_halves() {  # tag K folder N: seeds 0-19's last K snapshots flown N networks to a policy (N = K: one
-  # seed's; 2K: seeds 2j and 2j+1 together; camera as eval_120's), measured in two halves (seeds 0-9,
-  # 10-19) and joined into folder/{varied,fixed}_start
-  local tag=$1 k=$2 out=$3 n=$4 h p V W
-  for h in 0:9 10:19; do
+snap_halves() {  # tag K folder N: seeds 0-19's (FIRST to FIRST + 19's) last K snapshots flown N networks to a
+  # policy (N = K: one seed's; 2K: seeds 2j and 2j+1 together; camera as eval_120's), measured in two halves
+  # (seeds 0-9, 10-19) and joined into folder/{varied,fixed}_start
+  local tag=$1 k=$2 out=$3 n=$4 f=${FIRST:-0} h p V W
+  local a=seeds${f}_$((f + 9)) b=seeds$((f + 10))_$((f + 19))
+  for h in $f:$((f + 9)) $((f + 10)):$((f + 19)); do
     mapfile -t W < <(snap_group "$tag" "$k" ${h%:*} ${h#*:})
     eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$n" --weights "${W[@]}"
   done
   camera_args
   for p in varied_start fixed_start; do
     V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-    $EVAL --from-csv $out/seeds{0_9,10_19}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$n" --out $out/$p
+    $EVAL --from-csv $out/{$a,$b}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$n" --out $out/$p
   done
-  { cat $out/seeds0_9/varied_start/crashes.csv; tail -n +2 $out/seeds10_19/varied_start/crashes.csv; } \
-    > $out/varied_start/crashes.csv
-  rm -r $out/seeds0_9 $out/seeds10_19
+  { cat $out/$a/varied_start/crashes.csv; tail -n +2 $out/$b/varied_start/crashes.csv; } > $out/varied_start/crashes.csv
+  rm -r "$out/$a" "$out/$b"
 }
 snap_ensembles() {  # tag K folder snap3-folder:tag final-folder:tag cnn-folder:tag: each seed's last K snapshots
   # as one policy (snap_halves), against the same runs' last three checkpoints and final networks
@@ -922,12 +923,54 @@ for p in varied_start fixed_start; do
     --a r29snap150_sam_snap3 --b r29snap150_sam_snap10 > $R31/$p/against_snap10.md
   python scripts/compare_models.py $R31/$p/results.csv $R27/round25_cnn/$p/results.csv --by run \
     --a r29snap150_sam_snap3 --b r24fov150_cnn_snap3 --bar paper > $R31/$p/against_cnn.md
-  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-  mkdir -p $R31/pooled_40_seeds/$p
-  pool_sam $p "$R27/round25_sam:r24fov150:0" "$R31:r29snap150:100" > $R31/pooled_40_seeds/$p/pool.csv
-  $EVAL --from-csv $R31/pooled_40_seeds/$p/pool.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble 3 --out $R31/pooled_40_seeds/$p
-  rm $R31/pooled_40_seeds/$p/pool.csv
-  python scripts/compare_models.py $R31/pooled_40_seeds/$p/results.csv $R27/round25_cnn/$p/results.csv --by run \
-    --a pool_sam_snap3 --b r24fov150_cnn_snap3 --bar paper > $R31/pooled_40_seeds/$p/against_cnn.md
 done
+pooled_forty() {  # folder N cnn-folder:label folder:tag:offset ...: for each protocol, the SAM rows of the
+  # folders' tables (ensembles of N) as one table in folder/pooled_40_seeds (pool_sam, evaluate --from-csv), against the CNN
+  local out=$1/pooled_40_seeds n=$2 cnn=$3 p V
+  shift 3
+  for p in varied_start fixed_start; do
+    V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+    mkdir -p $out/$p
+    pool_sam $p "$@" > $out/$p/pool.csv
+    $EVAL --from-csv $out/$p/pool.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$n" --out $out/$p
+    rm $out/$p/pool.csv
+    python scripts/compare_models.py $out/$p/results.csv ${cnn%:*}/$p/results.csv --by run \
+      --a pool_sam_snap$n --b ${cnn#*:} --bar paper > $out/$p/against_cnn.md
+  done
+}
+pooled_forty $R31 3 $R27/round25_cnn:r24fov150_cnn_snap3 "$R27/round25_sam:r24fov150:0" "$R31:r29snap150:100"
 unset HFOV WINDOW
+
+# Round 32: round 28's recipe (round 22's command, 120 degree camera) on twenty fresh SAM seeds (20-39),
+# with round 28's snapshots, flown as ensembles of the last ten networks: a second draw of the set that
+# met the paper's bar with random starts; against round 28's (unpaired) and round 22's CNN (three
+# checkpoints), then both draws pooled (40 seeds). Then the odds that a set of twenty seeds of each
+# recipe meets the bar (scripts/bar_odds.py: sets drawn from a recipe's seeds, both protocols at once).
+R32=docs/results/round32_snap10_second_draw
+for f in 20 30; do
+  FIRST=$f train_ten r32snap sam "${ROUND6[@]}" --replay-ratio 0.5 --save-weights-at "${SNAPS[@]}"
+done
+FIRST=20 snap_halves r32snap 10 $R32 10
+camera_args
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R32/$p/results.csv $R28/snap10/$p/results.csv --by run \
+    --a r32snap_sam_snap10 --b r28snap_sam_snap10 > $R32/$p/against_round28.md
+  python scripts/compare_models.py $R32/$p/results.csv $R27/round22_cnn/$p/results.csv --by run \
+    --a r32snap_sam_snap10 --b r22rr05_cnn_snap3 --bar paper > $R32/$p/against_cnn.md
+done
+pooled_forty $R32 10 $R27/round22_cnn:r22rr05_cnn_snap3 "$R28/snap10:r28snap:0" "$R32:r32snap:0"
+mkdir -p $R32/odds
+odds() {  # name folder [bar_odds args]: twenty-seed sets drawn from folder/{fixed,varied}_start
+  local name=$1 dir=$2
+  shift 2
+  python scripts/bar_odds.py $dir/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 "$@" \
+    > $R32/odds/$name.md
+}
+odds round25_sam_snap3 $R27/round25_sam
+odds round29_sam_snap3 $R31
+odds fov150_sam_snap3_40_seeds $R31/pooled_40_seeds
+odds round18_sam_snap3 $R27/round18_sam
+odds round28_sam_snap10 $R28/snap10
+odds round32_sam_snap10 $R32
+odds fov120_sam_snap10_40_seeds $R32/pooled_40_seeds
+odds round25_cnn_snap3 $R27/round25_cnn --model cnn
