@@ -225,6 +225,45 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
     assert x.tolist() == [1.0, 5.0] and y.tolist() == [7.0, 3.0]  # snapshot ensembles of one run pair by its seed
 
 
+def test_evaluate_ensemble_rule_min_acts_on_each_actions_lowest_q_value_in_process_and_over_ros(tmp_path, capsys):
+    """Two networks that prefer a3 (2 m/s) on their mean Q but a0 (1 m/s) on each action's lowest Q
+    (advantage biases [1.5, 0, 0, 5] and [2, 0, 0, 0]): --ensemble-rule min flies a0, in-process and
+    through policy_node (its ensemble_rule parameter), so it covers half the distance."""
+    import torch
+
+    from uav_trainer.evaluate import main
+
+    def biased(name, biases):
+        cfg = NetConfig()
+        net = build_network(cfg, seed=0)
+        with torch.no_grad():
+            last = net.dueling_head.advantage[-1]
+            last.weight.zero_()
+            last.bias.copy_(torch.tensor(biases))
+        path = tmp_path / name / "policy_sam.safetensors"
+        path.parent.mkdir()
+        wio.save_file(net, cfg, path, camera_hfov_deg=120.0)
+        return str(path)
+
+    a, b = biased("r_sam_seed0", [1.5, 0.0, 0.0, 5.0]), biased("r_sam_seed1", [2.0, 0.0, 0.0, 0.0])
+    proto = ["--worlds", "basic", "--steps", "20", "--ensemble", "2", "--weights", a, b]
+    for rule in ("mean", "min"):
+        assert main(["--inprocess", *proto, "--ensemble-rule", rule, "--out", str(tmp_path / rule)]) == 0
+    ros_args = [*proto, "--ensemble-rule", "min", "--params-dir", str(ROOT / "params"), "--out", str(tmp_path / "ros")]
+    ros = run_tool("uav_trainer", "evaluate", *ros_args, domain="78")
+    assert ros.returncode == 0, ros.stderr[-3000:]
+    mean, low, over_ros = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("mean", "min", "ros"))
+    assert (mean["turn_steps"], low["turn_steps"], over_ros["turn_steps"]) == ("0", "0", "0")
+    assert float(mean["distance_m"]) > 1.8 * float(low["distance_m"]) > 0, (mean, low)  # 2 m/s against 1 m/s
+    for key in ("steps", "crashes", "mean_reward", "distance_m", "cells_visited"):
+        assert over_ros[key] == low[key], (key, over_ros, low)
+    said = (tmp_path / "min" / "results.md").read_text()
+    assert "acting on each action's lowest Q-value over them (--ensemble 2 --ensemble-rule min)" in said
+    with pytest.raises(SystemExit) as e:
+        main(["--inprocess", "--weights", a, "--ensemble-rule", "min", "--out", str(tmp_path / "one")])
+    assert e.value.code == 2 and "--ensemble-rule min needs --ensemble K > 1" in capsys.readouterr().err
+
+
 def test_compare_models_tells_a_real_difference_from_none(tmp_path):
     def write(name, sam, cnn):
         path = tmp_path / name

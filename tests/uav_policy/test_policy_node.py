@@ -252,6 +252,8 @@ def test_policy_start_up_errors(tmp_path):
     assert r.returncode == 2 and "parameter 'weights': an empty file name in the list" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
     assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
+    r = run_to_exit("uav_policy", "policy_node", "-p", "ensemble_rule:=median")
+    assert r.returncode == 2 and "parameter 'ensemble_rule'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")
     assert r.returncode == 2 and "epsilon" in r.stderr
 

@@ -42,7 +42,7 @@ from .actions import PAPER_ACTIONS, make_actions
 from .agent import Agent
 from .attention import attention_map, overlay
 from .frame_stack import FrameStack, fit_to_network
-from .networks import MAX_FRAMES, SAM_READOUTS, SIZE_FIELDS, NetConfig, QEnsemble, build_network, parameter_count
+from .networks import ENSEMBLE_RULES, MAX_FRAMES, SAM_READOUTS, SIZE_FIELDS, NetConfig, QEnsemble, build_network, parameter_count
 
 
 def weights_files(value: str) -> list[str]:
@@ -70,9 +70,16 @@ class PolicyNode(Node):
         weights_arg = d(
             "weights",
             "",
-            "safetensors weights file, or several separated by commas, flown as one policy on the mean of their "
-            "Q-values (e.g. a run's last checkpoints, scripts/export_checkpoint.py); empty: the packaged weights, "
+            "safetensors weights file, or several separated by commas, flown as one policy (ensemble_rule: the mean of their "
+            "Q-values by default; e.g. a run's last checkpoints, scripts/export_checkpoint.py); empty: the packaged weights, "
             "else a seeded random init",
+        )
+        self.ensemble_rule = d(
+            "ensemble_rule",
+            "mean",
+            "How several 'weights' files act as one: mean (the mean of their Q-values) or min (each action's lowest "
+            "Q-value over the files, a pessimistic extension); ignored for one file",
+            choices=ENSEMBLE_RULES,
         )
         self.epsilon = d(
             "epsilon", 0.0, "Probability of a random action (exploration); the trainer decays it", 0.0, 1.0, read_only=False
@@ -178,7 +185,7 @@ class PolicyNode(Node):
             except wio.WeightsError as e:
                 raise ParameterError(f"parameter 'weights': {e}{self._size_hint(path)}") from None
         try:
-            net = nets[0] if len(nets) == 1 else QEnsemble(nets)
+            net = nets[0] if len(nets) == 1 else QEnsemble(nets, self.ensemble_rule)
             cameras = {wio.read_file_camera(p) for p in paths}
         except ValueError as e:  # WeightsError included
             raise ParameterError(f"parameter 'weights': {e}") from None
@@ -189,7 +196,8 @@ class PolicyNode(Node):
         if len(nets) == 1:
             source = f"weights from {paths[0]}"
         else:
-            source = f"an ensemble of {len(paths)} weights files acting on their mean Q-values: {', '.join(paths)}"
+            joined = "mean Q-values" if self.ensemble_rule == "mean" else "lowest Q-value per action"
+            source = f"an ensemble of {len(paths)} weights files acting on their {joined}: {', '.join(paths)}"
         return net, source, cameras.pop()
 
     def _load_file(self, path) -> torch.nn.Module:

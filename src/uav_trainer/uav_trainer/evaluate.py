@@ -247,13 +247,15 @@ def evaluate_once(
     sim_args: tuple[str, ...] = (),
     log_dir: Path | None = None,
     progress=None,
+    ensemble_rule: str = "mean",
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
     reward_window_fraction the reward window they record (if any), and without image_width/image_height
     it renders at their input size. `weights` may be an ensemble's files joined by ENSEMBLE_SEP (which
-    must share architecture, camera and reward window: load_ensemble checks): policy_node gets the list."""
+    must share architecture, camera and reward window: load_ensemble checks): policy_node gets the list
+    and `ensemble_rule`."""
     files = weights.split(ENSEMBLE_SEP) if weights else []
     first = files[0] if files else ""
     if sim_arg_hfov_deg(sim_args) is None:
@@ -298,6 +300,7 @@ def evaluate_once(
             if time.monotonic() > ready_by:
                 raise TimeoutError("no first frame from sim_node within 60 s")
         wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
+        wargs += [f"ensemble_rule:={ensemble_rule}"] if len(files) > 1 else []
         procs.start(
             "policy",
             "uav_policy",
@@ -432,16 +435,16 @@ def evaluate_inprocess(
     )
 
 
-def load_ensemble(model: str, files: list[str], hfov_deg: float | None, window: float | None = None):
-    """(QEnsemble, its NetConfig, the camera to fly with, the reward window) for weights files of one
-    architecture. Without hfov_deg the members' trained camera and without `window` their reward window,
+def load_ensemble(model: str, files: list[str], hfov_deg: float | None, window: float | None = None, rule: str = "mean"):
+    """(QEnsemble joining Q-values by `rule`, its NetConfig, the camera to fly with, the reward window)
+    for weights files of one architecture. Without hfov_deg the members' trained camera and without `window` their reward window,
     each of which must then be the same for all (ValueError if not)."""
     from uav_policy import weights as wio
     from uav_policy.networks import QEnsemble
     from uav_sim.simulator import SimConfig
 
     nets = [wio.load_file(f, wio.config_for(model, f)) for f in files]
-    net = QEnsemble(nets)
+    net = QEnsemble(nets, rule)
     if hfov_deg is None:
         cameras = {wio.camera_for(f, SimConfig.hfov_deg) for f in files}
         if len(cameras) != 1:
@@ -654,6 +657,8 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
 
 
 def main(argv=None) -> int:
+    from uav_policy.networks import ENSEMBLE_RULES
+
     ap = argparse.ArgumentParser(prog="evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", choices=("sam", "cnn"), help="repeatable; default: sam")
     ap.add_argument(
@@ -690,6 +695,13 @@ def main(argv=None) -> int:
         "extension; policy_node gets the K files as its weights, comma-separated; one results row per group, its weights column "
         "the files joined by '+')",
     )
+    ap.add_argument(
+        "--ensemble-rule",
+        choices=ENSEMBLE_RULES,
+        default="mean",
+        help="with --ensemble K > 1: how the K networks act as one: mean (the mean of their Q-values) or min (each "
+        "action's lowest Q-value over them, pessimistic; an extension; policy_node's ensemble_rule)",
+    )
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
     ap.add_argument(
@@ -718,6 +730,8 @@ def main(argv=None) -> int:
         ap.error("--repeats and --steps must be >= 1")
     if a.ensemble < 1:
         ap.error("--ensemble must be >= 1")
+    if a.ensemble_rule != "mean" and a.ensemble == 1:
+        ap.error(f"--ensemble-rule {a.ensemble_rule} needs --ensemble K > 1 (one network has no members to join)")
     try:
         hfov_deg = sim_arg_hfov_deg(a.sim_arg)
         window = sim_arg_number(a.sim_arg, "reward_window_fraction")
@@ -758,8 +772,11 @@ def main(argv=None) -> int:
         protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     if a.ensemble > 1:
         protocol += (
-            f" Each policy is {a.ensemble} weights files flown as one, acting on the mean of their Q-values"
-            f" (--ensemble {a.ensemble}); means and intervals are over these policies."
+            f" Each policy is {a.ensemble} weights files flown as one, acting on "
+            + ("the mean of their Q-values" if a.ensemble_rule == "mean" else "each action's lowest Q-value over them")
+            + f" (--ensemble {a.ensemble}"
+            + (f" --ensemble-rule {a.ensemble_rule}" if a.ensemble_rule != "mean" else "")
+            + "); means and intervals are over these policies."
         )
     if a.from_csv:
         rows = [r for path in a.from_csv for r in csv.DictReader(open(path))]
@@ -814,7 +831,7 @@ def main(argv=None) -> int:
     ensembles = {}  # weights column -> (network, its config, camera, reward window)
     for model, files in runs if a.ensemble > 1 else []:
         try:
-            ensembles[ENSEMBLE_SEP.join(files)] = load_ensemble(model, files, hfov_deg, window)
+            ensembles[ENSEMBLE_SEP.join(files)] = load_ensemble(model, files, hfov_deg, window, a.ensemble_rule)
         except ValueError as e:
             ap.error(f"--ensemble {a.ensemble}, {model}: {e}")
 
@@ -837,6 +854,7 @@ def main(argv=None) -> int:
                     start_yaw_jitter_deg=jitter,
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
+                    ensemble_rule=a.ensemble_rule,
                 )
             net, net_cfg, hfov, win = ensembles.get(weights, (None, None, hfov_deg, window))
             r = evaluate_inprocess(
