@@ -3,6 +3,7 @@
     python scripts/compare_models.py docs/results/behaviour/turn_penalty_20_seeds/results.csv [--a sam --b cnn]
     python scripts/compare_models.py new.csv old.csv --by run --a redraw_sam --b turn_sam
     python scripts/compare_models.py long.csv short.csv --by run --paired --a tl300long_sam --b tl300_sam
+    python scripts/compare_models.py min.csv mean.csv --by file --paired --a min --b mean
 
 Reads an `evaluate` results.csv (one row per weights file and world). For each world and metric
 (crashes per 1000 steps, mean reward per step) it prints, in Markdown: the mean of each model over
@@ -13,8 +14,10 @@ Both are seeded, so the output is reproducible. `--by run` compares two training
 of two models: a row's group is its weights file's folder without `_seed<N>` (runs/turn_sam_seed3/
 policy_sam.safetensors -> turn_sam; a snapshot policy_sam_step40000.safetensors -> turn_sam_step40000;
 an ensemble of three files, evaluate --ensemble 3 -> turn_sam_ens3; three snapshots of one run as an
-ensemble -> turn_sam_snap3; ten snapshots of each of two runs -> turn_sam_snap10_ens2).
-`--paired` (with `--by run`) compares the same training seeds in both groups: the difference is the
+ensemble -> turn_sam_snap3; ten snapshots of each of two runs -> turn_sam_snap10_ens2). `--by file`
+takes two results.csv files and makes the first one's rows group --a and the second's group --b: the
+same weights files flown two ways (e.g. evaluate --ensemble-rule min against the mean).
+`--paired` (with `--by run` or `--by file`) compares the same training seeds in both groups: the difference is the
 mean over seeds of a - b, its interval resamples seeds, and the p-value flips the signs of the
 per-seed differences (a sign-flip permutation test), which is stronger than the unpaired test when
 seeds differ more from each other than the variants do. Only seeds present in both groups count.
@@ -120,10 +123,11 @@ def compare_paired(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resam
 
 
 def pool_worlds(rows: list[dict], name: str) -> list[dict]:
-    """One row per (model, weights file): its rows' steps and crashes summed, reward weighted by steps."""
+    """One row per (table, model, weights file): its rows' steps and crashes summed, reward weighted by steps."""
     pooled: dict[tuple[str, str], dict] = {}
     for r in rows:
-        p = pooled.setdefault((r["model"], r["weights"]), {**r, "world": name, "steps": 0, "crashes": 0, "reward_sum": 0.0})
+        key = (r.get("file"), r["model"], r["weights"])  # the same file in two tables (--by file) stays two rows
+        p = pooled.setdefault(key, {**r, "world": name, "steps": 0, "crashes": 0, "reward_sum": 0.0})
         p["steps"] += int(r["steps"])
         p["crashes"] += int(r["crashes"])
         p["reward_sum"] += float(r["mean_reward"]) * int(r["steps"])
@@ -185,8 +189,13 @@ def main(argv=None) -> int:
     ap.add_argument("--b", default="cnn")
     ap.add_argument("--resamples", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--by", choices=("model", "run"), default="model", help="group rows by model or by training run")
-    ap.add_argument("--paired", action="store_true", help="with --by run: pair the two groups' rows by training seed")
+    ap.add_argument(
+        "--by",
+        choices=("model", "run", "file"),
+        default="model",
+        help="group rows by model, by training run, or (file: two csv files) by the file they come from, --a then --b",
+    )
+    ap.add_argument("--paired", action="store_true", help="with --by run or file: pair the two groups' rows by training seed")
     ap.add_argument("--pool-worlds", metavar="NAME", help="sum each weights file's rows over all worlds into one world NAME")
     ap.add_argument(
         "--bar",
@@ -195,8 +204,10 @@ def main(argv=None) -> int:
         "with a Fisher exact test",
     )
     a = ap.parse_args(argv)
-    if a.paired and a.by != "run":
-        ap.error("--paired needs --by run (two variants trained on the same seeds)")
+    if a.paired and a.by == "model":
+        ap.error("--paired needs --by run or --by file (two variants trained on the same seeds)")
+    if a.by == "file" and (len(a.csv) != 2 or a.a == a.b):
+        ap.error("--by file needs two results.csv files and two different names --a and --b for them")
     try:
         bar = parse_bar(a.bar) if a.bar else None
     except ValueError as e:
@@ -206,10 +217,14 @@ def main(argv=None) -> int:
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     seeds: dict[tuple[str, str], list[tuple[int, ...] | None]] = defaultdict(list)  # in the order of values' rows
     worlds: list[str] = []
-    rows = [r for path in a.csv for r in csv.DictReader(open(path))]
+    rows = [{**r, "file": i} for i, path in enumerate(a.csv) for r in csv.DictReader(open(path))]
     if a.pool_worlds:
         rows = pool_worlds(rows, a.pool_worlds)
-    group_of = (lambda r: r["model"]) if a.by == "model" else (lambda r: run_name(r["weights"]))
+    group_of = {
+        "model": lambda r: r["model"],
+        "run": lambda r: run_name(r["weights"]),
+        "file": lambda r: (a.a, a.b)[r["file"]],
+    }[a.by]
     for r in rows:
         if r["world"] not in worlds:
             worlds.append(r["world"])

@@ -24,8 +24,9 @@
 # twenty-sixth (random-shift augmentation of the sampled states), a twenty-seventh (each run's last
 # three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run), a
 # twenty-ninth (round 25's runs retrained with ten snapshots), a thirtieth (those runs flown two
-# seeds to a policy), a thirty-first (those runs flown as round 27 flew round 25's) and a thirty-second
-# (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar). About 52 h on
+# seeds to a policy), a thirty-first (those runs flown as round 27 flew round 25's), a thirty-second
+# (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar) and a thirty-third
+# (those ten-snapshot ensembles on each action's lowest Q-value). About 53 h on
 # 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -843,18 +844,19 @@ snap_group() {  # tag K first last: the last K snapshots of each seed's run (K =
   done
 }
 snap_halves() {  # tag K folder N: seeds 0-19's (FIRST to FIRST + 19's) last K snapshots flown N networks to a
-  # policy (N = K: one seed's; 2K: seeds 2j and 2j+1 together; camera as eval_120's), measured in two halves
-  # (seeds 0-9, 10-19) and joined into folder/{varied,fixed}_start
+  # policy (N = K: one seed's; 2K: seeds 2j and 2j+1 together; camera as eval_120's; on their mean Q, or by
+  # the ensemble rule RULE when set), measured in two halves (seeds 0-9, 10-19) and joined into folder/{varied,fixed}_start
   local tag=$1 k=$2 out=$3 n=$4 f=${FIRST:-0} h p V W
   local a=seeds${f}_$((f + 9)) b=seeds$((f + 10))_$((f + 19))
   for h in $f:$((f + 9)) $((f + 10)):$((f + 19)); do
     mapfile -t W < <(snap_group "$tag" "$k" ${h%:*} ${h#*:})
-    eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$n" --weights "${W[@]}"
+    eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$n" ${RULE:+--ensemble-rule "$RULE"} --weights "${W[@]}"
   done
   camera_args
   for p in varied_start fixed_start; do
     V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-    $EVAL --from-csv $out/{$a,$b}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$n" --out $out/$p
+    $EVAL --from-csv $out/{$a,$b}/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble "$n" \
+      ${RULE:+--ensemble-rule "$RULE"} --out $out/$p
   done
   { cat $out/$a/varied_start/crashes.csv; tail -n +2 $out/$b/varied_start/crashes.csv; } > $out/varied_start/crashes.csv
   rm -r "$out/$a" "$out/$b"
@@ -974,3 +976,26 @@ odds round28_sam_snap10 $R28/snap10
 odds round32_sam_snap10 $R32
 odds fov120_sam_snap10_40_seeds $R32/pooled_40_seeds
 odds round25_cnn_snap3 $R27/round25_cnn --model cnn
+
+# Round 33: the same ten-snapshot ensembles (round 32's runs, 120 degrees, seeds 20-39; round 29's runs,
+# 150 degrees, seeds 0-19) flown on each action's lowest Q-value over the ten networks (evaluate
+# --ensemble-rule min, a pessimistic rule) instead of their mean; paired by seed against the mean rule
+# (rounds 32 and 29: the same networks) and against the CNN; odds of twenty-seed sets.
+R33=docs/results/round33_ensemble_min
+FIRST=20 RULE=min snap_halves r32snap 10 $R33/fov120 10
+export HFOV=150 WINDOW=0.078
+RULE=min snap_halves r29snap150 10 $R33/fov150 10
+unset HFOV WINDOW
+for p in varied_start fixed_start; do
+  for f in fov120:$R32:$R27/round22_cnn:r22rr05_cnn_snap3 fov150:$R29/snap10:$R27/round25_cnn:r24fov150_cnn_snap3; do
+    IFS=: read -r cam mean cnn label <<< "$f"
+    python scripts/compare_models.py $R33/$cam/$p/results.csv $mean/$p/results.csv --by file --paired \
+      --a min --b mean --bar paper > $R33/$cam/$p/against_mean.md
+    python scripts/compare_models.py $R33/$cam/$p/results.csv $cnn/$p/results.csv --by model --a sam --b cnn \
+      --bar paper > $R33/$cam/$p/against_cnn.md
+  done
+done
+for cam in fov120 fov150; do
+  python scripts/bar_odds.py $R33/$cam/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 \
+    > $R33/$cam/odds.md
+done

@@ -352,6 +352,28 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
     assert float(paired[6]) < 0.01  # 8 equal signs: exact p = 2 / 256
     bad = subprocess.run([sys.executable, str(script), str(path), "--paired"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--by run" in bad.stderr
+    # --by file: the same weights files in two tables (flown two ways), one group per table, paired by seed;
+    # --pool-worlds keeps a file's rows of the two tables apart.
+    header = ["model", "world", "weights", "steps", "crashes", "mean_reward"]
+    same = [f"runs/short_sam_seed{i}/policy_sam.safetensors" for i in range(len(base))]
+    one, two = tmp_path / "one.csv", tmp_path / "two.csv"
+    for table, shift in ((one, 0), (two, 2)):
+        with open(table, "w", newline="") as f:
+            table_rows = (["sam", "complex", w, 1000, c + shift, 2.0] for w, c in zip(same, base, strict=True))
+            csv.writer(f).writerows([header, *table_rows])
+    for extra in ((), ("--pool-worlds", "all")):
+        out = subprocess.run(
+            [sys.executable, str(script), str(two), str(one), "--by", "file", "--paired", "--a", "shifted", "--b", "base"]
+            + list(extra),
+            capture_output=True,
+            text=True,
+        )
+        assert out.returncode == 0, out.stderr
+        cells = [c.strip() for c in next(x for x in out.stdout.splitlines() if "crashes / 1000" in x).strip("|").split("|")]
+        assert cells[2:6] == ["37.000 (8)", "35.000 (8)", "+2.000", "+2.000 to +2.000"], out.stdout
+    for bad_args in ((str(one), "--by", "file"), (str(one), str(two), "--by", "file", "--a", "x", "--b", "x")):
+        bad = subprocess.run([sys.executable, str(script), *bad_args], capture_output=True, text=True)
+        assert bad.returncode == 2 and "--by file needs two results.csv files" in bad.stderr
 
 
 def test_compare_models_counts_the_seeds_at_the_bar(tmp_path):
