@@ -987,8 +987,8 @@ export HFOV=150 WINDOW=0.078
 RULE=min snap_halves r29snap150 10 $R33/fov150 10
 unset HFOV WINDOW
 for p in varied_start fixed_start; do
-  for f in fov120:$R32:$R27/round22_cnn:r22rr05_cnn_snap3 fov150:$R29/snap10:$R27/round25_cnn:r24fov150_cnn_snap3; do
-    IFS=: read -r cam mean cnn label <<< "$f"
+  for f in fov120:$R32:$R27/round22_cnn fov150:$R29/snap10:$R27/round25_cnn; do
+    IFS=: read -r cam mean cnn <<< "$f"
     python scripts/compare_models.py $R33/$cam/$p/results.csv $mean/$p/results.csv --by file --paired \
       --a min --b mean --bar paper > $R33/$cam/$p/against_mean.md
     python scripts/compare_models.py $R33/$cam/$p/results.csv $cnn/$p/results.csv --by model --a sam --b cnn \
