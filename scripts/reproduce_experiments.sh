@@ -999,3 +999,5 @@ for cam in fov120 fov150; do
   python scripts/bar_odds.py $R33/$cam/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 \
     > $R33/$cam/odds.md
 done
+python scripts/bar_odds.py $R29/snap10/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 \
+  > $R33/fov150/odds_round29_mean.md  # the same runs on the mean (round 32's odds tables have round 32's)
