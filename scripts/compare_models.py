@@ -124,7 +124,7 @@ def compare_paired(a: np.ndarray, b: np.ndarray, rng: np.random.Generator, resam
 
 def pool_worlds(rows: list[dict], name: str) -> list[dict]:
     """One row per (table, model, weights file): its rows' steps and crashes summed, reward weighted by steps."""
-    pooled: dict[tuple[str, str], dict] = {}
+    pooled: dict[tuple[int | None, str, str], dict] = {}
     for r in rows:
         key = (r.get("file"), r["model"], r["weights"])  # the same file in two tables (--by file) stays two rows
         p = pooled.setdefault(key, {**r, "world": name, "steps": 0, "crashes": 0, "reward_sum": 0.0})
