@@ -962,20 +962,19 @@ for p in varied_start fixed_start; do
 done
 pooled_forty $R32 10 $R27/round22_cnn:r22rr05_cnn_snap3 "$R28/snap10:r28snap:0" "$R32:r32snap:0"
 mkdir -p $R32/odds
-odds() {  # name folder [bar_odds args]: twenty-seed sets drawn from folder/{fixed,varied}_start
-  local name=$1 dir=$2
+odds() {  # out.md folder [bar_odds args]: twenty-seed sets drawn from folder/{fixed,varied}_start, into out.md
+  local out=$1 dir=$2
   shift 2
-  python scripts/bar_odds.py $dir/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 "$@" \
-    > $R32/odds/$name.md
+  python scripts/bar_odds.py $dir/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 "$@" > "$out"
 }
-odds round25_sam_snap3 $R27/round25_sam
-odds round29_sam_snap3 $R31
-odds fov150_sam_snap3_40_seeds $R31/pooled_40_seeds
-odds round18_sam_snap3 $R27/round18_sam
-odds round28_sam_snap10 $R28/snap10
-odds round32_sam_snap10 $R32
-odds fov120_sam_snap10_40_seeds $R32/pooled_40_seeds
-odds round25_cnn_snap3 $R27/round25_cnn --model cnn
+odds $R32/odds/round25_sam_snap3.md $R27/round25_sam
+odds $R32/odds/round29_sam_snap3.md $R31
+odds $R32/odds/fov150_sam_snap3_40_seeds.md $R31/pooled_40_seeds
+odds $R32/odds/round18_sam_snap3.md $R27/round18_sam
+odds $R32/odds/round28_sam_snap10.md $R28/snap10
+odds $R32/odds/round32_sam_snap10.md $R32
+odds $R32/odds/fov120_sam_snap10_40_seeds.md $R32/pooled_40_seeds
+odds $R32/odds/round25_cnn_snap3.md $R27/round25_cnn --model cnn
 
 # Round 33: the same ten-snapshot ensembles (round 32's runs, 120 degrees, seeds 20-39; round 29's runs,
 # 150 degrees, seeds 0-19) flown on each action's lowest Q-value over the ten networks (evaluate
@@ -996,8 +995,6 @@ for p in varied_start fixed_start; do
   done
 done
 for cam in fov120 fov150; do
-  python scripts/bar_odds.py $R33/$cam/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 \
-    > $R33/$cam/odds.md
+  odds $R33/$cam/odds.md $R33/$cam
 done
-python scripts/bar_odds.py $R29/snap10/{fixed_start,varied_start}/results.csv --labels fixed random --set-size 20 \
-  > $R33/fov150/odds_round29_mean.md  # the same runs on the mean (round 32's odds tables have round 32's)
+odds $R33/fov150/odds_round29_mean.md $R29/snap10  # the same runs on the mean (round 32's odds tables have round 32's)
