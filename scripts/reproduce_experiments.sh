@@ -835,22 +835,25 @@ done
 for s in $(seq 0 19); do  # the same training as round 22's, bit for bit
   cmp runs/r28snap_sam_seed$s/policy_sam.safetensors runs/r22rr05_sam_seed$s/policy_sam.safetensors
 done
-snap_group() {  # tag K first last: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on;
+snap_group() {  # tag K seed...: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on;
   # STEPS, when set, names the snapshots flown before the final network instead)
-  local s n steps=${STEPS:-$(seq $((31000 - 1000 * $2)) 1000 29000)}
-  for s in $(seq "$3" "$4"); do
-    for n in $steps; do echo "runs/$1_sam_seed$s/policy_sam_step$n.safetensors"; done
-    echo "runs/$1_sam_seed$s/policy_sam.safetensors"
+  local tag=$1 s n steps=${STEPS:-$(seq $((31000 - 1000 * $2)) 1000 29000)}
+  shift 2
+  for s in "$@"; do
+    for n in $steps; do echo "runs/${tag}_sam_seed$s/policy_sam_step$n.safetensors"; done
+    echo "runs/${tag}_sam_seed$s/policy_sam.safetensors"
   done
 }
-snap_halves() {  # tag K folder N: seeds 0-19's (FIRST to FIRST + 19's) last K snapshots flown N networks to a
-  # policy (N = K: one seed's; 2K: seeds 2j and 2j+1 together; camera as eval_120's; on their mean Q, or by
-  # the ensemble rule RULE when set), measured in two halves (seeds 0-9, 10-19) and joined into folder/{varied,fixed}_start
+snap_halves() {  # tag K folder N: seeds 0-19's (FIRST to FIRST + 19's; or the twenty seeds ORDER lists, in
+  # that order) last K snapshots flown N networks to a policy (N = K: one seed's; 2K: two neighbours in the
+  # order together, seeds 2j and 2j+1 by default; camera as eval_120's; on their mean Q, or by the ensemble rule
+  # RULE when set), measured in two halves (the first ten seeds, the last ten) and joined into folder/{varied,fixed}_start
   local tag=$1 k=$2 out=$3 n=$4 f=${FIRST:-0} h p V W
-  local a=seeds${f}_$((f + 9)) b=seeds$((f + 10))_$((f + 19))
-  for h in $f:$((f + 9)) $((f + 10)):$((f + 19)); do
-    mapfile -t W < <(snap_group "$tag" "$k" ${h%:*} ${h#*:})
-    eval_120 $out/seeds${h/:/_} 1 --model sam --ensemble "$n" ${RULE:+--ensemble-rule "$RULE"} --weights "${W[@]}"
+  local order=(${ORDER:-$(seq "$f" $((f + 19)))})
+  local a=seeds${order[0]}_${order[9]} b=seeds${order[10]}_${order[19]}
+  for h in "${order[*]:0:10}" "${order[*]:10:10}"; do
+    mapfile -t W < <(snap_group "$tag" "$k" $h)
+    eval_120 "$out/seeds${h%% *}_${h##* }" 1 --model sam --ensemble "$n" ${RULE:+--ensemble-rule "$RULE"} --weights "${W[@]}"
   done
   camera_args
   for p in varied_start fixed_start; do
@@ -998,3 +1001,25 @@ for cam in fov120 fov150; do
   odds $R33/$cam/odds.md $R33/$cam
 done
 odds $R33/fov150/odds_round29_mean.md $R29/snap10  # the same runs on the mean (round 32's odds tables have round 32's)
+
+# Round 34: two seeds to a policy again (round 30's method: ten snapshots of each, 20 networks), on other
+# pairs: round 32's runs (120 degrees) as (20, 21) ... (38, 39), and round 29's runs (150 degrees) paired the
+# other way, (1, 2) ... (17, 18), (19, 0); each against its seeds' ten-snapshot ensembles (paired: a pair
+# against the mean of its two seeds) and the CNN; the 150 degree pairs also against round 30's (other pairs
+# of the same runs, so unpaired).
+R34=docs/results/round34_seed_pairs_again
+FIRST=20 snap_halves r32snap 10 $R34/fov120 20
+export HFOV=150 WINDOW=0.078
+ORDER="$(seq -s ' ' 1 19) 0" snap_halves r29snap150 10 $R34/fov150 20
+unset HFOV WINDOW
+for p in varied_start fixed_start; do
+  for f in fov120:$R32:r32snap:$R27/round22_cnn fov150:$R29/snap10:r29snap150:$R27/round25_cnn; do
+    IFS=: read -r cam single tag cnn <<< "$f"
+    python scripts/compare_models.py $R34/$cam/$p/results.csv $single/$p/results.csv --by run --paired \
+      --a ${tag}_sam_snap10_ens2 --b ${tag}_sam_snap10 --bar paper > $R34/$cam/$p/against_snap10.md
+    python scripts/compare_models.py $R34/$cam/$p/results.csv $cnn/$p/results.csv --by model --a sam --b cnn \
+      --bar paper > $R34/$cam/$p/against_cnn.md
+  done
+  python scripts/compare_models.py $R34/fov150/$p/results.csv $R30/$p/results.csv --by file --a round34 \
+    --b round30 --bar paper > $R34/fov150/$p/against_round30.md
+done
