@@ -1023,3 +1023,14 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R34/fov150/$p/results.csv $R30/$p/results.csv --by file --a round34 \
     --b round30 --bar paper > $R34/fov150/$p/against_round30.md
 done
+# How much of each ensemble set's crash rate is one failure counted again (crashes beyond the first at a
+# site; scripts/repeat_failures.py), every SAM set of rounds 27-34 flown on the mean Q, and the CNN's.
+mkdir -p $R34/repeats
+for p in fixed_start varied_start; do
+  python scripts/repeat_failures.py $R27/round{22,25,18,26,23}_sam/$p/results.csv $R28/snap10/$p/results.csv \
+    $R29/snap10/$p/results.csv $R31/$p/results.csv $R32/$p/results.csv $R30/$p/results.csv $R34/fov1{20,50}/$p/results.csv \
+    --labels r27_round22 r27_round25 r27_round18 r27_round26 r27_round23 r28_snap10 r29_snap10 r31_snap3 r32_snap10 \
+    r30_pairs r34_pairs_fov120 r34_pairs_fov150 > $R34/repeats/sam_$p.md
+  python scripts/repeat_failures.py $R27/round{22,25,18}_cnn/$p/results.csv --model cnn \
+    --labels r27_round22 r27_round25 r27_round18 > $R34/repeats/cnn_$p.md
+done

@@ -550,3 +550,45 @@ def test_bar_odds_draws_sets_of_seeds_and_counts_those_at_the_bar(tmp_path):
     assert "--labels: 1 names for 2 tables" in run(*paths, "--labels", "a").stderr
     assert "no cnn weights file has all of basic" in run(*paths, "--model", "cnn").stderr
     assert run(paths[0], "--set-size", "0").returncode == 2
+
+
+def test_repeat_failures_counts_crashes_beyond_the_first_at_each_site(tmp_path):
+    """Two tables of three policies. Table a: one policy loops (9 crashes at 1 site), one crashes twice at
+    two sites, one never; table b: one crash. Repeats are crashes - sites: 8 of 11 in a's Complex."""
+    script = ROOT / "scripts" / "repeat_failures.py"
+    header = ["model", "world", "weights", "steps", "crashes", "crash_sites", "mean_reward"]
+
+    def write(name, rows):
+        path = tmp_path / name / "results.csv"
+        path.parent.mkdir()
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows([header, *rows])
+        return str(path)
+
+    a = write("a", [
+        ["sam", "complex", "w0", 1000, 9, 1, 2.0], ["sam", "complex", "w1", 1000, 2, 2, 2.0],
+        ["sam", "complex", "w2", 500, 0, 0, 2.0], ["sam", "basic", "w0", 1000, 0, 0, 3.0],
+        ["cnn", "complex", "w0", 1000, 40, 1, 1.0],  # another model's rows are not read
+    ])  # fmt: skip
+    b = write("b", [["sam", "complex", "v0", 1000, 1, 1, 2.0]])
+    run = lambda *x: subprocess.run([sys.executable, str(script), *x], capture_output=True, text=True)  # noqa: E731
+    out = run(a, b, "--labels", "a", "b")
+    assert out.returncode == 0, out.stderr
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in out.stdout.splitlines()[2:]]
+    assert rows == [
+        ["a", "complex", "3", "2", "1", "73 %", "9", "3.67", "1.00"],  # (9 + 2 + 0) / 3; sites (1 + 2 + 0) / 3
+        ["a", "basic", "1", "0", "0", "0 %", "0", "0.00", "0.00"],
+        ["b", "complex", "1", "1", "0", "0 %", "1", "1.00", "1.00"],
+        ["all 2 tables", "complex", "4", "3", "1", "67 %", "9", "3.00", "1.00"],
+        ["all 2 tables", "basic", "1", "0", "0", "0 %", "0", "0.00", "0.00"],
+    ]
+    cnn = run(a, "--model", "cnn", "--worlds", "complex", "--labels", "a")
+    assert cnn.stdout.splitlines()[2:] == ["| a | complex | 1 | 1 | 1 | 98 % | 40 | 40.00 | 1.00 |"]
+    # Bad input: a one-line message and a non-zero exit.
+    assert "no sam rows for world(s) turbulent" in run(a, "--worlds", "turbulent").stderr
+    assert "--labels: 1 names for 2 tables" in run(a, b, "--labels", "a").stderr
+    bad = write("bad", [["sam", "complex", "w0", 1000, 1, 2, 2.0]])
+    assert "line 2: impossible counts (steps 1000, crashes 1, sites 2)" in run(bad).stderr
+    old = tmp_path / "old.csv"
+    old.write_text("model,world,weights,steps,crashes\nsam,basic,w0,1000,0\n")
+    assert "missing column(s) crash_sites" in run(str(old)).stderr
