@@ -25,8 +25,9 @@
 # three checkpoints flown as one policy), a twenty-eighth (five and ten snapshots per run), a
 # twenty-ninth (round 25's runs retrained with ten snapshots), a thirtieth (those runs flown two
 # seeds to a policy), a thirty-first (those runs flown as round 27 flew round 25's), a thirty-second
-# (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar) and a thirty-third
-# (those ten-snapshot ensembles on each action's lowest Q-value). About 53 h on
+# (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar), a thirty-third
+# (those ten-snapshot ensembles on each action's lowest Q-value) and a thirty-fourth (two seeds to a
+# policy on other pairs; how much of each set's crash rate is one failure repeated). About 54 h on
 # 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -1034,3 +1035,6 @@ for p in fixed_start varied_start; do
   python scripts/repeat_failures.py $R27/round{22,25,18}_cnn/$p/results.csv --model cnn \
     --labels r27_round22 r27_round25 r27_round18 > $R34/repeats/cnn_$p.md
 done
+python scripts/repeat_failures.py $R22/sam_20_seeds/fixed_start/results.csv $R24/sam_20_seeds/fixed_start/results.csv \
+  $R33/fov1{20,50}/fixed_start/results.csv --labels round22_final round25_final r33_min_fov120 r33_min_fov150 \
+  > $R34/repeats/sam_fixed_start_final_and_min.md  # single networks, and the lowest-Q rule, for comparison
