@@ -25,7 +25,7 @@ from pathlib import PurePath
 
 import numpy as np
 from compare_models import crash_rate, parse_bar
-from csv_input import read_csv
+from csv_input import add_table_arguments, read_csv, table_labels
 
 COLUMNS = ("model", "world", "weights", "steps", "crashes")
 
@@ -63,9 +63,7 @@ def odds(tables: list[np.ndarray], bar: np.ndarray, set_size: int, draws: int, s
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("csv", nargs="+", help="evaluate results.csv files, one per protocol, with the same weights files")
-    ap.add_argument("--labels", nargs="+", help="a name for each table (default: each file's folder)")
-    ap.add_argument("--model", default="sam", help="the model column's value to read (default sam)")
+    add_table_arguments(ap, "evaluate results.csv files, one per protocol, with the same weights files", "each file's folder")
     ap.add_argument("--bar", default="paper", help="WORLD=CRASHES_PER_1000,... or 'paper' (basic=0,complex=1,turbulent=1)")
     ap.add_argument("--set-size", type=int, help="seeds per drawn set (default: as many as the tables have)")
     ap.add_argument("--draws", type=int, default=20000)
@@ -75,9 +73,7 @@ def main(argv=None) -> int:
         bar = parse_bar(args.bar)
     except ValueError as e:
         ap.error(f"--bar: {e}")
-    labels = args.labels or [PurePath(p).parent.name or p for p in args.csv]
-    if len(labels) != len(args.csv):
-        ap.error(f"--labels: {len(labels)} names for {len(args.csv)} tables")
+    labels = table_labels(ap, args, [PurePath(p).parent.name or p for p in args.csv])
     if args.draws < 1 or (args.set_size is not None and args.set_size < 1):
         ap.error("--draws and --set-size must be >= 1")
     worlds = list(bar)

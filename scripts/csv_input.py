@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 
 
@@ -18,3 +19,18 @@ def read_csv(path: str, columns: tuple[str, ...], kind: str) -> tuple[list[str],
             return header, list(reader)
     except OSError as e:
         raise SystemExit(f"cannot read {path}: {e.strerror}") from None
+
+
+def add_table_arguments(ap: argparse.ArgumentParser, csv_help: str, labels_default: str) -> None:
+    """The arguments of a script that reads several evaluate tables of one model: the files, --labels, --model."""
+    ap.add_argument("csv", nargs="+", help=csv_help)
+    ap.add_argument("--labels", nargs="+", help=f"a name for each table (default: {labels_default})")
+    ap.add_argument("--model", default="sam", help="the model column's value to read (default sam)")
+
+
+def table_labels(ap: argparse.ArgumentParser, args: argparse.Namespace, default: list[str]) -> list[str]:
+    """--labels, or `default`; a usage error when their number is not the number of tables."""
+    labels = args.labels or default
+    if len(labels) != len(args.csv):
+        ap.error(f"--labels: {len(labels)} names for {len(args.csv)} tables")
+    return labels

@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from csv_input import read_csv
+from csv_input import add_table_arguments, read_csv, table_labels
 
 COLUMNS = ("model", "world", "weights", "steps", "crashes", "crash_sites")
 
@@ -68,14 +68,10 @@ def row(label: str, world: str, f: dict[str, float]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("csv", nargs="+", help="evaluate results.csv files (the crash_sites column is needed)")
-    ap.add_argument("--labels", nargs="+", help="a name for each table (default: each file's path)")
-    ap.add_argument("--model", default="sam", help="the model column's value to read (default sam)")
+    add_table_arguments(ap, "evaluate results.csv files (the crash_sites column is needed)", "each file's path")
     ap.add_argument("--worlds", nargs="+", help="the worlds to show (default: every world of the tables, in order)")
     args = ap.parse_args(argv)
-    labels = args.labels or list(args.csv)
-    if len(labels) != len(args.csv):
-        ap.error(f"--labels: {len(labels)} names for {len(args.csv)} tables")
+    labels = table_labels(ap, args, list(args.csv))
     tables = [counts(read_csv(p, COLUMNS, "an evaluate results.csv")[1], args.model, p) for p in args.csv]
     seen = list(dict.fromkeys(w for t in tables for w in t))
     worlds = args.worlds or seen
