@@ -4,13 +4,14 @@
         docs/results/round30_seed_pairs/fixed_start/results.csv --labels single pairs --worlds complex
 
 From the paper's fixed start a greedy policy in our deterministic simulator flies the same flight
-again after every crash (in Turbulent the particles do not restart, so laps differ), so a policy that fails once at one place fails there until its 1000 steps
-run out: a loop. evaluate's results.csv counts each row's crashes and its distinct crash sites (where
-a crashing step began, 0.1 m grid), so crashes - sites are the repeats. For each table and world this
-prints, in Markdown: the policies (weights rows of --model), how many crash, how many repeat a
-failure (more crashes than sites), the repeats as a share of all crashes, the largest row, and the
-mean crashes per 1000 steps over the policies beside the same mean with each site counted once. With
-more than one table a last row pools their policies per world.
+again after every crash (in Turbulent the particles do not restart, so laps differ), so a policy
+that fails once at one place fails there until its 1000 steps run out: a loop. evaluate's
+results.csv counts each row's crashes and its distinct crash sites (where a crashing step began, 0.1
+m grid), so crashes - sites are the repeats. For each table and world this prints, in Markdown: the
+policies (weights rows of --model), how many crash, how many repeat a failure (more crashes than
+sites), the repeats as a share of all crashes, the largest row, and the mean crashes per 1000 steps
+over the policies beside the same mean with each site counted once. With more than one table a last
+row pools their policies per world.
 
 The pooled row answers what the paper's protocol asks of a recipe: its fixed-start mean is about
 (the share of policies that loop) x (the crashes of a loop); a loop of 25 crashes in one policy of
