@@ -851,6 +851,7 @@ snap_halves() {  # tag K folder N: seeds 0-19's (FIRST to FIRST + 19's; or the t
   # RULE when set), measured in two halves (the first ten seeds, the last ten) and joined into folder/{varied,fixed}_start
   local tag=$1 k=$2 out=$3 n=$4 f=${FIRST:-0} h p V W
   local order=(${ORDER:-$(seq "$f" $((f + 19)))})
+  [ ${#order[@]} = 20 ] || { echo "snap_halves: ORDER lists ${#order[@]} seeds, not 20" >&2; return 1; }
   local a=seeds${order[0]}_${order[9]} b=seeds${order[10]}_${order[19]}
   for h in "${order[*]:0:10}" "${order[*]:10:10}"; do
     mapfile -t W < <(snap_group "$tag" "$k" $h)
