@@ -26,9 +26,9 @@
 # twenty-ninth (round 25's runs retrained with ten snapshots), a thirtieth (those runs flown two
 # seeds to a policy), a thirty-first (those runs flown as round 27 flew round 25's), a thirty-second
 # (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar), a thirty-third
-# (those ten-snapshot ensembles on each action's lowest Q-value) and a thirty-fourth (two seeds to a
-# policy on other pairs; how much of each set's crash rate is one failure repeated). About 54 h on
-# 2 cores.
+# (those ten-snapshot ensembles on each action's lowest Q-value), a thirty-fourth (two seeds to a
+# policy on other pairs; how much of each set's crash rate is one failure repeated) and a thirty-fifth
+# (round 29's recipe with every fourth training episode in Basic). About 56 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1039,3 +1039,27 @@ done
 python scripts/repeat_failures.py $R22/sam_20_seeds/fixed_start/results.csv $R24/sam_20_seeds/fixed_start/results.csv \
   $R33/fov1{20,50}/fixed_start/results.csv --labels round22_final round25_final r33_min_fov120 r33_min_fov150 \
   > $R34/repeats/sam_fixed_start_final_and_min.md  # single networks, and the lowest-Q rule, for comparison
+
+# Round 35: round 29's recipe (150 degree camera, 5 x 5 px reward window, replay ratio 0.5, ten snapshots)
+# with round 16's Basic episodes (every fourth training episode flies Basic: --world basic --world-every 4),
+# SAM seeds 0-19; each seed's last ten networks as one policy, against round 29's (unpaired: other
+# training), round 25's CNN (three checkpoints), and how much of each crash rate is one failure repeated.
+R35=docs/results/round35_fov150_basic_episodes
+for s in $(seq 0 2 18); do
+  for k in "$s" $((s + 1)); do
+    train r35basic150 sam "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" &
+  done
+  wait
+done
+export HFOV=150 WINDOW=0.078
+snap_halves r35basic150 10 $R35 10
+unset HFOV WINDOW
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R35/$p/results.csv $R29/snap10/$p/results.csv --by file --a round35 \
+    --b round29 --bar paper > $R35/$p/against_round29.md
+  python scripts/compare_models.py $R35/$p/results.csv $R27/round25_cnn/$p/results.csv --by model --a sam --b cnn \
+    --bar paper > $R35/$p/against_cnn.md
+  python scripts/repeat_failures.py $R35/$p/results.csv $R29/snap10/$p/results.csv --labels round35 round29 \
+    > $R35/$p/repeats.md
+done
+python scripts/crash_map.py --crashes $R35/varied_start/crashes.csv --out $R35/varied_start/crash_map.png
