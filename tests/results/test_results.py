@@ -166,6 +166,43 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
     assert "random heading (uniform ±180°), 2 x 30 steps" in (tmp_path / "joined" / "results.md").read_text()
 
 
+def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, capsys):
+    """Bad rows in `--from-csv` files stop evaluate with the file, the line and what is wrong, and
+    write no tables."""
+    from uav_trainer.evaluate import main
+
+    head = "model,world,weights,steps,crashes,crashes_per_1000,mean_reward,distance_m\n"
+    good = "sam,basic,a.safetensors,1000,2,2.00,1.5,900.00\n"
+    cases = {
+        "no_column.csv": ("model,world,weights,steps\nsam,basic,a,1000\n", "no column crashes, mean_reward, distance_m"),
+        "model.csv": (head + good + "dqn,basic,a,1000,0,0.00,1.0,1.0\n", "line 3: model must be sam or cnn, got 'dqn'"),
+        "count.csv": (head + "sam,basic,a,1000,two,2.00,1.5,900.00\n", "line 2: crashes must be a whole number, got 'two'"),
+        "impossible.csv": (head + "sam,basic,a,10,11,0,1.5,9.0\n", "needs steps >= 1 and 0 <= crashes <= steps, got 10 and 11"),
+        "nan.csv": (head + "sam,basic,a,1000,0,0,nan,9.0\n", "line 2: mean_reward must be a finite number, got 'nan'"),
+        "empty.csv": (head, "no rows in"),
+        "short.csv": (head + "sam\n", "line 2: world and weights must not be empty (a short row?)"),
+        "binary.csv": (b"\xff\xfe\x00garbage", "cannot read it"),
+    }
+    for name, (text, message) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(text if isinstance(text, bytes) else text.encode())
+        out = tmp_path / f"out_{name}"
+        with pytest.raises(SystemExit) as e:
+            main(["--from-csv", str(path), "--out", str(out)])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert f"--from-csv: {path}" in err or "no rows in" in err, err
+        assert message in err, (name, err)
+        assert not out.exists()
+    with pytest.raises(SystemExit):
+        main(["--from-csv", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "m")])
+    assert "cannot read it" in capsys.readouterr().err
+    (tmp_path / "good.csv").write_text(head + good)
+    assert main(["--from-csv", str(tmp_path / "good.csv"), "--out", str(tmp_path / "ok")]) == 0
+    row = (tmp_path / "ok" / "results.csv").read_text().splitlines()[1].split(",")
+    assert row[:5] == ["sam", "basic", "a.safetensors", "1000", "2"] and row[-3:] == ["-1", "-1", "-1"]
+
+
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):
     """--ensemble K groups the files in order; two copies of one network fly exactly as that network."""
     from uav_trainer.evaluate import main

@@ -656,6 +656,74 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
     return md_path, csv_path
 
 
+RESULTS_COLUMNS = ("model", "world", "weights", "steps", "crashes", "mean_reward", "distance_m")
+
+
+def _csv_whole(row: dict, column: str, where: str, default: int | None = None) -> int:
+    text = row.get(column)
+    if text in (None, "") and default is not None:
+        return default
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {column} must be a whole number, got {text!r}") from None
+
+
+def _csv_number(row: dict, column: str, where: str) -> float:
+    try:
+        value = float(row[column])
+    except (TypeError, ValueError):
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: {column} must be a finite number, got {row[column]!r}")
+    return value
+
+
+def read_results_csvs(paths: list[str]) -> list[EvalResult]:
+    """The rows of earlier results.csv files (write_tables' format) as EvalResults, in order. ValueError,
+    naming the file and line, for a missing or unreadable file, a missing column, a model other than sam
+    or cnn, a count that is not a whole number or is impossible (crashes > steps), a number that is not
+    finite, or no rows at all. The optional columns (crash_sites, turn_steps, cells_visited) default to
+    -1 (unknown), as for tables written before they existed."""
+    results = []
+    for path in paths:
+        try:
+            with open(path, newline="") as f:
+                reader = csv.DictReader(f)
+                missing = [c for c in RESULTS_COLUMNS if c not in (reader.fieldnames or [])]
+                if missing:
+                    raise ValueError(f"{path}: no column {', '.join(missing)} (not an evaluate results.csv?)")
+                rows = list(reader)
+        except (OSError, UnicodeDecodeError, csv.Error) as e:
+            raise ValueError(f"{path}: cannot read it ({e})") from None
+        for line, r in enumerate(rows, start=2):
+            where = f"{path} line {line}"
+            if r["model"] not in ("sam", "cnn"):
+                raise ValueError(f"{where}: model must be sam or cnn, got {r['model']!r}")
+            if not r["world"] or not r["weights"]:
+                raise ValueError(f"{where}: world and weights must not be empty (a short row?)")
+            steps, crashes = _csv_whole(r, "steps", where), _csv_whole(r, "crashes", where)
+            if steps < 1 or not 0 <= crashes <= steps:
+                raise ValueError(f"{where}: needs steps >= 1 and 0 <= crashes <= steps, got {steps} and {crashes}")
+            results.append(
+                EvalResult(
+                    r["model"],
+                    r["world"],
+                    r["weights"],
+                    steps,
+                    crashes,
+                    _csv_number(r, "mean_reward", where),
+                    _csv_number(r, "distance_m", where),
+                    _csv_whole(r, "crash_sites", where, -1),
+                    _csv_whole(r, "turn_steps", where, -1),
+                    _csv_whole(r, "cells_visited", where, -1),
+                )
+            )
+    if not results:
+        raise ValueError(f"no rows in {', '.join(paths)}")
+    return results
+
+
 def main(argv=None) -> int:
     from uav_policy.networks import ENSEMBLE_RULES
 
@@ -779,23 +847,11 @@ def main(argv=None) -> int:
             + "); means and intervals are over these policies."
         )
     if a.from_csv:
-        rows = [r for path in a.from_csv for r in csv.DictReader(open(path))]
-        results = [
-            EvalResult(
-                r["model"],
-                r["world"],
-                r["weights"],
-                int(r["steps"]),
-                int(r["crashes"]),
-                float(r["mean_reward"]),
-                float(r["distance_m"]),
-                int(r.get("crash_sites", -1)),
-                int(r.get("turn_steps", -1)),
-                int(r.get("cells_visited", -1)),
-            )
-            for r in rows
-        ]
-        md, _ = write_tables(results, Path(a.out), results[0].steps if results else a.steps, protocol)
+        try:
+            results = read_results_csvs(a.from_csv)
+        except ValueError as e:
+            ap.error(f"--from-csv: {e}")
+        md, _ = write_tables(results, Path(a.out), results[0].steps, protocol)
         print(md.read_text())
         return 0
     models = a.model or ["sam"]
