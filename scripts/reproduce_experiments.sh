@@ -27,8 +27,9 @@
 # seeds to a policy), a thirty-first (those runs flown as round 27 flew round 25's), a thirty-second
 # (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar), a thirty-third
 # (those ten-snapshot ensembles on each action's lowest Q-value), a thirty-fourth (two seeds to a
-# policy on other pairs; how much of each set's crash rate is one failure repeated) and a thirty-fifth
-# (round 29's recipe with every fourth training episode in Basic). About 56 h on 2 cores.
+# policy on other pairs; how much of each set's crash rate is one failure repeated), a thirty-fifth
+# (round 29's recipe with every fourth training episode in Basic) and a thirty-sixth (the same on twenty
+# fresh seeds, and both draws pooled). About 58 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -837,25 +838,26 @@ for s in $(seq 0 19); do  # the same training as round 22's, bit for bit
   cmp runs/r28snap_sam_seed$s/policy_sam.safetensors runs/r22rr05_sam_seed$s/policy_sam.safetensors
 done
 snap_group() {  # tag K seed...: the last K snapshots of each seed's run (K = 5: 26 000 on; 10: 21 000 on;
-  # STEPS, when set, names the snapshots flown before the final network instead)
-  local tag=$1 s n steps=${STEPS:-$(seq $((31000 - 1000 * $2)) 1000 29000)}
+  # STEPS, when set, names the snapshots flown before the final network instead; MODEL: sam unless set)
+  local tag=$1 s n m=${MODEL:-sam} steps=${STEPS:-$(seq $((31000 - 1000 * $2)) 1000 29000)}
   shift 2
   for s in "$@"; do
-    for n in $steps; do echo "runs/${tag}_sam_seed$s/policy_sam_step$n.safetensors"; done
-    echo "runs/${tag}_sam_seed$s/policy_sam.safetensors"
+    for n in $steps; do echo "runs/${tag}_${m}_seed$s/policy_${m}_step$n.safetensors"; done
+    echo "runs/${tag}_${m}_seed$s/policy_$m.safetensors"
   done
 }
 snap_halves() {  # tag K folder N: seeds 0-19's (FIRST to FIRST + 19's; or the twenty seeds ORDER lists, in
-  # that order) last K snapshots flown N networks to a policy (N = K: one seed's; 2K: two neighbours in the
-  # order together, seeds 2j and 2j+1 by default; camera as eval_120's; on their mean Q, or by the ensemble rule
-  # RULE when set), measured in two halves (the first ten seeds, the last ten) and joined into folder/{varied,fixed}_start
+  # that order) last K snapshots (of MODEL's runs: sam unless set) flown N networks to a policy (N = K: one
+  # seed's; 2K: two neighbours in the order together, seeds 2j and 2j+1 by default; camera as eval_120's; on
+  # their mean Q, or by the ensemble rule RULE when set), measured in two halves (the first ten seeds, the
+  # last ten) and joined into folder/{varied,fixed}_start
   local tag=$1 k=$2 out=$3 n=$4 f=${FIRST:-0} h p V W
   local order=(${ORDER:-$(seq "$f" $((f + 19)))})
   [ ${#order[@]} = 20 ] || { echo "snap_halves: ORDER lists ${#order[@]} seeds, not 20" >&2; return 1; }
   local a=seeds${order[0]}_${order[9]} b=seeds${order[10]}_${order[19]}
   for h in "${order[*]:0:10}" "${order[*]:10:10}"; do
     mapfile -t W < <(snap_group "$tag" "$k" $h)
-    eval_120 "$out/seeds${h%% *}_${h##* }" 1 --model sam --ensemble "$n" ${RULE:+--ensemble-rule "$RULE"} --weights "${W[@]}"
+    eval_120 "$out/seeds${h%% *}_${h##* }" 1 --model "${MODEL:-sam}" --ensemble "$n" ${RULE:+--ensemble-rule "$RULE"} --weights "${W[@]}"
   done
   camera_args
   for p in varied_start fixed_start; do
@@ -1063,3 +1065,40 @@ for p in varied_start fixed_start; do
     > $R35/$p/repeats.md
 done
 python scripts/crash_map.py --crashes $R35/varied_start/crashes.csv --out $R35/varied_start/crash_map.png
+
+# Round 36: round 35's command on twenty fresh SAM seeds (20-39), flown the same way: a second draw of the
+# first set that met the paper's bar under both protocols; against round 35 (unpaired: other seeds) and
+# round 25's CNN, repeats and crash map; then both draws pooled (40 seeds, the tables' rows as they are)
+# against the CNN, and the odds that twenty seeds of this recipe meet the bar (each draw and the pool).
+R36=docs/results/round36_basic_episodes_second_draw
+for s in $(seq 20 2 38); do
+  for k in "$s" $((s + 1)); do
+    train r35basic150 sam "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" &
+  done
+  wait
+done
+export HFOV=150 WINDOW=0.078
+FIRST=20 snap_halves r35basic150 10 $R36 10
+camera_args
+unset HFOV WINDOW
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R36/$p/results.csv $R35/$p/results.csv --by file --a round36 \
+    --b round35 --bar paper > $R36/$p/against_round35.md
+  python scripts/compare_models.py $R36/$p/results.csv $R27/round25_cnn/$p/results.csv --by model --a sam --b cnn \
+    --bar paper > $R36/$p/against_cnn.md
+  python scripts/repeat_failures.py $R36/$p/results.csv $R35/$p/results.csv --labels round36 round35 > $R36/$p/repeats.md
+done
+python scripts/crash_map.py --crashes $R36/varied_start/crashes.csv --out $R36/varied_start/crash_map.png
+for p in varied_start fixed_start; do
+  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+  mkdir -p $R36/pooled_40_seeds/$p
+  { cat $R35/$p/results.csv; tail -n +2 $R36/$p/results.csv; } > $R36/pooled_40_seeds/$p/pool.csv
+  $EVAL --from-csv $R36/pooled_40_seeds/$p/pool.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble 10 --out $R36/pooled_40_seeds/$p
+  rm $R36/pooled_40_seeds/$p/pool.csv
+  python scripts/compare_models.py $R36/pooled_40_seeds/$p/results.csv $R27/round25_cnn/$p/results.csv --by model \
+    --a sam --b cnn --bar paper > $R36/pooled_40_seeds/$p/against_cnn.md
+done
+mkdir -p $R36/odds
+odds $R36/odds/round35.md $R35
+odds $R36/odds/round36.md $R36
+odds $R36/odds/pooled_40_seeds.md $R36/pooled_40_seeds
