@@ -1047,12 +1047,16 @@ python scripts/repeat_failures.py $R22/sam_20_seeds/fixed_start/results.csv $R24
 # SAM seeds 0-19; each seed's last ten networks as one policy, against round 29's (unpaired: other
 # training), round 25's CNN (three checkpoints), and how much of each crash rate is one failure repeated.
 R35=docs/results/round35_fov150_basic_episodes
-for s in $(seq 0 2 18); do
-  for k in "$s" $((s + 1)); do
-    train r35basic150 sam "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" &
+train_basic150() {  # model first: round 35's command on twenty seeds from first, two at a time
+  local s k
+  for s in $(seq "$2" 2 $(($2 + 18))); do
+    for k in "$s" $((s + 1)); do
+      train r35basic150 "$1" "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" &
+    done
+    wait
   done
-  wait
-done
+}
+train_basic150 sam 0
 export HFOV=150 WINDOW=0.078
 snap_halves r35basic150 10 $R35 10
 unset HFOV WINDOW
@@ -1071,12 +1075,7 @@ python scripts/crash_map.py --crashes $R35/varied_start/crashes.csv --out $R35/v
 # round 25's CNN, repeats and crash map; then both draws pooled (40 seeds, the tables' rows as they are)
 # against the CNN, and the odds that twenty seeds of this recipe meet the bar (each draw and the pool).
 R36=docs/results/round36_basic_episodes_second_draw
-for s in $(seq 20 2 38); do
-  for k in "$s" $((s + 1)); do
-    train r35basic150 sam "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" &
-  done
-  wait
-done
+train_basic150 sam 20
 export HFOV=150 WINDOW=0.078
 FIRST=20 snap_halves r35basic150 10 $R36 10
 camera_args
