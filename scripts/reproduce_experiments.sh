@@ -1047,13 +1047,10 @@ python scripts/repeat_failures.py $R22/sam_20_seeds/fixed_start/results.csv $R24
 # SAM seeds 0-19; each seed's last ten networks as one policy, against round 29's (unpaired: other
 # training), round 25's CNN (three checkpoints), and how much of each crash rate is one failure repeated.
 R35=docs/results/round35_fov150_basic_episodes
-train_basic150() {  # model first: round 35's command on twenty seeds from first, two at a time
-  local s k
-  for s in $(seq "$2" 2 $(($2 + 18))); do
-    for k in "$s" $((s + 1)); do
-      train r35basic150 "$1" "$k" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" &
-    done
-    wait
+train_basic150() {  # model first: round 35's command on twenty seeds from first, two at a time (train_ten twice)
+  local f
+  for f in "$2" $(($2 + 10)); do
+    FIRST=$f train_ten r35basic150 "$1" "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}"
   done
 }
 train_basic150 sam 0
