@@ -28,8 +28,8 @@
 # (round 28's recipe on twenty fresh seeds; the odds that a set of twenty meets the bar), a thirty-third
 # (those ten-snapshot ensembles on each action's lowest Q-value), a thirty-fourth (two seeds to a
 # policy on other pairs; how much of each set's crash rate is one failure repeated), a thirty-fifth
-# (round 29's recipe with every fourth training episode in Basic) and a thirty-sixth (the same on twenty
-# fresh seeds, and both draws pooled). About 58 h on 2 cores.
+# (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
+# fresh seeds, and both draws pooled) and a thirty-seventh (the CNN arm of that recipe). About 60 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1098,3 +1098,26 @@ mkdir -p $R36/odds
 odds $R36/odds/round35.md $R35
 odds $R36/odds/round36.md $R36
 odds $R36/odds/pooled_40_seeds.md $R36/pooled_40_seeds
+
+# Round 37: round 35's command for the CNN on seeds 0-19, flown the same way (each seed's last ten networks as
+# one policy, 150 degree camera, both protocols): "CNN measured the same way"; against the 40 pooled SAM seeds
+# of rounds 35 and 36, against round 35's SAM seeds 0-19 alone, against round 27's CNN (round 25's recipe);
+# repeats, crash map, and the odds that twenty CNN seeds of this recipe meet the paper's bar.
+R37=docs/results/round37_cnn_basic_episodes
+train_basic150 cnn 0
+export HFOV=150 WINDOW=0.078
+MODEL=cnn snap_halves r35basic150 10 $R37 10
+unset HFOV WINDOW
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R36/pooled_40_seeds/$p/results.csv $R37/$p/results.csv --by model --a sam --b cnn \
+    --bar paper > $R37/$p/against_sam_40.md
+  python scripts/compare_models.py $R35/$p/results.csv $R37/$p/results.csv --by model --a sam --b cnn \
+    --bar paper > $R37/$p/against_sam_round35.md
+  python scripts/compare_models.py $R37/$p/results.csv $R27/round25_cnn/$p/results.csv --by file --a round37_cnn \
+    --b round27_cnn --bar paper > $R37/$p/against_round27_cnn.md
+  python scripts/repeat_failures.py $R37/$p/results.csv $R27/round25_cnn/$p/results.csv --model cnn \
+    --labels round37 round27 > $R37/$p/repeats.md
+done
+python scripts/crash_map.py --crashes $R37/varied_start/crashes.csv --out $R37/varied_start/crash_map.png
+mkdir -p $R37/odds
+odds $R37/odds/cnn.md $R37 --model cnn
