@@ -1105,9 +1105,7 @@ odds $R36/odds/pooled_40_seeds.md $R36/pooled_40_seeds
 # repeats, crash map, and the odds that twenty CNN seeds of this recipe meet the paper's bar.
 R37=docs/results/round37_cnn_basic_episodes
 train_basic150 cnn 0
-export HFOV=150 WINDOW=0.078
-MODEL=cnn snap_halves r35basic150 10 $R37 10
-unset HFOV WINDOW
+HFOV=150 WINDOW=0.078 MODEL=cnn snap_halves r35basic150 10 $R37 10
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R36/pooled_40_seeds/$p/results.csv $R37/$p/results.csv --by model --a sam --b cnn \
     --bar paper > $R37/$p/against_sam_40.md
