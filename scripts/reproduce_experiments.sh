@@ -29,7 +29,8 @@
 # (those ten-snapshot ensembles on each action's lowest Q-value), a thirty-fourth (two seeds to a
 # policy on other pairs; how much of each set's crash rate is one failure repeated), a thirty-fifth
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
-# fresh seeds, and both draws pooled) and a thirty-seventh (the CNN arm of that recipe). About 60 h on 2 cores.
+# fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe) and a thirty-eighth (that
+# recipe as the main job over ROS, `train --recipe ensemble`). About 61 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1119,3 +1120,18 @@ done
 python scripts/crash_map.py --crashes $R37/varied_start/crashes.csv --out $R37/varied_start/crash_map.png
 mkdir -p $R37/odds
 odds $R37/odds/cnn.md $R37 --model cnn
+
+# Round 38: the main job's ensemble recipe (`train --recipe ensemble`: round 35's recipe over ROS, three node
+# processes, lockstep capped at 30 steps/s), SAM seeds 0-2, 30 000 steps each; each run's ten files (nine
+# snapshots and the final weights) flown as one policy as rounds 35-37; against the forty in-process SAM seeds
+# of rounds 35 and 36 (ROS training is not bit-identical to in-process, so the same seeds are not the same runs).
+R38=docs/results/round38_main_job_ensemble
+for s in 0 1 2; do
+  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r38ros_sam_seed$s --no-resume
+done
+mapfile -t W < <(snap_group r38ros 10 0 1 2)
+HFOV=150 WINDOW=0.078 eval_120 $R38 1 --model sam --ensemble 10 --weights "${W[@]}"
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R38/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a round38_ros \
+    --b inprocess_40 --bar paper > $R38/$p/against_inprocess_40.md
+done

@@ -12,7 +12,9 @@ from conftest import ROOT, deep_qos, executable, run_to_exit
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_sim import contract
-from uav_trainer.evaluate import evaluate_once
+from uav_trainer.evaluate import ENSEMBLE_SEP, evaluate_once
+from uav_trainer.train import snapshot_plan
+from uav_trainer.trainer_node import snapshot_steps
 
 SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
 
@@ -129,6 +131,48 @@ def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
     assert all(int(r["length"]) <= 4 for r in rows)
     # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
     assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
+
+
+def test_the_ensemble_recipe_trains_round_35s_setting_and_its_ten_files_fly_as_one_policy(tmp_path):
+    """train --recipe ensemble: the best measured recipe over ROS, with nine snapshots besides the final weights."""
+    run_dir = tmp_path / "run"
+    r, logs = run_train(run_dir, "79", "--recipe", "ensemble", "--steps", "60", timeout_s=300)
+    assert (
+        "(recipe ensemble: hfov_deg:=150.0 reward_window_fraction:=0.078 mix_world:=basic mix_world_every:=4 "
+        "max_episode_steps:=300 turn_penalty:=1.0 replay_ratio:=0.5 save_weights_every_steps:=2 "
+        "save_weights_from_step:=42) in 'random_each_episode'"
+    ) in r.stdout
+    assert "a new layout every episode ('basic' every 4 episodes)" in logs["sim"]
+    files = [run_dir / f"policy_sam_step{n}.safetensors" for n in range(42, 60, 2)] + [run_dir / "policy_sam.safetensors"]
+    assert sorted(run_dir.glob("policy_sam*.safetensors")) == sorted(files)
+    assert logs["trainer"].count("weights snapshot") == 9
+    assert "sim_node --ros-args -p hfov_deg:=150.0 & " in r.stdout
+    assert f"-p model:=sam -p weights:={','.join(map(str, files))}" in r.stdout
+    for f in files:
+        assert wio.read_file_camera(f) == 150.0 and abs(wio.read_file_window(f) - 0.078) < 1e-3, f
+    os.environ["ROS_DOMAIN_ID"] = "79"
+    flown = evaluate_once("sam", ENSEMBLE_SEP.join(map(str, files)), "basic", 20)
+    assert flown.steps == 20
+
+
+def test_trainer_snapshot_parameters_need_a_budget_they_fall_inside():
+    for args, what in (
+        (("-p", "save_weights_every_steps:=100"), "needs a step budget (total_steps > 0)"),
+        (("-p", "save_weights_from_step:=100"), "'save_weights_from_step' needs save_weights_every_steps > 0"),
+        (("-p", "total_steps:=500", "-p", "save_weights_every_steps:=100", "-p", "save_weights_from_step:=500"), "below"),
+    ):
+        r = run_to_exit("uav_trainer", "trainer_node", *args)
+        assert r.returncode == 2 and what in r.stderr, (args, r.stderr[-500:])
+
+
+def test_the_ensemble_recipes_snapshots_are_round_35s_steps():
+    assert snapshot_plan(9, 30000) == (
+        ["save_weights_every_steps:=1000", "save_weights_from_step:=21000"],
+        [21000, 22000, 23000, 24000, 25000, 26000, 27000, 28000, 29000],
+    )
+    assert snapshot_plan(0, 30000) == ([], [])
+    assert snapshot_steps(1000, 21000, 30000) == list(range(21000, 30000, 1000))
+    assert snapshot_steps(7, 0, 30) == [7, 14, 21, 28] and snapshot_steps(0, 0, 0) == []
 
 
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):

@@ -180,6 +180,7 @@ def run(
     if floor:  # before anything is written: the run could only learn to crash
         raise RewardWindowError(floor)
     training = Training(cfg, run_dir, log=log, resume=resume)
+    training.plan_snapshots(snapshots)
     training.camera_hfov_deg = hfov_deg  # recorded in every weights file this run writes
     paper_window = reward_window_fraction == SimConfig.reward_window_fraction
     training.reward_window_fraction = None if paper_window else reward_window_fraction  # likewise, when not the paper's
@@ -211,9 +212,7 @@ def run(
                 pass
             if validator is not None:
                 validator(training)
-            if training.env_steps in snapshots:
-                path = training.dir / f"policy_{cfg.model}_step{training.env_steps}.safetensors"
-                training.save_weights(path)
+            for path in training.save_due_snapshots():
                 log(f"step {training.env_steps}: weights snapshot {path}")
             if on_step is not None and on_step(training):
                 break

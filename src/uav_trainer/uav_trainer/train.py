@@ -4,7 +4,11 @@
 
 Recipes (`--recipe`): `shipped` (default) is how the packaged weights were trained: a 120 deg
 camera, a new procedural layout every episode and a turn penalty of 1.0 in the reward;
-`paper` is the paper's setting: a 90 deg camera in the Basic world with the paper's reward.
+`paper` is the paper's setting: a 90 deg camera in the Basic world with the paper's reward;
+`ensemble` is the recipe with the fewest crashes measured (docs/RESULTS.md, round 35): a 150 deg
+camera with a 5 x 5 px reward window, new layouts with Basic as every fourth episode, a 300-step
+episode limit, turn penalty 1.0, two updates per four steps, and the online network saved at nine
+steps of the budget's last 30 %, to be flown with the final weights as one policy of ten.
 
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
 policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint with
@@ -26,10 +30,37 @@ from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 from .launching import Processes, params_args
 
 # What each recipe sets on top of params/*.yaml; --world, --sim-arg and --trainer-arg still win.
+# `snapshots`: that many weight snapshots, one every thirtieth of the budget, ending one before it
+# (30 000 steps: 21 000 ... 29 000); `max_rate_hz`: the step-rate cap unless --max-rate-hz says.
 RECIPES = {
     "shipped": {"world": "random_each_episode", "sim": ["hfov_deg:=120.0"], "trainer": ["turn_penalty:=1.0"]},
     "paper": {"world": "basic", "sim": ["hfov_deg:=90.0"], "trainer": ["turn_penalty:=0.0"]},
+    "ensemble": {
+        "world": "random_each_episode",
+        "sim": [
+            "hfov_deg:=150.0",
+            "reward_window_fraction:=0.078",
+            "mix_world:=basic",
+            "mix_world_every:=4",
+            "max_episode_steps:=300",
+        ],
+        "trainer": ["turn_penalty:=1.0", "replay_ratio:=0.5"],
+        "snapshots": 9,
+        "max_rate_hz": 30.0,
+    },
 }
+DEFAULT_MAX_RATE_HZ = 60.0
+
+
+def snapshot_plan(snapshots: int, steps: int) -> tuple[list[str], list[int]]:
+    """(trainer_node parameters, env steps) for `snapshots` weight snapshots, one every thirtieth of
+    `steps`, the last one thirtieth before the end; nothing when `snapshots` is 0."""
+    if not snapshots:
+        return [], []
+    every = max(1, steps // 30)
+    first = max(every, steps - snapshots * every)
+    args = [f"save_weights_every_steps:={every}", f"save_weights_from_step:={first}"]
+    return args, list(range(first, steps, every))
 
 
 def main(argv=None) -> int:
@@ -40,7 +71,9 @@ def main(argv=None) -> int:
         choices=tuple(RECIPES),
         default="shipped",
         help="shipped: 120 deg camera, new layout every episode, turn penalty 1.0 (how the packaged weights were "
-        "trained); paper: 90 deg camera, Basic world, the paper's reward (default: shipped)",
+        "trained); paper: 90 deg camera, Basic world, the paper's reward; ensemble: round 35's recipe (150 deg "
+        "camera, Basic every fourth episode, 300-step episodes, snapshots flown as one policy; docs/RESULTS.md) "
+        "(default: shipped)",
     )
     ap.add_argument(
         "--world",
@@ -52,8 +85,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--max-rate-hz",
         type=float,
-        default=60.0,
-        help="lockstep step-rate cap so the learner keeps its replay ratio on 2 CPU cores; 0 = uncapped (default: 60)",
+        default=None,
+        help="lockstep step-rate cap so the learner keeps its replay ratio on 2 CPU cores; 0 = uncapped "
+        f"(default: {DEFAULT_MAX_RATE_HZ:g}, recipe ensemble {RECIPES['ensemble']['max_rate_hz']:g}: twice the updates)",
     )
     ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
     ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml")
@@ -95,8 +129,12 @@ def main(argv=None) -> int:
         ap.error(f"--frames must lie in [1, {MAX_FRAMES}], got {a.frames}")
     frames = [] if a.frames is None else [f"frame_stack:={a.frames}"]
     size = [] if a.input_size is None else [a.input_size]
+    if a.max_rate_hz is not None and a.max_rate_hz < 0:
+        ap.error(f"--max-rate-hz must be >= 0, got {a.max_rate_hz:g}")
     recipe = RECIPES[a.recipe]
     world = a.world or recipe["world"]
+    max_rate_hz = recipe.get("max_rate_hz", DEFAULT_MAX_RATE_HZ) if a.max_rate_hz is None else a.max_rate_hz
+    snapshots, snapshot_at = snapshot_plan(recipe.get("snapshots", 0), a.steps)
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     logs = run_dir / "logs"
@@ -105,7 +143,7 @@ def main(argv=None) -> int:
     # A random start heading: drawn anew each episode in a fixed world; with random_each_episode one
     # draw per run, where every layout starts (as the shipped weights were trained).
     # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
-    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(a.max_rate_hz)}", "wait_for_subscribers:=2"]
+    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(max_rate_hz)}", "wait_for_subscribers:=2"]
     sim_extra += recipe["sim"]
     sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
     procs.start(
@@ -134,6 +172,7 @@ def main(argv=None) -> int:
                 f"run_dir:={run_dir}",
                 f"resume:={'false' if a.no_resume else 'true'}",
                 *recipe["trainer"],
+                *snapshots,
                 *[f"input_size_px:={px}" for px in size],
                 *frames,
                 *a.trainer_arg,
@@ -141,7 +180,7 @@ def main(argv=None) -> int:
         ),
     )
     print(
-        f"training D3QN-{a.model.upper()} (recipe {a.recipe}: {' '.join(recipe['sim'] + recipe['trainer'])}) "
+        f"training D3QN-{a.model.upper()} (recipe {a.recipe}: {' '.join(recipe['sim'] + recipe['trainer'] + snapshots)}) "
         f"in '{world}' for {a.steps} steps -> {run_dir} (node logs in {logs})"
     )
     interrupted = False
@@ -161,8 +200,13 @@ def main(argv=None) -> int:
     trainer_code = trainer.returncode
     weights = run_dir / f"policy_{a.model}.safetensors"
     if weights.exists():
+        # The snapshots this budget planned that were written (a stop before the end writes fewer), then the final weights.
+        files = [p for n in snapshot_at if (p := run_dir / f"policy_{a.model}_step{n}.safetensors").exists()] + [weights]
+        camera = [kv for kv in sim_extra if kv.startswith("hfov_deg:=")][-1:]
+        fly_sim = f"ros2 run uav_sim sim_node --ros-args -p {camera[0]} & " if camera else ""
         print(
-            f"weights: {weights}\nfly them: ros2 run uav_policy policy_node --ros-args -p model:={a.model} -p weights:={weights}"
+            f"weights: {', '.join(map(str, files))}\nfly them: {fly_sim}ros2 run uav_policy policy_node --ros-args "
+            f"-p model:={a.model} -p weights:={','.join(map(str, files))}"
             + (f" -p sam_readout:={a.sam_readout}" if a.sam_readout != "max" else "")
         )
     if trainer_code not in (0, None, -signal.SIGINT):

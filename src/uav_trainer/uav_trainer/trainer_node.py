@@ -51,6 +51,25 @@ def lag_warning(behind: int, due: int, ratio: float) -> str | None:
     )
 
 
+def snapshot_steps(every: int, first: int, total_steps: int) -> list[int]:
+    """The env steps of trainer_node's weight snapshots: every `every` steps from `first` (0: from `every`)
+    to below `total_steps`, whose end the final weights file already holds. Raises ParameterError
+    when snapshots are asked for without a budget or none would fall inside it."""
+    if every == 0:
+        if first:
+            raise ParameterError("parameter 'save_weights_from_step' needs save_weights_every_steps > 0")
+        return []
+    if total_steps == 0:
+        raise ParameterError("parameter 'save_weights_every_steps' needs a step budget (total_steps > 0)")
+    steps = list(range(first or every, total_steps, every))
+    if not steps:
+        raise ParameterError(
+            f"parameters 'save_weights_every_steps'={every} and 'save_weights_from_step'={first}: no snapshot "
+            f"falls below total_steps={total_steps}"
+        )
+    return steps
+
+
 class TrainerNode(Node):
     def __init__(self):
         super().__init__("trainer_node")
@@ -199,6 +218,17 @@ class TrainerNode(Node):
         changed = [k for k in SAM_SIZES if getattr(self.cfg, k) != getattr(D, k)]
         if self.cfg.model == "cnn" and changed:
             raise ParameterError(f"parameters {changed} size SAM's relational module; model 'cnn' has none")
+        snapshot_every = d(
+            "save_weights_every_steps",
+            0,
+            "> 0: also write the online network as policy_<model>_step<N>.safetensors every this many env steps, "
+            "from save_weights_from_step to below total_steps (snapshots, e.g. a run's last ten flown as one "
+            "policy); 0 = off",
+            0,
+            10**9,
+        )
+        snapshot_from = d("save_weights_from_step", 0, "The first snapshot's env step (0 = save_weights_every_steps)", 0, 10**10)
+        snapshots = snapshot_steps(snapshot_every, snapshot_from, self.cfg.total_steps)
         run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")
         resume = d("resume", True, "Resume from run_dir's latest checkpoint when there is one")
         self.step_ns = int(round(1e9 * d("step_duration_s", 0.5, "Sim step duration (s); must equal sim_node's", 0.01, 5.0)))
@@ -217,6 +247,7 @@ class TrainerNode(Node):
         self.cfg = dataclasses.replace(self.cfg, turning_actions=turning_indices(self.actions))
         torch.set_num_threads(threads)
         self.training = Training(self.cfg, run_dir, log=self.get_logger().info, resume=resume)
+        self.training.plan_snapshots(snapshots)
 
         q = contract.DEEP_QOS
         hw = (self.training.net_cfg.height, self.training.net_cfg.width)
@@ -289,8 +320,13 @@ class TrainerNode(Node):
         while not self._stop.is_set():
             if self.training.failed or self.training.budget_done:
                 return
+            self._save_snapshots()
             if not self.training.learn_once():
                 time.sleep(0.002)
+
+    def _save_snapshots(self) -> None:
+        for path in self.training.save_due_snapshots():
+            self.get_logger().info(f"step {self.training.env_steps}: weights snapshot {path}")
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
@@ -387,6 +423,7 @@ class TrainerNode(Node):
         self._closed = True
         self._stop.set()
         self._learner_thread.join(timeout=30)
+        self._save_snapshots()  # steps the learner thread did not see before the budget stopped it
         path = self.training.save_checkpoint(final=True)
         if path is not None:
             self.get_logger().info(

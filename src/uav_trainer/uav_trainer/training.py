@@ -181,6 +181,7 @@ class Training:
         self.last_q = float("nan")
         self.failed: str | None = None
         self._pending_push: bytes | None = None
+        self._snapshots_due: list[int] = []  # plan_snapshots: env steps whose weights are still to be written
         self.t_start = time.monotonic()
         self.resumed_from = None
         self._updates_at_start, self._steps_at_start = 0, 0
@@ -427,6 +428,25 @@ class Training:
             self.save_weights(self.ema_weights_path, self.learner.ema)
         self.plot()
         return path
+
+    def snapshot_path(self, step: int) -> Path:
+        return self.dir / f"policy_{self.cfg.model}_step{step}.safetensors"
+
+    def plan_snapshots(self, steps) -> None:
+        """Write the online network as snapshot_path(N) once the run reaches env step N, for each N in
+        `steps` it has not passed yet (a resumed run keeps the snapshots it wrote before)."""
+        self._snapshots_due = sorted({int(n) for n in steps if int(n) > self.env_steps})
+
+    def save_due_snapshots(self) -> list[Path]:
+        """Write the planned snapshots whose env step has been reached; returns their paths. In process
+        this is called right after the step's updates; over ROS from the learner thread between updates,
+        so a snapshot holds the updates done when the learner saw its step."""
+        written = []
+        while self._snapshots_due and self._snapshots_due[0] <= self.env_steps and not self.failed:
+            path = self.snapshot_path(self._snapshots_due.pop(0))
+            self.save_weights(path)
+            written.append(path)
+        return written
 
     def save_weights(self, path, net=None) -> None:
         """Write `net` (default: the online network) as a policy weights file, atomically, with this run's
