@@ -281,6 +281,22 @@ def test_weight_snapshots_equal_the_shorter_run(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_planned_snapshots_skip_steps_a_resumed_run_has_passed_and_are_written_once(tmp_path):
+    t = Training(small_cfg(model="sam"), str(tmp_path), log=lambda s: None)
+    try:
+        t.env_steps = 150  # as after a resume from step 150
+        t.plan_snapshots([200, 100, 300])
+        t.env_steps = 250  # over ROS the learner may see a step late: the snapshot keeps its step's name
+        assert t.save_due_snapshots() == [tmp_path / "policy_sam_step200.safetensors"]
+        assert t.save_due_snapshots() == []
+        assert sorted(p.name for p in tmp_path.glob("policy_sam_step*")) == ["policy_sam_step200.safetensors"]
+        t.env_steps = 300
+        assert t.save_due_snapshots() == [tmp_path / "policy_sam_step300.safetensors"]
+        assert wio.read_file_config(tmp_path / "policy_sam_step300.safetensors").model == "sam"
+    finally:
+        t.close()
+
+
 def test_sam_layer_sizes_reach_the_network_the_weights_file_and_the_evaluation(tmp_path):
     from uav_trainer.evaluate import evaluate_inprocess
 
