@@ -159,7 +159,8 @@ def test_trainer_snapshot_parameters_need_a_budget_they_fall_inside():
     for args, what in (
         (("-p", "save_weights_every_steps:=100"), "needs a step budget (total_steps > 0)"),
         (("-p", "save_weights_from_step:=100"), "'save_weights_from_step' needs save_weights_every_steps > 0"),
-        (("-p", "total_steps:=500", "-p", "save_weights_every_steps:=100", "-p", "save_weights_from_step:=500"), "below"),
+        (("-p", "total_steps:=500", "-p", "save_weights_every_steps:=100", "-p", "save_weights_from_step:=500"), "0 snapshots"),
+        (("-p", "total_steps:=100000", "-p", "save_weights_every_steps:=1"), "99999 snapshots fall below total_steps=100000"),
     ):
         r = run_to_exit("uav_trainer", "trainer_node", *args)
         assert r.returncode == 2 and what in r.stderr, (args, r.stderr[-500:])

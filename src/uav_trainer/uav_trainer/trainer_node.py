@@ -36,6 +36,7 @@ from .learner import MAX_SHIFT_PX, LearnerConfig
 from .pairing import TransitionAssembler
 from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
 
+MAX_SNAPSHOTS = 1000  # weight snapshots one run may write (each a full weights file)
 LAG_MIN_UPDATES, LAG_FRACTION = 50, 0.1  # warn when the learner is this far behind replay_ratio
 
 
@@ -61,13 +62,13 @@ def snapshot_steps(every: int, first: int, total_steps: int) -> list[int]:
         return []
     if total_steps == 0:
         raise ParameterError("parameter 'save_weights_every_steps' needs a step budget (total_steps > 0)")
-    steps = list(range(first or every, total_steps, every))
-    if not steps:
+    steps = range(first or every, total_steps, every)
+    if not 1 <= len(steps) <= MAX_SNAPSHOTS:
         raise ParameterError(
-            f"parameters 'save_weights_every_steps'={every} and 'save_weights_from_step'={first}: no snapshot "
-            f"falls below total_steps={total_steps}"
+            f"parameters 'save_weights_every_steps'={every} and 'save_weights_from_step'={first}: {len(steps)} "
+            f"snapshots fall below total_steps={total_steps}; between 1 and {MAX_SNAPSHOTS} can be written"
         )
-    return steps
+    return list(steps)
 
 
 class TrainerNode(Node):
