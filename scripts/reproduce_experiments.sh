@@ -1135,3 +1135,5 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R38/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a round38_ros \
     --b inprocess_40 --bar paper > $R38/$p/against_inprocess_40.md
 done
+python scripts/repeat_failures.py $R38/fixed_start/results.csv $R36/pooled_40_seeds/fixed_start/results.csv \
+  --labels round38_ros inprocess_40 > $R38/fixed_start/repeats.md
