@@ -30,7 +30,8 @@
 # policy on other pairs; how much of each set's crash rate is one failure repeated), a thirty-fifth
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
 # fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe) and a thirty-eighth (that
-# recipe as the main job over ROS, `train --recipe ensemble`). About 61 h on 2 cores.
+# recipe as the main job over ROS, `train --recipe ensemble`) and a thirty-ninth (the same with the weights
+# pushed after every update). About 62 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1137,3 +1138,22 @@ for p in varied_start fixed_start; do
 done
 python scripts/repeat_failures.py $R38/fixed_start/results.csv $R36/pooled_40_seeds/fixed_start/results.csv \
   --labels round38_ros inprocess_40 > $R38/fixed_start/repeats.md
+
+# Round 39 (pilot): round 38's three runs with the weights pushed to the policy after every update
+# (push_interval_updates:=1, so the policy acts on the newest weights, as in-process), flown the same way; against
+# round 38 (paired by seed), the forty in-process seeds, and the fixed-start repeats of all three.
+R39=docs/results/round39_push_every_update
+for s in 0 1 2; do
+  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r39push1_sam_seed$s \
+    --no-resume --trainer-arg push_interval_updates:=1
+done
+mapfile -t W < <(snap_group r39push1 10 0 1 2)
+HFOV=150 WINDOW=0.078 eval_120 $R39 1 --model sam --ensemble 10 --weights "${W[@]}"
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R39/$p/results.csv $R38/$p/results.csv --by file --paired --a push_every_update \
+    --b push_every_50 --bar paper > $R39/$p/against_round38.md
+  python scripts/compare_models.py $R39/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a push_every_update \
+    --b inprocess_40 --bar paper > $R39/$p/against_inprocess_40.md
+done
+python scripts/repeat_failures.py $R39/fixed_start/results.csv $R38/fixed_start/results.csv \
+  $R36/pooled_40_seeds/fixed_start/results.csv --labels push_every_update push_every_50 inprocess_40 > $R39/fixed_start/repeats.md
