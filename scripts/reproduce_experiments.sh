@@ -29,7 +29,7 @@
 # (those ten-snapshot ensembles on each action's lowest Q-value), a thirty-fourth (two seeds to a
 # policy on other pairs; how much of each set's crash rate is one failure repeated), a thirty-fifth
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
-# fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe) and a thirty-eighth (that
+# fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe), a thirty-eighth (that
 # recipe as the main job over ROS, `train --recipe ensemble`) and a thirty-ninth (the same with the weights
 # pushed after every update). About 62 h on 2 cores.
 set -euo pipefail
