@@ -1127,11 +1127,17 @@ odds $R37/odds/cnn.md $R37 --model cnn
 # snapshots and the final weights) flown as one policy as rounds 35-37; against the forty in-process SAM seeds
 # of rounds 35 and 36 (ROS training is not bit-identical to in-process, so the same seeds are not the same runs).
 R38=docs/results/round38_main_job_ensemble
-for s in 0 1 2; do
-  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r38ros_sam_seed$s --no-resume
-done
-mapfile -t W < <(snap_group r38ros 10 0 1 2)
-HFOV=150 WINDOW=0.078 eval_120 $R38 1 --model sam --ensemble 10 --weights "${W[@]}"
+ros_ensemble_three() {  # tag folder [train args]: `train --recipe ensemble` on SAM seeds 0-2 into runs/<tag>_sam_seed<s>,
+  # each run's ten files flown as one policy (150 degree camera, both protocols) into folder
+  local tag=$1 out=$2 s W
+  shift 2
+  for s in 0 1 2; do
+    install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume "$@"
+  done
+  mapfile -t W < <(snap_group "$tag" 10 0 1 2)
+  HFOV=150 WINDOW=0.078 eval_120 "$out" 1 --model sam --ensemble 10 --weights "${W[@]}"
+}
+ros_ensemble_three r38ros $R38
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R38/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a round38_ros \
     --b inprocess_40 --bar paper > $R38/$p/against_inprocess_40.md
@@ -1143,12 +1149,7 @@ python scripts/repeat_failures.py $R38/fixed_start/results.csv $R36/pooled_40_se
 # (push_interval_updates:=1, so the policy acts on the newest weights, as in-process), flown the same way; against
 # round 38 (paired by seed), the forty in-process seeds, and the fixed-start repeats of all three.
 R39=docs/results/round39_push_every_update
-for s in 0 1 2; do
-  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r39push1_sam_seed$s \
-    --no-resume --trainer-arg push_interval_updates:=1
-done
-mapfile -t W < <(snap_group r39push1 10 0 1 2)
-HFOV=150 WINDOW=0.078 eval_120 $R39 1 --model sam --ensemble 10 --weights "${W[@]}"
+ros_ensemble_three r39push1 $R39 --trainer-arg push_interval_updates:=1
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R39/$p/results.csv $R38/$p/results.csv --by file --paired --a push_every_update \
     --b push_every_50 --bar paper > $R39/$p/against_round38.md

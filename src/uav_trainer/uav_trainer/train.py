@@ -28,6 +28,7 @@ from pathlib import Path
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 
 from .launching import Processes, params_args
+from .training import snapshot_file, snapshot_steps
 
 # What each recipe sets on top of params/*.yaml; --world, --sim-arg and --trainer-arg still win.
 # `snapshots`: that many weight snapshots, one every thirtieth of the budget, ending one before it
@@ -60,7 +61,7 @@ def snapshot_plan(snapshots: int, steps: int) -> tuple[list[str], list[int]]:
     every = max(1, steps // 30)
     first = max(every, steps - snapshots * every)
     args = [f"save_weights_every_steps:={every}", f"save_weights_from_step:={first}"]
-    return args, list(range(first, steps, every))
+    return args, snapshot_steps(every, first, steps)
 
 
 def main(argv=None) -> int:
@@ -201,7 +202,7 @@ def main(argv=None) -> int:
     weights = run_dir / f"policy_{a.model}.safetensors"
     if weights.exists():
         # The snapshots this budget planned that were written (a stop before the end writes fewer), then the final weights.
-        files = [p for n in snapshot_at if (p := run_dir / f"policy_{a.model}_step{n}.safetensors").exists()] + [weights]
+        files = [p for n in snapshot_at if (p := snapshot_file(run_dir, a.model, n)).exists()] + [weights]
         camera = [kv for kv in sim_extra if kv.startswith("hfov_deg:=")][-1:]
         fly_sim = f"ros2 run uav_sim sim_node --ros-args -p {camera[0]} & " if camera else ""
         print(

@@ -34,9 +34,16 @@ from uav_sim.ros_params import ParameterError, declare
 
 from .learner import MAX_SHIFT_PX, LearnerConfig
 from .pairing import TransitionAssembler
-from .training import MAX_N_STEP, SAM_SIZES, TrainerConfig, Training, replay_description, reward_description
+from .training import (
+    MAX_N_STEP,
+    SAM_SIZES,
+    TrainerConfig,
+    Training,
+    replay_description,
+    reward_description,
+    snapshot_steps,
+)
 
-MAX_SNAPSHOTS = 1000  # weight snapshots one run may write (each a full weights file)
 LAG_MIN_UPDATES, LAG_FRACTION = 50, 0.1  # warn when the learner is this far behind replay_ratio
 
 
@@ -50,25 +57,6 @@ def lag_warning(behind: int, due: int, ratio: float) -> str | None:
         "not wait for learning, so this run learns from fewer updates than asked; lower the step rate (train "
         "--max-rate-hz, sim_node max_rate_hz) or give the trainer more CPU"
     )
-
-
-def snapshot_steps(every: int, first: int, total_steps: int) -> list[int]:
-    """The env steps of trainer_node's weight snapshots: every `every` steps from `first` (0: from `every`)
-    to below `total_steps`, whose end the final weights file already holds. Raises ParameterError
-    when snapshots are asked for without a budget or none would fall inside it."""
-    if every == 0:
-        if first:
-            raise ParameterError("parameter 'save_weights_from_step' needs save_weights_every_steps > 0")
-        return []
-    if total_steps == 0:
-        raise ParameterError("parameter 'save_weights_every_steps' needs a step budget (total_steps > 0)")
-    steps = range(first or every, total_steps, every)
-    if not 1 <= len(steps) <= MAX_SNAPSHOTS:
-        raise ParameterError(
-            f"parameters 'save_weights_every_steps'={every} and 'save_weights_from_step'={first}: {len(steps)} "
-            f"snapshots fall below total_steps={total_steps}; between 1 and {MAX_SNAPSHOTS} can be written"
-        )
-    return list(steps)
 
 
 class TrainerNode(Node):
@@ -229,7 +217,10 @@ class TrainerNode(Node):
             10**9,
         )
         snapshot_from = d("save_weights_from_step", 0, "The first snapshot's env step (0 = save_weights_every_steps)", 0, 10**10)
-        snapshots = snapshot_steps(snapshot_every, snapshot_from, self.cfg.total_steps)
+        try:
+            snapshots = snapshot_steps(snapshot_every, snapshot_from, self.cfg.total_steps)
+        except ValueError as e:
+            raise ParameterError(str(e)) from None
         run_dir = d("run_dir", "runs/train", "Output directory: checkpoints, metrics, plots, policy weights")
         resume = d("resume", True, "Resume from run_dir's latest checkpoint when there is one")
         self.step_ns = int(round(1e9 * d("step_duration_s", 0.5, "Sim step duration (s); must equal sim_node's", 0.01, 5.0)))

@@ -92,6 +92,33 @@ MAX_N_STEP = 20
 SAM_SIZES = ("d_model", "heads", "relational_blocks", "mlp_hidden")
 
 
+MAX_SNAPSHOTS = 1000  # weight snapshots one run may write (each a full weights file)
+
+
+def snapshot_steps(every: int, first: int, total_steps: int) -> list[int]:
+    """The env steps of trainer_node's weight snapshots: every `every` steps from `first` (0: from `every`)
+    to below `total_steps`, whose end the final weights file already holds. Raises ValueError, naming the
+    parameters, when snapshots are asked for without a budget, or none or over MAX_SNAPSHOTS fall inside it."""
+    if every == 0:
+        if first:
+            raise ValueError("parameter 'save_weights_from_step' needs save_weights_every_steps > 0")
+        return []
+    if total_steps == 0:
+        raise ValueError("parameter 'save_weights_every_steps' needs a step budget (total_steps > 0)")
+    steps = range(first or every, total_steps, every)
+    if not 1 <= len(steps) <= MAX_SNAPSHOTS:
+        raise ValueError(
+            f"parameters 'save_weights_every_steps'={every} and 'save_weights_from_step'={first}: {len(steps)} "
+            f"snapshots fall below total_steps={total_steps}; between 1 and {MAX_SNAPSHOTS} can be written"
+        )
+    return list(steps)
+
+
+def snapshot_file(run_dir, model: str, step: int) -> Path:
+    """Where a run writes its weight snapshot of env step `step`."""
+    return Path(run_dir) / f"policy_{model}_step{step}.safetensors"
+
+
 def priority_beta(cfg: TrainerConfig, env_steps: int) -> float:
     """The importance-weight exponent at env_steps: priority_beta rising linearly to 1."""
     if cfg.priority_beta_steps <= 0 or env_steps >= cfg.priority_beta_steps:
@@ -430,7 +457,7 @@ class Training:
         return path
 
     def snapshot_path(self, step: int) -> Path:
-        return self.dir / f"policy_{self.cfg.model}_step{step}.safetensors"
+        return snapshot_file(self.dir, self.cfg.model, step)
 
     def plan_snapshots(self, steps) -> None:
         """Write the online network as snapshot_path(N) once the run reaches env step N, for each N in
