@@ -30,8 +30,8 @@
 # policy on other pairs; how much of each set's crash rate is one failure repeated), a thirty-fifth
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
 # fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe), a thirty-eighth (that
-# recipe as the main job over ROS, `train --recipe ensemble`) and a thirty-ninth (the same with the weights
-# pushed after every update). About 62 h on 2 cores.
+# recipe as the main job over ROS, `train --recipe ensemble`), a thirty-ninth (the same with the weights
+# pushed after every update), and a fortieth (both on three more seeds). About 64 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1127,17 +1127,17 @@ odds $R37/odds/cnn.md $R37 --model cnn
 # snapshots and the final weights) flown as one policy as rounds 35-37; against the forty in-process SAM seeds
 # of rounds 35 and 36 (ROS training is not bit-identical to in-process, so the same seeds are not the same runs).
 R38=docs/results/round38_main_job_ensemble
-ros_ensemble_three() {  # tag folder [train args]: `train --recipe ensemble` on SAM seeds 0-2 into runs/<tag>_sam_seed<s>,
-  # each run's ten files flown as one policy (150 degree camera, both protocols) into folder
-  local tag=$1 out=$2 s W
-  shift 2
-  for s in 0 1 2; do
+ros_ensemble() {  # tag folder "seeds" [train args]: `train --recipe ensemble` on those SAM seeds into
+  # runs/<tag>_sam_seed<s>, each run's ten files flown as one policy (150 degree camera, both protocols) into folder
+  local tag=$1 out=$2 seeds=$3 s W
+  shift 3
+  for s in $seeds; do
     install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume "$@"
   done
-  mapfile -t W < <(snap_group "$tag" 10 0 1 2)
+  mapfile -t W < <(snap_group "$tag" 10 $seeds)
   HFOV=150 WINDOW=0.078 eval_120 "$out" 1 --model sam --ensemble 10 --weights "${W[@]}"
 }
-ros_ensemble_three r38ros $R38
+ros_ensemble r38ros $R38 "0 1 2"
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R38/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a round38_ros \
     --b inprocess_40 --bar paper > $R38/$p/against_inprocess_40.md
@@ -1149,7 +1149,7 @@ python scripts/repeat_failures.py $R38/fixed_start/results.csv $R36/pooled_40_se
 # (push_interval_updates:=1, so the policy acts on the newest weights, as in-process), flown the same way; against
 # round 38 (paired by seed), the forty in-process seeds, and the fixed-start repeats of all three.
 R39=docs/results/round39_push_every_update
-ros_ensemble_three r39push1 $R39 --trainer-arg push_interval_updates:=1
+ros_ensemble r39push1 $R39 "0 1 2" --trainer-arg push_interval_updates:=1
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R39/$p/results.csv $R38/$p/results.csv --by file --paired --a push_every_update \
     --b push_every_50 --bar paper > $R39/$p/against_round38.md
@@ -1158,3 +1158,27 @@ for p in varied_start fixed_start; do
 done
 python scripts/repeat_failures.py $R39/fixed_start/results.csv $R38/fixed_start/results.csv \
   $R36/pooled_40_seeds/fixed_start/results.csv --labels push_every_update push_every_50 inprocess_40 > $R39/fixed_start/repeats.md
+
+# Round 40: rounds 38 and 39 on SAM seeds 3-5 (design fixed before any flight: $R40/design.md; here the arms
+# ran interleaved by seed, one run at a time), each arm joined with its seeds 0-2 and the arms compared paired
+# by seed; each arm against the forty in-process seeds, and the fixed-start repeats of both.
+R40=docs/results/round40_push_interval_six_seeds
+ros_ensemble r40push50 runs/r40push50eval "3 4 5"
+ros_ensemble r40push1 runs/r40push1eval "3 4 5" --trainer-arg push_interval_updates:=1
+HFOV=150 WINDOW=0.078 camera_args
+for arm in push_every_50 push_every_update; do
+  if [ $arm = push_every_50 ]; then old=$R38 new=runs/r40push50eval; else old=$R39 new=runs/r40push1eval; fi
+  for p in varied_start fixed_start; do
+    V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+    $EVAL --from-csv $old/$p/results.csv $new/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble 10 --out $R40/$arm/$p
+    python scripts/compare_models.py $R40/$arm/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a $arm \
+      --b inprocess_40 --bar paper > $R40/$arm/$p/against_inprocess_40.md
+  done
+  { cat $old/varied_start/crashes.csv; tail -n +2 $new/varied_start/crashes.csv; } > $R40/$arm/varied_start/crashes.csv
+done
+for p in varied_start fixed_start; do
+  python scripts/compare_models.py $R40/push_every_update/$p/results.csv $R40/push_every_50/$p/results.csv --by file --paired \
+    --a push_every_update --b push_every_50 --bar paper > $R40/against_push_every_50_$p.md
+done
+python scripts/repeat_failures.py $R40/push_every_update/fixed_start/results.csv $R40/push_every_50/fixed_start/results.csv \
+  $R36/pooled_40_seeds/fixed_start/results.csv --labels push_every_update push_every_50 inprocess_40 > $R40/fixed_start_repeats.md
