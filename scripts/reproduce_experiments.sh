@@ -639,7 +639,7 @@ against_round6_cnn r22rr05 $R22
 # Round 22's SAM on ten more seeds (10-19), pooled with seeds 0-9 (sam_20_seeds/): against round 6's 32
 # SAM seeds, round 6's CNN and round 22's CNN.
 FIRST=10 model_ten r22rr05 sam $R22/sam_seeds10_19 --replay-ratio 0.5
-pool_two() {  # folder-a folder-b out: two tables of ten seeds (both protocols, random starts with a crash log)
+pool_two() {  # folder-a folder-b out [evaluate args]: two tables (both protocols, random starts with a crash log)
   # joined into out (camera as eval_120's: HFOV, WINDOW)
   local p proto
   camera_args
@@ -649,7 +649,7 @@ pool_two() {  # folder-a folder-b out: two tables of ten seeds (both protocols, 
     proto=()
     [ $p = varied_start ] && proto=("${VARIED[@]}")
     $EVAL --inprocess --worlds basic complex turbulent --steps 1000 "${proto[@]}" "${CAM[@]}" \
-      --from-csv $1/$p/results.csv $2/$p/results.csv --out $3/$p
+      "${@:4}" --from-csv $1/$p/results.csv $2/$p/results.csv --out $3/$p
   done
 }
 sam_twenty() {  # tag folder cnn-folder cnn-tag: SAM seeds 0-9 (folder) and 10-19 (folder/sam_seeds10_19) pooled
@@ -1165,16 +1165,13 @@ python scripts/repeat_failures.py $R39/fixed_start/results.csv $R38/fixed_start/
 R40=docs/results/round40_push_interval_six_seeds
 ros_ensemble r40push50 runs/r40push50eval "3 4 5"
 ros_ensemble r40push1 runs/r40push1eval "3 4 5" --trainer-arg push_interval_updates:=1
-HFOV=150 WINDOW=0.078 camera_args
+HFOV=150 WINDOW=0.078 pool_two $R38 runs/r40push50eval $R40/push_every_50 --ensemble 10
+HFOV=150 WINDOW=0.078 pool_two $R39 runs/r40push1eval $R40/push_every_update --ensemble 10
 for arm in push_every_50 push_every_update; do
-  if [ $arm = push_every_50 ]; then old=$R38 new=runs/r40push50eval; else old=$R39 new=runs/r40push1eval; fi
   for p in varied_start fixed_start; do
-    V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-    $EVAL --from-csv $old/$p/results.csv $new/$p/results.csv "${V[@]}" "${CAM[@]}" --inprocess --ensemble 10 --out $R40/$arm/$p
     python scripts/compare_models.py $R40/$arm/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a $arm \
       --b inprocess_40 --bar paper > $R40/$arm/$p/against_inprocess_40.md
   done
-  { cat $old/varied_start/crashes.csv; tail -n +2 $new/varied_start/crashes.csv; } > $R40/$arm/varied_start/crashes.csv
 done
 for p in varied_start fixed_start; do
   python scripts/compare_models.py $R40/push_every_update/$p/results.csv $R40/push_every_50/$p/results.csv --by file --paired \
