@@ -11,7 +11,9 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/uav_policy"]),
         ("share/uav_policy", ["package.xml"]),
-        ("share/uav_policy/weights", glob("weights/*.safetensors") + glob("weights/*.md")),
+        ("share/uav_policy/weights", glob("weights/*.md")),
+        ("share/uav_policy/weights/sam", glob("weights/sam/*.safetensors")),
+        ("share/uav_policy/weights/cnn", glob("weights/cnn/*.safetensors")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

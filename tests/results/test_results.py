@@ -119,15 +119,19 @@ def test_attention_figures_are_written(tmp_path):
 
 @pytest.mark.parametrize("model", ["sam", "cnn"])
 def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model):
-    from uav_sim.simulator import SimConfig
+    from uav_sim.sim_node import NODE_HFOV_DEG, NODE_REWARD_WINDOW_FRACTION
 
-    shipped = ROOT / "src" / "uav_policy" / "weights" / f"{model}.safetensors"
-    assert shipped.is_file(), f"no shipped {model} weights"
-    wio.load_file(shipped, NetConfig(model=model))  # valid for the architecture
-    # Trained with sim_node's default camera: out of the box, no camera mismatch.
-    assert wio.read_file_camera(shipped) == SimConfig.hfov_deg
+    shipped = sorted((ROOT / "src" / "uav_policy" / "weights" / model).glob("*.safetensors"))
+    assert len(shipped) == 10, f"the shipped {model} weights are ten files flown as one policy, got {len(shipped)}"
+    # What policy_node loads (the installed copies, in this order) is these files.
+    assert [p.read_bytes() for p in wio.packaged_weights(model)] == [p.read_bytes() for p in shipped]
+    net = wio.load_files(shipped, model)  # valid for the architecture, and as one ensemble
+    assert len(net.members) == 10
+    # Trained with sim_node's default camera and reward window: out of the box, no camera mismatch.
+    assert {wio.read_file_camera(p) for p in shipped} == {NODE_HFOV_DEG}
+    assert {wio.read_file_window(p) for p in shipped} == {NODE_REWARD_WINDOW_FRACTION}
     os.environ["ROS_DOMAIN_ID"] = "76"
-    r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged file
+    r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged files
     assert r.steps == 200 and r.crashes == 0, r
 
 
@@ -629,3 +633,73 @@ def test_repeat_failures_counts_crashes_beyond_the_first_at_each_site(tmp_path):
     old = tmp_path / "old.csv"
     old.write_text("model,world,weights,steps,crashes\nsam,basic,w0,1000,0\n")
     assert "missing column(s) crash_sites" in run(str(old)).stderr
+
+
+def test_pick_shipped_ranks_runs_by_crashes_over_all_their_rows_then_reward(tmp_path):
+    """Three runs over two tables: b and c tie on no crashes, c wins on reward; a crashed once."""
+    script = ROOT / "scripts" / "pick_shipped.py"
+    header = ["model", "world", "weights", "steps", "crashes", "mean_reward"]
+    ens = lambda run: "+".join(f"runs/{run}/policy_sam_step{n}.safetensors" for n in (1, 2))  # noqa: E731
+
+    def write(name, rows):
+        path = tmp_path / name
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows([header, *rows])
+        return str(path)
+
+    fixed = write("fixed.csv", [["sam", "complex", ens(r), 1000, int(r == "a"), 2.0] for r in ("a", "b", "c")])
+    varied = write(
+        "varied.csv",
+        [["sam", "basic", ens(r), 5000, 0, reward] for r, reward in (("a", 3.0), ("b", 1.0), ("c", 2.0))]
+        + [["cnn", "basic", ens("d"), 5000, 9, 1.0]],
+    )
+    run = lambda *a: subprocess.run([sys.executable, str(script), *a], capture_output=True, text=True)  # noqa: E731
+    out = run(fixed, varied)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert lines[0] == "3 sam runs; 2 share the fewest crashes (0.000 per 1000 steps)"
+    assert "| 1 | runs/c | 2 | 6000 | 0 | 0.000 | 2.0000 |" in lines  # (2.0 * 1000 + 2.0 * 5000) / 6000
+    assert "| 2 | runs/b | 2 | 6000 | 0 | 0.000 | 1.1667 |" in lines
+    assert "| 3 | runs/a | 2 | 6000 | 1 | 0.167 | 2.8333 |" in lines
+    assert lines[-2:] == ["chosen: runs/c", "weights: runs/c/policy_sam_step1.safetensors runs/c/policy_sam_step2.safetensors"]
+    assert "chosen: runs/d" in run(fixed, varied, "--model", "cnn").stdout
+    # A policy mixing runs, or a run flown as two different weights sets, is refused with the line.
+    mixed = write("mixed.csv", [["sam", "basic", "runs/a/x.safetensors+runs/b/x.safetensors", 1000, 0, 1.0]])
+    assert "mixed.csv, line 2: weights" in run(mixed).stderr and "do not belong to one training run" in run(mixed).stderr
+    two = write("two.csv", [["sam", "basic", "runs/a/x.safetensors", 1000, 0, 1.0], ["sam", "basic", ens("a"), 1000, 0, 1.0]])
+    assert "run runs/a was flown as 2 different weights sets" in run(two).stderr
+    assert "no rows of model 'rnn'" in run(fixed, "--model", "rnn").stderr
+
+
+def test_package_weights_writes_the_files_in_order_with_their_camera_and_window(tmp_path):
+    """Packaged files hold the same tensors with the training camera and reward window; what was there goes."""
+    from safetensors.torch import load_file
+
+    script = ROOT / "scripts" / "package_weights.py"
+    nets = [build_network(NetConfig(), seed=s) for s in range(3)]
+    src = []
+    for i, net in enumerate(nets):
+        src.append(tmp_path / f"policy_sam_step{i}.safetensors")
+        wio.save_file(net, NetConfig(), src[-1], camera_hfov_deg=150.0, reward_window_fraction=0.078)
+    out = tmp_path / "weights" / "sam"
+    out.mkdir(parents=True)
+    (out / "old.safetensors").write_bytes(b"stale")
+    run = lambda *a: subprocess.run([sys.executable, str(script), *map(str, a)], capture_output=True, text=True)  # noqa: E731
+    r = run(*src, "--model", "sam", "--out", out)
+    assert r.returncode == 0, r.stderr
+    made = sorted(out.glob("*.safetensors"))
+    assert [p.name for p in made] == ["sam_00.safetensors", "sam_01.safetensors", "sam_02.safetensors"]
+    for a, b in zip(src, made, strict=True):
+        before, after = load_file(str(a)), load_file(str(b))
+        assert before.keys() == after.keys() and all(before[k].equal(after[k]) for k in before)
+        assert wio.read_file_camera(b) == 150.0 and wio.read_file_window(b) == 0.078
+    # A file without a camera needs --camera-hfov-deg; one that says another camera is refused. Nothing is replaced.
+    bare = tmp_path / "bare.safetensors"
+    wio.save_file(nets[0], NetConfig(), bare)
+    assert "records no camera: give --camera-hfov-deg" in run(src[1], bare, "--model", "sam", "--out", out).stderr
+    assert "records a 150 deg camera, not 120" in run(src[0], "--model", "sam", "--camera-hfov-deg", "120", "--out", out).stderr
+    cam120 = tmp_path / "cam120.safetensors"
+    wio.save_file(nets[0], NetConfig(), cam120, camera_hfov_deg=120.0)
+    assert "different cameras (120, 150 deg)" in run(src[0], cam120, "--model", "sam", "--out", out).stderr
+    assert [p.read_bytes() for p in sorted(out.glob("*.safetensors"))] == [p.read_bytes() for p in made]
+    assert "cannot read" in run(tmp_path / "missing.safetensors", "--model", "sam", "--out", out).stderr

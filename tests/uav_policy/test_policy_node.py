@@ -204,13 +204,13 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
     assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
     log = ros.log_of(proc)
     assert "weights push rejected" in log and "'camera_hfov_deg' must be a number" in log
-    assert "trained with a 120 deg camera)" in log, "the start-up line names the packaged weights' camera"
+    assert "trained with a 150 deg camera)" in log, "the start-up line names the packaged weights' camera"
     assert "depth/camera_info says" not in log, "the packaged weights' camera is the sim's default: no warning"
     # Weights trained behind another camera still fly, with a warning naming the camera to use.
     r = call_push(ros, forcing_action(3, camera_hfov_deg=90.0))
     assert r.successful, r.reason
     assert ros.spin_until(lambda: "trained with a 90 deg camera" in ros.log_of(proc), 10), ros.log_of(proc)
-    assert "depth/camera_info says 120.0 deg" in ros.log_of(proc) and "hfov_deg:=90" in ros.log_of(proc)
+    assert "depth/camera_info says 150.0 deg" in ros.log_of(proc) and "hfov_deg:=90" in ros.log_of(proc)
 
 
 def forcing_action_cnn() -> bytes:

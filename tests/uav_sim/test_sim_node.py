@@ -73,13 +73,13 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     depth = contract.image_to_depth(img)
     assert depth.shape == (64, 64) and float(depth[32, 32]) > 0.0
     info = rec.by_topic["info"][-1]
-    # The default camera: 120 deg horizontal, fx = (64 / 2) / tan(60 deg) = 18.475 px.
-    assert abs(info.k[0] - 32.0 / math.tan(math.radians(60.0))) < 1e-9 and info.k[0] == info.k[4]
-    assert info.header.frame_id == img.header.frame_id and contract.camera_info_hfov_deg(info) == pytest.approx(120.0)
-    # beta is read over columns 25-37 (13 of 64, edges 7 px left and 6 px right of the centre):
-    # atan(7 / fx) + atan(6 / fx) = 38.74 deg of arc, not 20 % of 120 deg.
-    fov = math.atan(7 / info.k[0]) + math.atan(6 / info.k[0])
-    assert rec.by_topic["outcome"][-1].field_of_view == pytest.approx(fov) and math.degrees(fov) == pytest.approx(38.74, abs=0.01)
+    # The default camera (the packaged weights'): 150 deg horizontal, fx = (64 / 2) / tan(75 deg) = 8.574 px.
+    assert abs(info.k[0] - 32.0 / math.tan(math.radians(75.0))) < 1e-9 and info.k[0] == info.k[4]
+    assert info.header.frame_id == img.header.frame_id and contract.camera_info_hfov_deg(info) == pytest.approx(150.0)
+    # The default window, 0.078 of each side: beta is read over columns 29-33 (5 of 64, edges 3 px left
+    # and 2 px right of the centre): atan(3 / fx) + atan(2 / fx) = 32.41 deg of arc.
+    fov = math.atan(3 / info.k[0]) + math.atan(2 / info.k[0])
+    assert rec.by_topic["outcome"][-1].field_of_view == pytest.approx(fov) and math.degrees(fov) == pytest.approx(32.41, abs=0.01)
     odom = rec.by_topic["odom"][-1]
     assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_link"
     assert abs(odom.pose.pose.position.x - (-6.0 + 5.0)) < 1e-3, "10 steps at 1 m/s x 0.5 s from x=-6"

@@ -115,28 +115,12 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
 
 
-def test_the_main_jobs_default_recipe_is_the_shipped_weights_recipe(tmp_path):
-    """Without options, train sets up what the packaged weights were trained with."""
+def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path):
+    """Without --recipe, train sets up what the packaged weights were trained with (round 35's recipe):
+    nine snapshots besides the final weights, flown as one policy."""
     run_dir = tmp_path / "run"
-    # With a time limit (not part of the recipe): the trainer must count cut episodes, never as crashes.
+    # With a short time limit (the recipe's is 300): the trainer must count cut episodes, never as crashes.
     r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=300)
-    assert "(recipe shipped: hfov_deg:=120.0 turn_penalty:=1.0) in 'random_each_episode'" in r.stdout
-    assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
-    assert "reward: the paper's - 1 per turning step" in logs["trainer"]
-    assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 120.0
-    assert wio.read_file_window(run_dir / "policy_sam.safetensors") is None  # the paper's window
-    assert "reward window:" not in logs["trainer"]
-    rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
-    assert {r["end"] for r in rows} <= {"crash", "time_limit"} and any(r["end"] == "time_limit" for r in rows)
-    assert all(int(r["length"]) <= 4 for r in rows)
-    # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
-    assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
-
-
-def test_the_ensemble_recipe_trains_round_35s_setting_and_its_ten_files_fly_as_one_policy(tmp_path):
-    """train --recipe ensemble: the best measured recipe over ROS, with nine snapshots besides the final weights."""
-    run_dir = tmp_path / "run"
-    r, logs = run_train(run_dir, "79", "--recipe", "ensemble", "--steps", "60", timeout_s=300)
     assert (
         "(recipe ensemble: hfov_deg:=150.0 reward_window_fraction:=0.078 mix_world:=basic mix_world_every:=4 "
         "max_episode_steps:=300 turn_penalty:=1.0 replay_ratio:=0.5 save_weights_every_steps:=2 "
@@ -150,9 +134,28 @@ def test_the_ensemble_recipe_trains_round_35s_setting_and_its_ten_files_fly_as_o
     assert f"-p model:=sam -p weights:={','.join(map(str, files))}" in r.stdout
     for f in files:
         assert wio.read_file_camera(f) == 150.0 and abs(wio.read_file_window(f) - 0.078) < 1e-3, f
-    os.environ["ROS_DOMAIN_ID"] = "79"
+    rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
+    assert {r["end"] for r in rows} <= {"crash", "time_limit"} and any(r["end"] == "time_limit" for r in rows)
+    assert all(int(r["length"]) <= 4 for r in rows)
+    # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
+    assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
+    os.environ["ROS_DOMAIN_ID"] = "74"
     flown = evaluate_once("sam", ENSEMBLE_SEP.join(map(str, files)), "basic", 20)
     assert flown.steps == 20
+
+
+def test_the_single_network_recipe_trains_behind_a_120_deg_camera_with_the_papers_reward_window(tmp_path):
+    """train --recipe single: round 4's recipe (the earlier packaged weights'), against sim_node's 150 deg default."""
+    run_dir = tmp_path / "run"
+    r, logs = run_train(run_dir, "79", "--recipe", "single", "--steps", "60", timeout_s=300)
+    assert "(recipe single: hfov_deg:=120.0 reward_window_fraction:=0.2 turn_penalty:=1.0) in 'random_each_episode'" in r.stdout
+    assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
+    assert "reward: the paper's - 1 per turning step" in logs["trainer"]
+    assert sorted(run_dir.glob("policy_sam*.safetensors")) == [run_dir / "policy_sam.safetensors"]
+    assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 120.0
+    assert wio.read_file_window(run_dir / "policy_sam.safetensors") is None  # the paper's window
+    assert "reward window:" not in logs["trainer"]
+    assert "sim_node --ros-args -p hfov_deg:=120.0 & " in r.stdout
 
 
 def test_trainer_snapshot_parameters_need_a_budget_they_fall_inside():

@@ -28,14 +28,14 @@ def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
 
     from . import weights as wio
 
-    cfg = wio.config_for(model, weights)
-    net = wio.load_file(weights, cfg) if weights else build_network(cfg, seed=seed)
+    files = [f for f in weights.split(",") if f] if weights else []
+    net = wio.load_files(files, model) if files else build_network(wio.config_for(model, None), seed=seed)
+    cfg = net.cfg
     agent = Agent(net, cfg, seed=seed)
     # The camera the weights were trained with (their header), else the simulator's default; the
     # image at the network's input size.
-    sim_cfg = SimConfig(
-        seed=seed, hfov_deg=wio.camera_for(weights, SimConfig.hfov_deg), image_width=cfg.width, image_height=cfg.height
-    )
+    camera = wio.camera_for(files[0] if files else None, SimConfig.hfov_deg)
+    sim_cfg = SimConfig(seed=seed, hfov_deg=camera, image_width=cfg.width, image_height=cfg.height)
     sim = Simulator(load_world(world), sim_cfg)
     stack = FrameStack(cfg.frames)
     r = sim.observe()
@@ -104,7 +104,12 @@ def main(argv=None) -> int:
         prog="attention_figures", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
-    ap.add_argument("--weights", default="", help="safetensors weights (default: packaged, else random init)")
+    ap.add_argument(
+        "--weights",
+        default="",
+        help="safetensors weights file, or files a,b,c flown as one on their mean Q-values (default: the packaged "
+        "files, else a random initialisation)",
+    )
     ap.add_argument("--worlds", nargs="+", default=["basic", "turbulent"])
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--panels", type=int, default=6)
@@ -114,8 +119,7 @@ def main(argv=None) -> int:
     if not weights:
         from .weights import packaged_weights
 
-        p = packaged_weights(a.model)
-        weights = str(p) if p else ""
+        weights = ",".join(map(str, packaged_weights(a.model)))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     for world in a.worlds:

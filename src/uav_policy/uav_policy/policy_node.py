@@ -166,11 +166,11 @@ class PolicyNode(Node):
         if paths:
             return self._from_files(paths)
         packaged = wio.packaged_weights(self.cfg.model)
-        if packaged is not None:
+        if packaged:
             try:
-                net = self._load_file(packaged)
-                return net, f"packaged pretrained weights {packaged}", wio.read_file_camera(packaged)
-            except wio.WeightsError as e:
+                net, source, camera = self._from_files([str(p) for p in packaged])
+                return net, f"packaged pretrained weights: {source}", camera
+            except ParameterError as e:
                 self.get_logger().warning(f"packaged weights unusable ({e}); using a random initialisation")
         net = build_network(self.cfg, seed=seed)
         return net, f"no weights given or packaged: seeded random initialisation (seed {seed})", None

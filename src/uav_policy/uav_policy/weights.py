@@ -24,7 +24,7 @@ import torch
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
-from .networks import SIZE_FIELDS, NetConfig, build_network
+from .networks import SIZE_FIELDS, NetConfig, QEnsemble, build_network
 
 FORMAT = "uav_policy/1"
 MAX_BYTES = 64 * 1024 * 1024
@@ -277,14 +277,27 @@ def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
     return dataclasses.replace(cfg, **{name: getattr(made, name) for name in SIZE_FIELDS})
 
 
-def packaged_weights(model: str) -> Path | None:
-    """The pretrained weights shipped with uav_policy for `model`, if any."""
-    candidates = []
+def load_files(paths: list, model: str, rule: str = "mean") -> torch.nn.Module:
+    """The network of one weights file, or several files of one architecture as one QEnsemble acting
+    on `rule` (WeightsError for a bad file, ValueError when the architectures differ)."""
+    nets = [load_file(p, config_for(model, p)) for p in paths]
+    return nets[0] if len(nets) == 1 else QEnsemble(nets, rule)
+
+
+def packaged_weights(model: str) -> list[Path]:
+    """The pretrained weights shipped with uav_policy for `model`: the safetensors files of the
+    package's weights/<model>/ folder in name order, flown as one policy when there are several
+    (the installed share folder first, else the source tree's); [] when there are none."""
+    folders = []
     try:
         from ament_index_python.packages import get_package_share_directory
 
-        candidates.append(Path(get_package_share_directory("uav_policy")) / "weights" / f"{model}.safetensors")
+        folders.append(Path(get_package_share_directory("uav_policy")) / "weights" / model)
     except Exception:
         pass
-    candidates.append(Path(__file__).resolve().parent.parent / "weights" / f"{model}.safetensors")
-    return next((c for c in candidates if c.is_file()), None)
+    folders.append(Path(__file__).resolve().parent.parent / "weights" / model)
+    for folder in folders:
+        files = sorted(folder.glob("*.safetensors"))
+        if files:
+            return files
+    return []

@@ -32,7 +32,8 @@ class SimConfig:
     image_width: int = 64
     image_height: int = 64
     # 120, not the paper's (AirSim's) 90: both models crash less with it (docs/RESULTS.md), and the
-    # shipped weights were trained with it. The paper-protocol runs set 90.
+    # in-process tools default to it. sim_node defaults to the packaged weights' 150 (with a 5 x 5 px
+    # reward window); the paper-protocol runs set 90.
     hfov_deg: float = 120.0
     min_range_m: float = 0.1
     max_range_m: float = 10.0

@@ -1,6 +1,6 @@
 """Minimal launch file for users with a full ROS 2 install: the same three nodes, parameter files and
-default recipe ("shipped") as `ros2 run uav_trainer train` (which is what this repository tests;
-`launch` is not on PyPI).
+default recipe ("ensemble", for the default 30 000-step budget) as `ros2 run uav_trainer train`
+(which is what this repository tests; `launch` is not on PyPI).
 
     ros2 launch uav_trainer train.launch.py params_dir:=$PWD/params
 """
@@ -23,9 +23,14 @@ def generate_launch_description():
                     PathJoinSubstitution([params, "sim.yaml"]),
                     {
                         "start_yaw_jitter_deg": 180.0,
-                        "max_rate_hz": 60.0,
+                        "max_rate_hz": 30.0,
+                        "wait_for_subscribers": 2,
                         "world": "random_each_episode",
-                        "hfov_deg": 120.0,
+                        "hfov_deg": 150.0,
+                        "reward_window_fraction": 0.078,
+                        "mix_world": "basic",
+                        "mix_world_every": 4,
+                        "max_episode_steps": 300,
                     },
                 ],
             ),
@@ -37,7 +42,16 @@ def generate_launch_description():
             Node(
                 package="uav_trainer",
                 executable="trainer_node",
-                parameters=[PathJoinSubstitution([params, "trainer.yaml"]), {"turn_penalty": 1.0}],
+                parameters=[
+                    PathJoinSubstitution([params, "trainer.yaml"]),
+                    {
+                        "turn_penalty": 1.0,
+                        "replay_ratio": 0.5,
+                        "total_steps": 30000,
+                        "save_weights_every_steps": 1000,
+                        "save_weights_from_step": 21000,
+                    },
+                ],
             ),
         ]
     )

@@ -162,6 +162,9 @@ class StepMonitor:
         return self.steps >= self.target
 
 
+ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
+
+
 def architecture_args(model: str, weights: str) -> list[str]:
     """policy_node parameters for a weights file whose SAM readout, input size or frame stack is not the default."""
     from uav_policy import weights as wio
@@ -186,21 +189,30 @@ def image_size_args(model: str, weights: str, sim_args) -> list[str]:
     return [f"image_width:={cfg.width}", f"image_height:={cfg.height}"]
 
 
+def weights_or_packaged(model: str, weights: str) -> list[str]:
+    """The files a policy flies: `weights` (one file, or an ensemble's joined by ENSEMBLE_SEP), or
+    without them the packaged files policy_node loads by default ([] when there are none)."""
+    from uav_policy import weights as wio
+
+    return weights.split(ENSEMBLE_SEP) if weights else [str(p) for p in wio.packaged_weights(model)]
+
+
 def flown_hfov_deg(model: str, weights: str) -> float:
     """The camera field of view weights fly with when no hfov_deg is given: the one the weights file (or,
-    without one, the packaged file policy_node loads) was trained with, else the simulator's default."""
+    without one, the packaged files policy_node loads) was trained with, else SimConfig's default."""
     from uav_policy import weights as wio
     from uav_sim.simulator import SimConfig
 
-    return wio.camera_for(weights or wio.packaged_weights(model), SimConfig.hfov_deg)
+    return wio.camera_for(next(iter(weights_or_packaged(model, weights)), None), SimConfig.hfov_deg)
 
 
-def recorded_window(model: str, weights: str) -> float | None:
-    """The reward window the weights file (or, without one, the packaged file) records: None for the paper's."""
+def flown_window(model: str, weights: str) -> float:
+    """The reward window weights are measured with when none is given: the one the weights file (or the
+    packaged files) records, else the paper's (SimConfig's default, which sim_node's need not be)."""
     from uav_policy import weights as wio
+    from uav_sim.simulator import SimConfig
 
-    path = weights or wio.packaged_weights(model)
-    return wio.read_file_window(path) if path else None
+    return wio.window_for(next(iter(weights_or_packaged(model, weights)), None), SimConfig.reward_window_fraction)
 
 
 def sim_arg_number(sim_args, wanted: str) -> float | None:
@@ -218,9 +230,6 @@ def sim_arg_number(sim_args, wanted: str) -> float | None:
 def sim_arg_hfov_deg(sim_args) -> float | None:
     """The hfov_deg among sim_node arguments NAME:=VALUE, if one is given (ValueError if not a number)."""
     return sim_arg_number(sim_args, "hfov_deg")
-
-
-ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
 
 
 def weights_label(files: list[str]) -> str:
@@ -252,17 +261,16 @@ def evaluate_once(
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
-    reward_window_fraction the reward window they record (if any), and without image_width/image_height
+    reward_window_fraction the reward window they record (else the paper's), and without image_width/image_height
     it renders at their input size. `weights` may be an ensemble's files joined by ENSEMBLE_SEP (which
-    must share architecture, camera and reward window: load_ensemble checks): policy_node gets the list
+    must share architecture, camera and reward window: load_policy checks): policy_node gets the list
     and `ensemble_rule`."""
     files = weights.split(ENSEMBLE_SEP) if weights else []
     first = files[0] if files else ""
     if sim_arg_hfov_deg(sim_args) is None:
         sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, first)}")
-    window = recorded_window(model, first)
-    if window is not None and sim_arg_number(sim_args, "reward_window_fraction") is None:
-        sim_args = (*sim_args, f"reward_window_fraction:={window}")
+    if sim_arg_number(sim_args, "reward_window_fraction") is None:
+        sim_args = (*sim_args, f"reward_window_fraction:={flown_window(model, first)}")
     sim_args = (*sim_args, *image_size_args(model, first, sim_args))
     import rclpy
     import rclpy.executors
@@ -357,6 +365,7 @@ def evaluate_inprocess(
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
+    `weights`: a file, or an ensemble's files joined by ENSEMBLE_SEP, or "" for the packaged files.
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
     `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
     camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
@@ -369,17 +378,16 @@ def evaluate_inprocess(
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
-    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
-    path = None
     if net is None:
-        path = weights or wio.packaged_weights(model)
-        if path is None:
+        files = weights_or_packaged(model, weights)
+        if not files:
             raise FileNotFoundError(f"no weights given and no packaged {model} weights")
-        net = wio.load_file(path, cfg)
-    if hfov_deg is None:  # with `net` and no file: the sim default
-        hfov_deg = wio.camera_for(weights or path, SimConfig.hfov_deg)
+        net, net_cfg, hfov_deg, reward_window_fraction = load_policy(model, files, hfov_deg, reward_window_fraction)
+    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
+    if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
+        hfov_deg = wio.camera_for(weights, SimConfig.hfov_deg)
     if reward_window_fraction is None:
-        reward_window_fraction = wio.window_for(weights or path, SimConfig.reward_window_fraction)
+        reward_window_fraction = wio.window_for(weights, SimConfig.reward_window_fraction)
     agent = Agent(net, cfg, seed=seed)
     sim_cfg = SimConfig(
         seed=seed,
@@ -435,16 +443,15 @@ def evaluate_inprocess(
     )
 
 
-def load_ensemble(model: str, files: list[str], hfov_deg: float | None, window: float | None = None, rule: str = "mean"):
-    """(QEnsemble joining Q-values by `rule`, its NetConfig, the camera to fly with, the reward window)
-    for weights files of one architecture. Without hfov_deg the members' trained camera and without `window` their reward window,
-    each of which must then be the same for all (ValueError if not)."""
+def load_policy(model: str, files: list[str], hfov_deg: float | None, window: float | None = None, rule: str = "mean"):
+    """(the network, or for several files a QEnsemble joining Q-values by `rule`; its NetConfig; the
+    camera to fly with; the reward window) for weights files of one architecture. Without hfov_deg
+    the members' trained camera and without `window` their reward window, each of which must then
+    be the same for all (ValueError if not)."""
     from uav_policy import weights as wio
-    from uav_policy.networks import QEnsemble
     from uav_sim.simulator import SimConfig
 
-    nets = [wio.load_file(f, wio.config_for(model, f)) for f in files]
-    net = QEnsemble(nets, rule)
+    net = wio.load_files(files, model, rule)
     if hfov_deg is None:
         cameras = {wio.camera_for(f, SimConfig.hfov_deg) for f in files}
         if len(cameras) != 1:
@@ -864,6 +871,12 @@ def main(argv=None) -> int:
         if a.ensemble > 1 and len(files) % a.ensemble:
             ap.error(f"--ensemble {a.ensemble}: {m} has {len(files)} weights files, not a multiple of {a.ensemble}")
         runs += [(m, files[i : i + a.ensemble]) for i in range(0, len(files), a.ensemble)] or [(m, [])]
+        packaged = [] if files else weights_or_packaged(m, "")
+        if len(packaged) > 1:
+            protocol += (
+                f" The packaged {m} weights (policy_node's default) are {len(packaged)} files flown as one,"
+                " acting on the mean of their Q-values."
+            )
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
 
@@ -871,7 +884,7 @@ def main(argv=None) -> int:
 
     recorded_windows = set()
     for model, files in runs:  # unreadable weights fail here, before any node starts
-        for path in files:
+        for path in files or weights_or_packaged(model, ""):
             if "," in path and not a.inprocess:  # policy_node reads commas as separating files
                 ap.error(f"--weights {model}={path}: policy_node cannot take a path with a comma (rename it, or --inprocess)")
             try:
@@ -884,12 +897,14 @@ def main(argv=None) -> int:
             " Reward: each weights file's reward window as recorded in its header (the paper's 20 % when it records none): "
             f"{', '.join(f'{w:g}' for w in sorted(recorded_windows - {None}))}."
         )
-    ensembles = {}  # weights column -> (network, its config, camera, reward window)
-    for model, files in runs if a.ensemble > 1 else []:
-        try:
-            ensembles[ENSEMBLE_SEP.join(files)] = load_ensemble(model, files, hfov_deg, window, a.ensemble_rule)
-        except ValueError as e:
-            ap.error(f"--ensemble {a.ensemble}, {model}: {e}")
+    ensembles = {}  # (model, weights column) -> (network, its config, camera, reward window)
+    for model, files in runs if a.inprocess else []:
+        members = files or weights_or_packaged(model, "")  # the packaged weights may be an ensemble too
+        if len(members) > 1:
+            try:
+                ensembles[model, ENSEMBLE_SEP.join(files)] = load_policy(model, members, hfov_deg, window, a.ensemble_rule)
+            except ValueError as e:
+                ap.error(f"--ensemble {a.ensemble}, {model}: {e}" if files else f"the packaged {model} weights: {e}")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     results, crash_rows = [], []
@@ -912,7 +927,7 @@ def main(argv=None) -> int:
                     progress=bar.update,
                     ensemble_rule=a.ensemble_rule,
                 )
-            net, net_cfg, hfov, win = ensembles.get(weights, (None, None, hfov_deg, window))
+            net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
             r = evaluate_inprocess(
                 model,
                 weights,

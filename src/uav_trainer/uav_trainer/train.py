@@ -2,13 +2,14 @@
 
     ros2 run uav_trainer train --model sam --steps 20000 --seed 0
 
-Recipes (`--recipe`): `shipped` (default) is how the packaged weights were trained: a 120 deg
-camera, a new procedural layout every episode and a turn penalty of 1.0 in the reward;
-`paper` is the paper's setting: a 90 deg camera in the Basic world with the paper's reward;
-`ensemble` is the recipe with the fewest crashes measured (docs/RESULTS.md, round 35): a 150 deg
-camera with a 5 x 5 px reward window, new layouts with Basic as every fourth episode, a 300-step
-episode limit, turn penalty 1.0, two updates per four steps, and the online network saved at nine
-steps of the budget's last 30 %, to be flown with the final weights as one policy of ten.
+Recipes (`--recipe`): `ensemble` (default) is how the packaged weights were trained, the recipe
+with the fewest crashes measured (docs/RESULTS.md, round 35): a 150 deg camera with a 5 x 5 px
+reward window, new layouts with Basic as every fourth episode, a 300-step episode limit, turn
+penalty 1.0, two updates per four steps, and the online network saved at nine steps of the
+budget's last 30 %, to be flown with the final weights as one policy of ten; `single` is the
+earlier packaged weights' recipe (round 4): a 120 deg camera, a new procedural layout every
+episode and a turn penalty of 1.0, one network; `paper` is the paper's setting: a 90 deg camera in
+the Basic world with the paper's reward.
 
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
 policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint with
@@ -34,8 +35,6 @@ from .training import snapshot_file, snapshot_steps
 # `snapshots`: that many weight snapshots, one every thirtieth of the budget, ending one before it
 # (30 000 steps: 21 000 ... 29 000); `max_rate_hz`: the step-rate cap unless --max-rate-hz says.
 RECIPES = {
-    "shipped": {"world": "random_each_episode", "sim": ["hfov_deg:=120.0"], "trainer": ["turn_penalty:=1.0"]},
-    "paper": {"world": "basic", "sim": ["hfov_deg:=90.0"], "trainer": ["turn_penalty:=0.0"]},
     "ensemble": {
         "world": "random_each_episode",
         "sim": [
@@ -49,6 +48,12 @@ RECIPES = {
         "snapshots": 9,
         "max_rate_hz": 30.0,
     },
+    "single": {
+        "world": "random_each_episode",
+        "sim": ["hfov_deg:=120.0", "reward_window_fraction:=0.2"],
+        "trainer": ["turn_penalty:=1.0"],
+    },
+    "paper": {"world": "basic", "sim": ["hfov_deg:=90.0", "reward_window_fraction:=0.2"], "trainer": ["turn_penalty:=0.0"]},
 }
 DEFAULT_MAX_RATE_HZ = 60.0
 
@@ -70,11 +75,11 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--recipe",
         choices=tuple(RECIPES),
-        default="shipped",
-        help="shipped: 120 deg camera, new layout every episode, turn penalty 1.0 (how the packaged weights were "
-        "trained); paper: 90 deg camera, Basic world, the paper's reward; ensemble: round 35's recipe (150 deg "
-        "camera, Basic every fourth episode, 300-step episodes, snapshots flown as one policy; docs/RESULTS.md) "
-        "(default: shipped)",
+        default="ensemble",
+        help="ensemble: how the packaged weights were trained, round 35's recipe (150 deg camera, new layouts with "
+        "Basic every fourth episode, 300-step episodes, ten snapshots flown as one policy; docs/RESULTS.md); single: "
+        "120 deg camera, new layout every episode, turn penalty 1.0, one network (round 4); paper: 90 deg camera, "
+        "Basic world, the paper's reward (default: ensemble)",
     )
     ap.add_argument(
         "--world",
@@ -142,7 +147,7 @@ def main(argv=None) -> int:
     procs = Processes(log_dir=logs)
     p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     # A random start heading: drawn anew each episode in a fixed world; with random_each_episode one
-    # draw per run, where every layout starts (as the shipped weights were trained).
+    # draw per run, where every layout starts (as the packaged weights were trained).
     # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
     sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(max_rate_hz)}", "wait_for_subscribers:=2"]
     sim_extra += recipe["sim"]
