@@ -1,6 +1,6 @@
 """Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN, alone and as
-ensembles of 3 and 10 networks; lockstep steps/s of sim_node <-> policy_node over ROS against the
-same loop in-process; weight-push latency.
+ensembles of 3 and 10 networks; lockstep steps/s of sim_node <-> policy_node over ROS on their defaults
+(the packaged weights) against the same loop in-process; weight-push latency.
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_policy.py
 """
@@ -20,7 +20,8 @@ from uav_policy.actions import PAPER_ACTIONS
 from uav_policy.agent import Agent
 from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import NetConfig, QEnsemble, build_network
-from uav_sim.simulator import Simulator
+from uav_sim.sim_node import NODE_HFOV_DEG, NODE_REWARD_WINDOW_FRACTION
+from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world
 
@@ -42,9 +43,12 @@ def inference_latency(model: str, n: int = 2000, members: int = 1) -> tuple[floa
 
 
 def in_process_loop(model: str, steps: int) -> float:
-    cfg = NetConfig(model=model)
-    agent = Agent(build_network(cfg, seed=0), cfg)
-    sim = Simulator(load_world("basic"))
+    """Steps/s of the loop policy_node and sim_node fly on their defaults (the packaged weights, ten
+    networks as one when packaged so; sim_node's default camera), without ROS."""
+    packaged = wio.packaged_weights(model)
+    net = wio.load_files(packaged, model) if packaged else build_network(NetConfig(model=model), seed=0)
+    agent = Agent(net, net.cfg)
+    sim = Simulator(load_world("basic"), SimConfig(hfov_deg=NODE_HFOV_DEG, reward_window_fraction=NODE_REWARD_WINDOW_FRACTION))
     stack = FrameStack(5)
     r = sim.observe()
     t0 = time.perf_counter()

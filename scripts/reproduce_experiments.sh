@@ -31,7 +31,9 @@
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
 # fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe), a thirty-eighth (that
 # recipe as the main job over ROS, `train --recipe ensemble`), a thirty-ninth (the same with the weights
-# pushed after every update), and a fortieth (both on three more seeds). About 64 h on 2 cores.
+# pushed after every update), and a fortieth (both on three more seeds); then it packages round 35-37's
+# best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
+# figures with them. About 64 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -187,22 +189,23 @@ $EVAL --inprocess --model sam --model cnn --weights "${T[@]}" --worlds basic com
 for t in turn_penalty_20_seeds turn_penalty_20_seeds_fixed_start; do
   python scripts/compare_models.py docs/results/behaviour/$t/results.csv > docs/results/behaviour/$t/comparison.md
 done
-# Choosing the shipped weights among seeds 0-9 (docs/RESULTS.md, "Shipped weights"): the fewest
+# Choosing the weights shipped in round 4 among seeds 0-9 (docs/RESULTS.md, "Shipped weights"): the fewest
 # crashes over the paper's fixed start (below) and turn_penalty_10_seeds picked SAM seed 4 and CNN
 # seed 8; the validation layouts (below) picked seed 3 for both and were not used. Then package
-# them with their camera and measure the packaged files through the ROS nodes.
+# them with their camera (into runs/shipped_round4 since round 35's ensembles are packaged, at the end)
+# and measure those files through the ROS nodes as policy_node flew them by default then.
 T=()
 for m in sam cnn; do for s in $(seq 0 9); do T+=("$m=runs/turn_${m}_seed$s/policy_$m.safetensors"); done; done
 $EVAL --inprocess --model sam --model cnn --weights "${T[@]}" --worlds random:200 random:201 random:202 random:203 random:204 \
   --steps 1000 --start-yaw-jitter-deg 180 --repeats 2 --sim-arg hfov_deg:=120.0 --out docs/results/shipping/validation_layouts
 $EVAL --inprocess --model sam --model cnn --weights "${T[@]}" --worlds basic complex turbulent --steps 1000 \
   --sim-arg hfov_deg:=120.0 --out docs/results/shipping/fixed_start
-python scripts/package_weights.py runs/turn_sam_seed4/policy_sam.safetensors --model sam --camera-hfov-deg 120
-python scripts/package_weights.py runs/turn_cnn_seed8/policy_cnn.safetensors --model cnn --camera-hfov-deg 120
-colcon build --base-paths src > /dev/null
-$EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 --out docs/results/shipped/fixed_start
-$EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" --out docs/results/shipped/varied_start
-install/uav_policy/lib/uav_policy/attention_figures --model sam --worlds basic turbulent --steps 150 --out docs/figures
+python scripts/package_weights.py runs/turn_sam_seed4/policy_sam.safetensors --model sam --camera-hfov-deg 120 --out runs/shipped_round4/sam
+python scripts/package_weights.py runs/turn_cnn_seed8/policy_cnn.safetensors --model cnn --camera-hfov-deg 120 --out runs/shipped_round4/cnn
+S4=(sam=runs/shipped_round4/sam/sam_00.safetensors cnn=runs/shipped_round4/cnn/cnn_00.safetensors)
+$EVAL --model sam --model cnn --weights "${S4[@]}" --worlds basic complex turbulent --steps 1000 --out docs/results/shipped_round4/fixed_start
+$EVAL --model sam --model cnn --weights "${S4[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
+  --out docs/results/shipped_round4/varied_start
 # Every ROS measurement again without ROS: the rows must agree.
 X=scripts/crosscheck_eval.py
 python $X docs/results/layout_training/results.csv
@@ -212,11 +215,11 @@ python $X docs/results/fov120/fixed_start/results.csv --hfov-deg 120
 python $X docs/results/fov120/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
 python $X docs/results/clearance/results.csv "${VARIED[@]}"
 python $X docs/results/validation_selection/results.csv "${VARIED[@]}"
-python $X docs/results/shipped/fixed_start/results.csv --hfov-deg 120
-python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
+python $X docs/results/shipped_round4/fixed_start/results.csv --hfov-deg 120
+python $X docs/results/shipped_round4/varied_start/results.csv "${VARIED[@]}" --hfov-deg 120
 # Round 5: a new start heading every training episode (--redraw-heading), SAM seeds 0-9, against
 # round 4, where every layout starts at the seed's first heading draw. Then the main job (ROS)
-# on its defaults (--recipe shipped), seeds 0-2; evaluated in-process (equal to the ROS rows, tested).
+# on its defaults of then (--recipe shipped, now --recipe single), seeds 0-2; evaluated in-process (equal to the ROS rows, tested).
 train_ten redraw sam --hfov-deg 120 --turn-penalty 1.0 --redraw-heading
 R=(runs/redraw_sam_seed{0..9}/policy_sam.safetensors)
 R5=docs/results/round5_redraw_heading
@@ -246,7 +249,7 @@ for p in varied_start fixed_start; do
     > $R5/cnn/$p/sam_against_cnn.md
 done
 for s in 0 1 2; do
-  install/uav_trainer/lib/uav_trainer/train --model sam --seed $s --run-dir runs/main_sam_seed$s
+  install/uav_trainer/lib/uav_trainer/train --recipe single --model sam --seed $s --run-dir runs/main_sam_seed$s
 done
 M=(runs/main_sam_seed{0,1,2}/policy_sam.safetensors)
 $EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
@@ -254,7 +257,7 @@ $EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbule
 $EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbulent --steps 1000 \
   --out docs/results/main_job/fixed_start
 # The same main job with a new start heading for every layout (as round 5), seed 0.
-install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_redraw_sam_seed0 --sim-arg redraw_start_heading:=true
+install/uav_trainer/lib/uav_trainer/train --recipe single --model sam --run-dir runs/main_redraw_sam_seed0 --sim-arg redraw_start_heading:=true
 $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_redraw/varied_start
 $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
@@ -287,7 +290,7 @@ python scripts/compare_models.py $R6/varied_start/results.csv docs/results/behav
 python scripts/compare_models.py $R6/fixed_start/results.csv \
   docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a tl300_sam --b turn_sam \
   > $R6/fixed_start/comparison_round4.md
-install/uav_trainer/lib/uav_trainer/train --model sam --run-dir runs/main_tl300_sam_seed0 --sim-arg max_episode_steps:=300
+install/uav_trainer/lib/uav_trainer/train --recipe single --model sam --run-dir runs/main_tl300_sam_seed0 --sim-arg max_episode_steps:=300
 $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_time_limit/varied_start
 $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
@@ -1179,3 +1182,21 @@ for p in varied_start fixed_start; do
 done
 python scripts/repeat_failures.py $R40/push_every_update/fixed_start/results.csv $R40/push_every_50/fixed_start/results.csv \
   $R36/pooled_40_seeds/fixed_start/results.csv --labels push_every_update push_every_50 inprocess_40 > $R40/fixed_start_repeats.md
+
+# Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
+# and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
+# (scripts/pick_shipped.py: SAM seed 20, CNN seed 13); its ten files packaged as policy_node's default,
+# measured through the ROS nodes as policy_node flies them by default, and re-measured without ROS.
+python scripts/pick_shipped.py $R35/{fixed,varied}_start/results.csv $R36/{fixed,varied}_start/results.csv --model sam \
+  > docs/results/shipped/choice_sam.md
+python scripts/pick_shipped.py $R37/{fixed,varied}_start/results.csv --model cnn > docs/results/shipped/choice_cnn.md
+for m in sam cnn; do
+  mapfile -t W < <(sed -n 's/^weights: //p' docs/results/shipped/choice_$m.md | tr ' ' '\n')
+  python scripts/package_weights.py "${W[@]}" --model $m
+done
+colcon build --base-paths src > /dev/null
+$EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 --out docs/results/shipped/fixed_start
+$EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" --out docs/results/shipped/varied_start
+python $X docs/results/shipped/fixed_start/results.csv --hfov-deg 150
+python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-deg 150
+install/uav_policy/lib/uav_policy/attention_figures --model sam --worlds basic turbulent --steps 150 --out docs/figures

@@ -23,5 +23,5 @@ install/uav_trainer/lib/uav_trainer/evaluate --model sam --model cnn --weights "
 install/uav_trainer/lib/uav_trainer/evaluate --model sam --model cnn --weights "${sam[@]}" "${cnn[@]}" \
   --worlds random:101 random:102 random:103 --steps 1000 --out docs/results/heldout_worlds
 install/uav_trainer/lib/uav_trainer/plot_curves runs/paper_*_seed* --out docs/figures/training_curves.png
-install/uav_policy/lib/uav_policy/attention_figures --model sam --weights src/uav_policy/weights/sam.safetensors \
-  --worlds basic turbulent --steps 150 --out docs/figures
+# The attention figures show the packaged SAM (its ten networks as one policy, their attention averaged).
+install/uav_policy/lib/uav_policy/attention_figures --model sam --worlds basic turbulent --steps 150 --out docs/figures

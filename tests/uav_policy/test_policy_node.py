@@ -165,7 +165,7 @@ def test_a_list_of_weights_files_flies_as_one_policy_on_the_mean_q_values(ros, t
     assert ros.spin_until(lambda: len(w.actions) >= 20 and heads, 60), ros.log_of(proc)
     assert all(m.twist.linear.x == 2.0 for m in w.actions[-10:]), "the mean Q-values prefer a3 (forward 2 m/s)"
     assert heads[-1].layout.dim[0].size == 2 * SAM.heads, "each member's heads"
-    assert f"an ensemble of 2 weights files acting on their mean Q-values: {b}, {a}" in ros.log_of(proc)
+    assert f"an ensemble of 2 weights files acting on their mean Q-values: {b.name}, {a.name} in {tmp_path}" in ros.log_of(proc)
     r = call_push(ros, forcing_action(0))
     assert r.successful, r.reason
     all_a0 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 1.0 for m in w.actions[-20:])  # noqa: E731

@@ -13,13 +13,15 @@ Given several files (-p weights:=a.safetensors,b.safetensors) it flies them as o
 that acts on the mean of their Q-values (docs/RESULTS.md, round 27: flown so, a run's last
 checkpoints crash less than its final network alone). q_values is then the mean; attention/weights
 carries each member's heads in turn and the attention maps average over all of them. A weight push
-replaces the ensemble.
+replaces the ensemble. Without the 'weights' parameter it flies the files packaged with uav_policy
+(weights/<model>/: ten networks of one training run, flown so).
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -197,7 +199,11 @@ class PolicyNode(Node):
             source = f"weights from {paths[0]}"
         else:
             joined = "mean Q-values" if self.ensemble_rule == "mean" else "lowest Q-value per action"
-            source = f"an ensemble of {len(paths)} weights files acting on their {joined}: {', '.join(paths)}"
+            folders = {str(Path(f).parent) for f in paths}
+            named = ", ".join(paths)
+            if len(folders) == 1:  # one run's snapshots, or the packaged files: the folder once
+                named = ", ".join(Path(f).name for f in paths) + f" in {folders.pop()}"
+            source = f"an ensemble of {len(paths)} weights files acting on their {joined}: {named}"
         return net, source, cameras.pop()
 
     def _load_file(self, path) -> torch.nn.Module:
