@@ -18,9 +18,8 @@ import argparse
 from collections import defaultdict
 from pathlib import PurePath
 
+from compare_models import ENSEMBLE_SEP
 from csv_input import read_csv
-
-ENSEMBLE_SEP = "+"  # evaluate.ENSEMBLE_SEP
 
 
 def run_of(weights: str) -> str:

@@ -20,15 +20,15 @@ from .frame_stack import FrameStack
 from .networks import build_network
 
 
-def fly(model: str, weights: str, world: str, steps: int, seed: int = 0):
-    """Frames of an exploit-only flight: (depth, attention map or None, action index, collided)."""
+def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
+    """Frames of an exploit-only flight of `files` (several: one policy on their mean Q-values; none: a
+    seeded random initialisation): (depth, attention map or None, action index, collided)."""
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
     from . import weights as wio
 
-    files = [f for f in weights.split(",") if f] if weights else []
     net = wio.load_files(files, model) if files else build_network(wio.config_for(model, None), seed=seed)
     cfg = net.cfg
     agent = Agent(net, cfg, seed=seed)
@@ -115,15 +115,16 @@ def main(argv=None) -> int:
     ap.add_argument("--panels", type=int, default=6)
     ap.add_argument("--out", default="docs/figures")
     a = ap.parse_args(argv)
-    weights = a.weights
-    if not weights:
+    if a.weights:
+        files = [f for f in a.weights.split(",") if f]
+    else:
         from .weights import packaged_weights
 
-        weights = ",".join(map(str, packaged_weights(a.model)))
+        files = [str(p) for p in packaged_weights(a.model)]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     for world in a.worlds:
-        frames = fly(a.model, weights, world, a.steps)
+        frames = fly(a.model, files, world, a.steps)
         picks = representative(frames, a.panels)
         png = out / f"attention_{world}.png"
         grid_png(frames, picks, png, f"D3QN-{a.model.upper()} in {world}: depth (top) and attention (bottom)")

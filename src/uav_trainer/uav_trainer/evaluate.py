@@ -863,6 +863,7 @@ def main(argv=None) -> int:
         return 0
     models = a.model or ["sam"]
     runs: list[tuple[str, list[str]]] = []  # (model, its files: one, an ensemble's, or none for the packaged weights)
+    packaged = {m: weights_or_packaged(m, "") for m in models}  # what a run without files flies (policy_node's default)
     for m in models:
         files = [w.split("=", 1)[1] for w in (a.weights or []) if w.startswith(f"{m}=")]
         files += [w for w in (a.weights or []) if "=" not in w] if len(models) == 1 else []
@@ -871,10 +872,9 @@ def main(argv=None) -> int:
         if a.ensemble > 1 and len(files) % a.ensemble:
             ap.error(f"--ensemble {a.ensemble}: {m} has {len(files)} weights files, not a multiple of {a.ensemble}")
         runs += [(m, files[i : i + a.ensemble]) for i in range(0, len(files), a.ensemble)] or [(m, [])]
-        packaged = [] if files else weights_or_packaged(m, "")
-        if len(packaged) > 1:
+        if not files and len(packaged[m]) > 1:
             protocol += (
-                f" The packaged {m} weights (policy_node's default) are {len(packaged)} files flown as one,"
+                f" The packaged {m} weights (policy_node's default) are {len(packaged[m])} files flown as one,"
                 " acting on the mean of their Q-values."
             )
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
@@ -884,7 +884,7 @@ def main(argv=None) -> int:
 
     recorded_windows = set()
     for model, files in runs:  # unreadable weights fail here, before any node starts
-        for path in files or weights_or_packaged(model, ""):
+        for path in files or packaged[model]:
             if "," in path and not a.inprocess:  # policy_node reads commas as separating files
                 ap.error(f"--weights {model}={path}: policy_node cannot take a path with a comma (rename it, or --inprocess)")
             try:
@@ -899,7 +899,7 @@ def main(argv=None) -> int:
         )
     ensembles = {}  # (model, weights column) -> (network, its config, camera, reward window)
     for model, files in runs if a.inprocess else []:
-        members = files or weights_or_packaged(model, "")  # the packaged weights may be an ensemble too
+        members = files or packaged[model]  # the packaged weights may be an ensemble too
         if len(members) > 1:
             try:
                 ensembles[model, ENSEMBLE_SEP.join(files)] = load_policy(model, members, hfov_deg, window, a.ensemble_rule)
