@@ -218,6 +218,55 @@ def test_inprocess_training_is_reproducible(tmp_path):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
 
+def test_pushed_acting_flies_the_copy_taken_at_each_push_interval_not_the_newest_network(tmp_path):
+    from uav_policy.agent import Agent
+    from uav_trainer.inprocess import PushedActing
+
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(t, 200)
+    agent = Agent(t.learner.online, t.net_cfg)
+    pushed = PushedActing(agent, t.learner, every=4)
+    initial = [p.detach().clone() for p in t.learner.online.parameters()]
+
+    def same(net, params):
+        return all(torch.equal(a, b) for a, b in zip(net.parameters(), params, strict=True))
+
+    taken = initial
+    for u in range(1, 11):
+        assert t.learn_once()
+        pushed.after_learning()
+        if u % 4 == 0:
+            taken = [p.detach().clone() for p in t.learner.online.parameters()]
+        assert agent.net is not t.learner.online and same(agent.net, taken), u
+        assert (u % 4 == 0) == same(t.learner.online, taken), u  # between pushes the learner has moved on
+    assert not same(agent.net, initial)
+    with pytest.raises(ValueError, match="push interval"):
+        PushedActing(agent, t.learner, every=0)
+
+
+def test_inprocess_acting_on_pushes_is_reproducible_and_changes_the_flight_once_learning_begins(tmp_path, monkeypatch, capsys):
+    from uav_trainer import inprocess
+
+    cfg = TrainerConfig(model="cnn", seed=2, total_steps=300, learning_starts=100, replay_ratio=0.5, epsilon_start=0.0, epsilon_end=0.0)
+    logged = []
+    short = dict(max_episode_steps=15)  # the greedy initial network would fly long episodes
+    runs = [run_inprocess(cfg, str(tmp_path / "newest"), log=lambda s: None, **short)]
+    for k in range(2):
+        runs.append(run_inprocess(cfg, str(tmp_path / f"pushed{k}"), log=logged.append, act_on_pushes=20, **short))
+    assert "acting on a copy of the network pushed every 20 updates, as policy_node beside trainer_node" in logged
+    episodes = [(r.dir / "episodes.csv").read_text().splitlines() for r in runs]
+    assert episodes[1] == episodes[2]  # reproducible
+    before = [[e for e in ep[1:] if int(e.split(",")[1]) <= 100] for ep in episodes]
+    assert before[0] == before[1] and len(before[0]) >= 3  # the same initial network flies until learning begins
+    assert episodes[0] != episodes[1]  # then the greedy flights part
+    for a, b in zip(runs[1].learner.online.parameters(), runs[2].learner.online.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    monkeypatch.setattr("sys.argv", ["inprocess", "--steps", "10", "--act-on-pushes", "-1"])
+    with pytest.raises(SystemExit):
+        inprocess.main()
+    assert "--act-on-pushes must be >= 0 updates, got -1" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("redraw", [False, True])
 def test_layout_per_episode_flies_a_new_layout_after_every_crash(tmp_path, monkeypatch, redraw):
     import uav_sim.world as world_module

@@ -106,6 +106,28 @@ class Validation:
         self._csv.close()
 
 
+class PushedActing:
+    """Acting as policy_node does beside the ROS trainer (an experiment, round 41): the agent flies a
+    copy of the online network, replaced whenever the learner's update count reaches a multiple of
+    `every` (trainer_node's push_interval_updates), instead of the newest network. Before the first
+    push it flies the initial network, as policy_node flies its start-up weights. The push's delivery
+    (about 40 ms over ROS, one or two steps at 30 steps/s) is not modelled: the copy acts from the next
+    step. A resumed run starts from a copy of the resumed network."""
+
+    def __init__(self, agent: Agent, learner, every: int):
+        if every < 1:
+            raise ValueError(f"a push interval must be >= 1 update, got {every}")
+        self.agent, self.learner, self.every = agent, learner, every
+        self.pushes = learner.updates // every
+        agent.swap(copy.deepcopy(learner.online))
+
+    def after_learning(self) -> None:
+        n = self.learner.updates // self.every
+        if n != self.pushes:
+            self.pushes = n
+            self.agent.swap(copy.deepcopy(self.learner.online))
+
+
 def run(
     cfg: TrainerConfig,
     run_dir: str,
@@ -125,6 +147,7 @@ def run(
     reward_window_fraction: float = SimConfig.reward_window_fraction,
     world_every: int = 0,
     partitions: bool = False,
+    act_on_pushes: int = 0,
 ) -> Training:
     """Train until the budget; `on_step(training)` may return True to stop early.
 
@@ -153,6 +176,9 @@ def run(
     `save_weights_at` lists env steps at which the online network is also written to
     policy_<model>_step<N>.safetensors (snapshots along one run, e.g. to measure longer training
     without retraining the shorter budget: the first N steps of a longer run are the N-step run).
+
+    `act_on_pushes` = N > 0 acts on a copy of the network taken every N updates, as policy_node acts on
+    the ROS trainer's pushes (PushedActing; an experiment, round 41); 0 acts on the newest network.
     """
     snapshots = frozenset(int(n) for n in save_weights_at)
     if world_every and not layout_per_episode:
@@ -192,6 +218,9 @@ def run(
     else:
         sim = Simulator(first, sim_cfg)
     agent = Agent(training.learner.online, training.net_cfg, cfg.device, seed=cfg.seed)
+    pushed = PushedActing(agent, training.learner, act_on_pushes) if act_on_pushes else None
+    if pushed:
+        log(f"acting on a copy of the network pushed every {act_on_pushes} updates, as policy_node beside trainer_node")
     stack = FrameStack(training.net_cfg.frames)
     r = sim.observe()
     state = stack.reset(r.depth_m)
@@ -210,6 +239,8 @@ def run(
             state = stack.reset(r.depth_m) if r.collided or r.truncated else stack.push(r.depth_m)
             while training.learn_once():
                 pass
+            if pushed:
+                pushed.after_learning()
             if validator is not None:
                 validator(training)
             for path in training.save_due_snapshots():
@@ -321,6 +352,14 @@ def main() -> int:
         action="store_true",
         help="experiment, with --layout-per-episode: layouts where half of the boxes are 2-3 m partitions "
         "(random_partitions:SEED; default: plain layouts, as the shipped weights)",
+    )
+    ap.add_argument(
+        "--act-on-pushes",
+        type=int,
+        default=0,
+        metavar="N",
+        help="experiment: act on a copy of the network taken every N updates, as policy_node acts on the ROS "
+        "trainer's pushes (trainer_node's push_interval_updates, 50); 0 = the newest network (default)",
     )
     ap.add_argument("--validation-steps", type=int, default=500, help="steps per validation world")
     ap.add_argument("--hfov-deg", type=float, default=SimConfig.hfov_deg, help="experiment: camera field of view (deg)")
@@ -435,6 +474,8 @@ def main() -> int:
         ap.error(f"--world-every must be 0 or >= 2, and needs --layout-per-episode, got {a.world_every}")
     if a.layout_partitions and not a.layout_per_episode:
         ap.error("--layout-partitions changes the training layouts: it needs --layout-per-episode")
+    if a.act_on_pushes < 0:
+        ap.error(f"--act-on-pushes must be >= 0 updates, got {a.act_on_pushes}")
     torch.set_num_threads(a.threads)
     cfg = TrainerConfig(
         model=a.model,
@@ -494,6 +535,7 @@ def main() -> int:
             reward_window_fraction=a.reward_window_fraction,
             world_every=a.world_every,
             partitions=a.layout_partitions,
+            act_on_pushes=a.act_on_pushes,
         )
     except RewardWindowError as e:
         ap.error(f"--hfov-deg / --reward-window-fraction: {e}")
