@@ -31,9 +31,10 @@
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
 # fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe), a thirty-eighth (that
 # recipe as the main job over ROS, `train --recipe ensemble`), a thirty-ninth (the same with the weights
-# pushed after every update), and a fortieth (both on three more seeds); then it packages round 35-37's
+# pushed after every update), a fortieth (both on three more seeds), and a forty-first (in-process, acting on
+# the network pushed every 50 updates, as policy_node beside the ROS trainer); then it packages round 35-37's
 # best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
-# figures with them. About 64 h on 2 cores.
+# figures with them. About 66 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1182,6 +1183,35 @@ for p in varied_start fixed_start; do
 done
 python scripts/repeat_failures.py $R40/push_every_update/fixed_start/results.csv $R40/push_every_50/fixed_start/results.csv \
   $R36/pooled_40_seeds/fixed_start/results.csv --labels push_every_update push_every_50 inprocess_40 > $R40/fixed_start_repeats.md
+
+# Round 41: round 35's in-process command with --act-on-pushes 50 (the agent acts on a copy of the network taken
+# every 50 updates, as policy_node acts on trainer_node's pushes), SAM seeds 0-9 (design fixed before any flight:
+# $R41/design.md); each run's ten files as one policy, both protocols, in two halves joined; against round 35
+# (paired by seed), the forty in-process seeds and the twelve ROS runs of rounds 38-40 (pooled; both with the
+# count of policies without a fixed-start Complex crash), and the fixed-start repeats.
+R41=docs/results/round41_act_on_pushes
+train_ten r41pushed sam "${ROUND6[@]}" "${R24ARGS[@]}" --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" \
+  --act-on-pushes 50
+for h in "0 1 2 3 4" "5 6 7 8 9"; do
+  mapfile -t W < <(snap_group r41pushed 10 $h)
+  HFOV=150 WINDOW=0.078 eval_120 "runs/r41eval/${h%% *}" 1 --model sam --ensemble 10 --weights "${W[@]}"
+done
+for p in varied_start fixed_start; do
+  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+  $EVAL --from-csv runs/r41eval/{0,5}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
+    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R41/$p
+  mkdir -p $R41/ros_12/$p
+  { cat $R40/push_every_50/$p/results.csv; tail -n +2 $R40/push_every_update/$p/results.csv; } > $R41/ros_12/$p/results.csv
+  python scripts/compare_models.py $R41/$p/results.csv $R35/$p/results.csv --by file --paired --a act_on_pushes \
+    --b round35 --bar paper > $R41/$p/against_round35.md
+  python scripts/compare_models.py $R41/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a act_on_pushes \
+    --b inprocess_40 --bar complex=0 > $R41/$p/against_inprocess_40.md
+  python scripts/compare_models.py $R41/$p/results.csv $R41/ros_12/$p/results.csv --by file --a act_on_pushes \
+    --b ros_12 --bar complex=0 > $R41/$p/against_ros_12.md
+done
+{ cat runs/r41eval/0/varied_start/crashes.csv; tail -n +2 runs/r41eval/5/varied_start/crashes.csv; } > $R41/varied_start/crashes.csv
+python scripts/repeat_failures.py $R41/fixed_start/results.csv $R41/ros_12/fixed_start/results.csv \
+  $R36/pooled_40_seeds/fixed_start/results.csv --labels act_on_pushes ros_12 inprocess_40 > $R41/fixed_start_repeats.md
 
 # Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
 # and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
