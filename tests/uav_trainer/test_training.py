@@ -247,7 +247,9 @@ def test_pushed_acting_flies_the_copy_taken_at_each_push_interval_not_the_newest
 def test_inprocess_acting_on_pushes_is_reproducible_and_changes_the_flight_once_learning_begins(tmp_path, monkeypatch, capsys):
     from uav_trainer import inprocess
 
-    cfg = TrainerConfig(model="cnn", seed=2, total_steps=300, learning_starts=100, replay_ratio=0.5, epsilon_start=0.0, epsilon_end=0.0)
+    cfg = TrainerConfig(
+        model="cnn", seed=2, total_steps=300, learning_starts=100, replay_ratio=0.5, epsilon_start=0.0, epsilon_end=0.0
+    )
     logged = []
     short = dict(max_episode_steps=15)  # the greedy initial network would fly long episodes
     runs = [run_inprocess(cfg, str(tmp_path / "newest"), log=lambda s: None, **short)]
