@@ -109,8 +109,8 @@ class Validation:
 class PushedActing:
     """Acting as policy_node does beside the ROS trainer (an experiment, round 41): the agent flies a
     copy of the online network, replaced whenever the learner's update count reaches a multiple of
-    `every` (trainer_node's push_interval_updates), instead of the newest network. Before the first
-    push it flies the initial network, as policy_node flies its start-up weights. The push's delivery
+    `every` (trainer_node's push_interval_updates), instead of the newest network. Until the first
+    interval's push it flies the initial network, which trainer_node pushes at start-up. The push's delivery
     (about 40 ms over ROS, one or two steps at 30 steps/s) is not modelled: the copy acts from the next
     step. A resumed run starts from a copy of the resumed network."""
 
