@@ -34,7 +34,7 @@
 # pushed after every update), a fortieth (both on three more seeds), and a forty-first (in-process, acting on
 # the network pushed every 50 updates, as policy_node beside the ROS trainer); then it packages round 35-37's
 # best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
-# figures with them. About 66 h on 2 cores.
+# figures with them. About 68 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1212,6 +1212,36 @@ done
 { cat runs/r41eval/0/varied_start/crashes.csv; tail -n +2 runs/r41eval/5/varied_start/crashes.csv; } > $R41/varied_start/crashes.csv
 python scripts/repeat_failures.py $R41/fixed_start/results.csv $R41/ros_12/fixed_start/results.csv \
   $R36/pooled_40_seeds/fixed_start/results.csv --labels act_on_pushes ros_12 inprocess_40 > $R41/fixed_start_repeats.md
+
+# Round 42: the main job (`train --recipe ensemble`, push every 50 updates) on fresh SAM seeds 6-11, one run at a
+# time (design fixed before any run: $R42/design.md); each run's ten files flown as one policy on its own (both
+# protocols, as rounds 38-41) and the six joined; against the forty in-process seeds, the eighteen ROS runs of
+# rounds 38-40 and this pooled (`ros_18/`), rounds 38-40's twelve, and the fixed-start repeats.
+R42=docs/results/round42_main_job_fresh_seeds
+for s in 6 7 8 9 10 11; do
+  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r42ros_sam_seed$s --no-resume
+  mapfile -t W < <(snap_group r42ros 10 $s)
+  HFOV=150 WINDOW=0.078 eval_120 runs/r42eval/s$s 1 --model sam --ensemble 10 --weights "${W[@]}"
+done
+for p in varied_start fixed_start; do
+  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+  $EVAL --from-csv runs/r42eval/s{6,7,8,9,10,11}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
+    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R42/$p
+  mkdir -p $R42/ros_18/$p
+  { cat $R41/ros_12/$p/results.csv; tail -n +2 $R42/$p/results.csv; } > $R42/ros_18/$p/results.csv
+  python scripts/compare_models.py $R42/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a fresh_seeds \
+    --b inprocess_40 --bar complex=0 > $R42/$p/against_inprocess_40.md
+  python scripts/compare_models.py $R42/$p/results.csv $R41/ros_12/$p/results.csv --by file --a fresh_seeds \
+    --b ros_12 --bar complex=0 > $R42/$p/against_ros_12.md
+  python scripts/compare_models.py $R42/ros_18/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a ros_18 \
+    --b inprocess_40 --bar complex=0 > $R42/ros_18/$p/against_inprocess_40.md
+  python scripts/compare_models.py $R42/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a fresh_seeds \
+    --b inprocess_40 --bar paper > $R42/$p/bar_paper.md
+done
+cat runs/r42eval/s6/varied_start/crashes.csv > $R42/varied_start/crashes.csv
+for s in 7 8 9 10 11; do tail -n +2 runs/r42eval/s$s/varied_start/crashes.csv >> $R42/varied_start/crashes.csv; done
+python scripts/repeat_failures.py $R42/fixed_start/results.csv $R41/ros_12/fixed_start/results.csv \
+  $R36/pooled_40_seeds/fixed_start/results.csv --labels fresh_seeds ros_12 inprocess_40 > $R42/fixed_start_repeats.md
 
 # Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
 # and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
