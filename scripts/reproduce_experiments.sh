@@ -1227,14 +1227,16 @@ for p in varied_start fixed_start; do
   V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
   $EVAL --from-csv runs/r42eval/s{6,7,8,9,10,11}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
     --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R42/$p
-  mkdir -p $R42/ros_18/$p
-  { cat $R41/ros_12/$p/results.csv; tail -n +2 $R42/$p/results.csv; } > $R42/ros_18/$p/results.csv
+  $EVAL --from-csv $R41/ros_12/$p/results.csv $R42/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
+    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R42/ros_18/$p
   python scripts/compare_models.py $R42/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a fresh_seeds \
     --b inprocess_40 --bar complex=0 > $R42/$p/against_inprocess_40.md
   python scripts/compare_models.py $R42/$p/results.csv $R41/ros_12/$p/results.csv --by file --a fresh_seeds \
     --b ros_12 --bar complex=0 > $R42/$p/against_ros_12.md
   python scripts/compare_models.py $R42/ros_18/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a ros_18 \
     --b inprocess_40 --bar complex=0 > $R42/ros_18/$p/against_inprocess_40.md
+  python scripts/compare_models.py $R42/ros_18/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a ros_18 \
+    --b inprocess_40 --bar paper > $R42/ros_18/$p/bar_paper.md
   python scripts/compare_models.py $R42/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a fresh_seeds \
     --b inprocess_40 --bar paper > $R42/$p/bar_paper.md
 done
