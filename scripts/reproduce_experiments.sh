@@ -31,8 +31,9 @@
 # (round 29's recipe with every fourth training episode in Basic), a thirty-sixth (the same on twenty
 # fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe), a thirty-eighth (that
 # recipe as the main job over ROS, `train --recipe ensemble`), a thirty-ninth (the same with the weights
-# pushed after every update), a fortieth (both on three more seeds), and a forty-first (in-process, acting on
-# the network pushed every 50 updates, as policy_node beside the ROS trainer); then it packages round 35-37's
+# pushed after every update), a fortieth (both on three more seeds), a forty-first (in-process, acting on
+# the network pushed every 50 updates, as policy_node beside the ROS trainer), and a forty-second (the main job
+# on fresh seeds 6-11); then it packages round 35-37's
 # best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
 # figures with them. About 68 h on 2 cores.
 set -euo pipefail
