@@ -703,3 +703,39 @@ def test_package_weights_writes_the_files_in_order_with_their_camera_and_window(
     assert "different cameras (120, 150 deg)" in run(src[0], cam120, "--model", "sam", "--out", out).stderr
     assert [p.read_bytes() for p in sorted(out.glob("*.safetensors"))] == [p.read_bytes() for p in made]
     assert "cannot read" in run(tmp_path / "missing.safetensors", "--model", "sam", "--out", out).stderr
+
+
+def test_seed_effect_finds_seeds_that_fail_alike_in_every_table_and_not_in_shuffled_ones(tmp_path):
+    """Six seeds in three tables. When the same seeds rank alike in every table (distinct rates), only the
+    arrangement with tables 2 and 3 in table 1's order reaches the Friedman statistic: p = 1 / 720**2.
+    Crash or not, two tables with the same three crashing seeds: 1 of C(6, 3) = 20 arrangements agree on all."""
+    script = ROOT / "scripts" / "seed_effect.py"
+    header = ["model", "world", "weights", "steps", "crashes"]
+
+    def write(name, crashes, world="complex"):
+        path = tmp_path / f"{name}.csv"
+        rows = [["sam", world, f"runs/x_sam_seed{s}/policy_sam.safetensors", 1000, c] for s, c in enumerate(crashes)]
+        rows.append(["cnn", world, "runs/x_cnn_seed0/policy_cnn.safetensors", 1000, 50])  # another model: not read
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows([header, *rows])
+        return str(path)
+
+    run = lambda *x: subprocess.run([sys.executable, str(script), *x], capture_output=True, text=True)  # noqa: E731
+    alike = [write(f"a{i}", [0, 1, 2, 3, 4, 5 + i]) for i in range(3)]
+    out = run(*alike, "--labels", "r1", "r2", "r3")
+    assert out.returncode == 0, out.stderr
+    assert "| 5 | 5.00 | 6.00 | 7.00 | 3 of 3 |" in out.stdout
+    assert "| 0 | 0.00 | 0.00 | 0.00 | 0 of 3 |" in out.stdout
+    assert f"one-sided p = {1 / 720**2:.1e} (exact)" in out.stdout.split("Friedman")[1].splitlines()[0]
+    unlike = [write("u1", [0, 1, 2, 3, 4, 5]), write("u2", [5, 4, 3, 2, 1, 0])]  # the same rates in opposite orders
+    friedman = run(*unlike).stdout.split("Friedman")[1].splitlines()[0]
+    assert "one-sided p = 1.000" in friedman  # every arrangement is at least as concordant as the reversed one
+    two = [write("c1", [0, 0, 0, 2, 9, 1]), write("c2", [0, 0, 0, 1, 1, 30])]
+    agree = run(*two).stdout.split("agreement")[1].splitlines()[0]
+    assert "6 of 6 pairs of a seed's runs agree, one-sided p = 0.050 (exact)" in agree
+    # Bad input: a one-line message and a non-zero exit.
+    assert "a seed effect needs at least 3" in run(two[0], write("other", [1, 1], world="basic")).stderr
+    dup = tmp_path / "dup.csv"
+    dup.write_text("model,world,weights,steps,crashes\nsam,complex,r/a_sam_seed1/w,1000,0\nsam,complex,r/b_sam_seed1/w,1000,2\n")
+    assert "line 3: seed 1 has a second sam row in complex" in run(str(dup), two[0]).stderr
+    assert "name at least two tables" in run(two[0]).stderr
