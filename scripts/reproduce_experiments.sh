@@ -32,10 +32,10 @@
 # fresh seeds, and both draws pooled), a thirty-seventh (the CNN arm of that recipe), a thirty-eighth (that
 # recipe as the main job over ROS, `train --recipe ensemble`), a thirty-ninth (the same with the weights
 # pushed after every update), a fortieth (both on three more seeds), a forty-first (in-process, acting on
-# the network pushed every 50 updates, as policy_node beside the ROS trainer), and a forty-second (the main job
-# on fresh seeds 6-11); then it packages round 35-37's
+# the network pushed every 50 updates, as policy_node beside the ROS trainer), a forty-second (the main job
+# on fresh seeds 6-11) and a forty-third (the main job on seeds 0-5 again: seed or run?); then it packages round 35-37's
 # best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
-# figures with them. About 68 h on 2 cores.
+# figures with them. About 70 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1245,6 +1245,40 @@ cat runs/r42eval/s6/varied_start/crashes.csv > $R42/varied_start/crashes.csv
 for s in 7 8 9 10 11; do tail -n +2 runs/r42eval/s$s/varied_start/crashes.csv >> $R42/varied_start/crashes.csv; done
 python scripts/repeat_failures.py $R42/fixed_start/results.csv $R41/ros_12/fixed_start/results.csv \
   $R36/pooled_40_seeds/fixed_start/results.csv --labels fresh_seeds ros_12 inprocess_40 > $R42/fixed_start_repeats.md
+
+# Round 43: the main job (push every 50 updates) on SAM seeds 0-5 again, one run at a time (design fixed before any
+# run was flown: $R43/design.md), flown per seed as round 42 and joined; a seed effect over the three runs of each
+# seed (rounds 38/40's push 50, 39/40's push 1, this) by scripts/seed_effect.py; against round 38/40's push 50
+# paired by seed; the 24 ROS runs pooled (rounds 38-40, 42, this) against the forty in-process seeds; repeats.
+R43=docs/results/round43_same_seeds_again
+for s in 0 1 2 3 4 5; do
+  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r43ros_sam_seed$s --no-resume
+  mapfile -t W < <(snap_group r43ros 10 $s)
+  HFOV=150 WINDOW=0.078 eval_120 runs/r43eval/s$s 1 --model sam --ensemble 10 --weights "${W[@]}"
+done
+for p in varied_start fixed_start; do
+  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
+  $EVAL --from-csv runs/r43eval/s{0,1,2,3,4,5}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
+    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R43/$p
+  $EVAL --from-csv $R42/ros_18/$p/results.csv $R43/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
+    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R43/ros_24/$p
+  A=$R40/push_every_50/$p/results.csv B=$R40/push_every_update/$p/results.csv
+  python scripts/seed_effect.py $A $B $R43/$p/results.csv --labels push50 push1 push50_again > $R43/$p/seed_effect.md
+  python scripts/seed_effect.py $A $R43/$p/results.csv --labels push50 push50_again > $R43/$p/seed_effect_push50.md
+  python scripts/compare_models.py $R43/$p/results.csv $A --by file --paired --a push50_again --b push50 \
+    --bar paper > $R43/$p/against_push50.md
+  for b in complex=0:against paper:bar_paper; do
+    python scripts/compare_models.py $R43/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a again \
+      --b inprocess_40 --bar ${b%%:*} > $R43/$p/${b#*:}_inprocess_40.md
+    python scripts/compare_models.py $R43/ros_24/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file \
+      --a ros_24 --b inprocess_40 --bar ${b%%:*} > $R43/ros_24/$p/${b#*:}_inprocess_40.md
+  done
+done
+cat runs/r43eval/s0/varied_start/crashes.csv > $R43/varied_start/crashes.csv
+for s in 1 2 3 4 5; do tail -n +2 runs/r43eval/s$s/varied_start/crashes.csv >> $R43/varied_start/crashes.csv; done
+python scripts/repeat_failures.py $R43/fixed_start/results.csv $R40/push_every_50/fixed_start/results.csv \
+  $R40/push_every_update/fixed_start/results.csv $R42/fixed_start/results.csv $R36/pooled_40_seeds/fixed_start/results.csv \
+  --labels again push50 push1 fresh_seeds inprocess_40 > $R43/fixed_start_repeats.md
 
 # Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
 # and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
