@@ -131,6 +131,21 @@ def test_the_replay_memory_is_not_written_after_the_budget_or_when_switched_off_
     again.close()
 
 
+def test_steps_arriving_after_the_budget_are_not_recorded(tmp_path):
+    """Over ROS, sim_node may deliver a step or two before trainer_node shuts down at its budget; the run
+    still ends at exactly total_steps env steps, transitions and logged episode ends."""
+    exact = Training(small_cfg(), tmp_path / "exact", log=lambda s: None)
+    feed(exact, 100)
+    t = Training(small_cfg(total_steps=100), tmp_path / "late", log=lambda s: None)
+    feed(t, 103)  # the same first 100 steps; episodes end every 25 steps
+    t.add_truncated(np.zeros((64, 64), np.float32))
+    assert t.budget_done and t.env_steps == 100 and t.stats.episodes == 4
+    assert len(t.replay) == len(exact.replay) and t.reward_sum == exact.reward_sum
+    for run in (t, exact):
+        run.close()
+    assert (tmp_path / "late" / "episodes.csv").read_text() == (tmp_path / "exact" / "episodes.csv").read_text()
+
+
 def test_the_weight_average_is_written_beside_the_policy_weights(tmp_path):
     t = Training(small_cfg(learner=LearnerConfig(batch_size=8, ema_decay=0.99)), tmp_path, log=lambda s: None)
     feed(t, 80)

@@ -325,13 +325,16 @@ class Training:
             self.replay.add_first(frame)
 
     def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
-        """One transition; the reward comes from the simulator package's reward function."""
+        """One transition; the reward comes from the simulator package's reward function. Steps after the
+        budget is spent are not recorded (not learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
         if self.cfg.clearance_m > 0.0 and not collided:  # after a collision next_frame is the next episode's
             reward += clearance_penalty(band_min_depth(next_frame), self.cfg.clearance_m, self.cfg.clearance_weight)
         if self.cfg.turn_penalty > 0.0 and not collided and action in self.cfg.turning_actions:
             reward -= self.cfg.turn_penalty
         with self.lock:
+            if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
+                return reward
             self.replay.add_transition(action, reward, collided, next_frame)
             self.env_steps += 1
             self.reward_sum += reward
@@ -345,6 +348,8 @@ class Training:
         learnt from it, because its next frame is already the new episode's first (`first_frame`),
         which starts a new chain. Counted as an environment step with reward 0 in the episode stats."""
         with self.lock:
+            if self.budget_done:
+                return
             self.replay.add_first(first_frame)
             self.env_steps += 1
             ended = self.stats.step(0.0, True, self.env_steps)
