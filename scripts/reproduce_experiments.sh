@@ -1218,18 +1218,34 @@ python scripts/repeat_failures.py $R41/fixed_start/results.csv $R41/ros_12/fixed
 # time (design fixed before any run: $R42/design.md); each run's ten files flown as one policy on its own (both
 # protocols, as rounds 38-41) and the six joined; against the forty in-process seeds, the eighteen ROS runs of
 # rounds 38-40 and this pooled (`ros_18/`), rounds 38-40's twelve, and the fixed-start repeats.
+ros_per_seed() {  # tag folder "seeds": `train --recipe ensemble` on those SAM seeds one at a time into
+  # runs/<tag>_sam_seed<s>, each run's ten files flown as one policy on its own into folder/s<s> (150 degree camera,
+  # both protocols, random starts with a crash log)
+  local tag=$1 out=$2 s W
+  for s in $3; do
+    install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume
+    mapfile -t W < <(snap_group "$tag" 10 $s)
+    HFOV=150 WINDOW=0.078 eval_120 "$out/s$s" 1 --model sam --ensemble 10 --weights "${W[@]}"
+  done
+}
+join_150() {  # out protocol csv...: tables of ten-file ensembles (150 degree camera) joined into out/<protocol>
+  local out=$1 p=$2 V=()
+  shift 2
+  [ "$p" = varied_start ] && V=("${VARIED[@]}")
+  $EVAL --from-csv "$@" "${V[@]}" --sim-arg hfov_deg:=150.0 --sim-arg reward_window_fraction:=0.078 --inprocess \
+    --ensemble 10 --out "$out/$p"
+}
+join_crash_logs() {  # out folder "seeds": the random-start crash logs of folder/s<s> in one file, out/varied_start
+  local first=1 s
+  for s in $3; do
+    if [ $first = 1 ]; then cat "$2/s$s/varied_start/crashes.csv"; first=0; else tail -n +2 "$2/s$s/varied_start/crashes.csv"; fi
+  done > "$1/varied_start/crashes.csv"
+}
 R42=docs/results/round42_main_job_fresh_seeds
-for s in 6 7 8 9 10 11; do
-  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r42ros_sam_seed$s --no-resume
-  mapfile -t W < <(snap_group r42ros 10 $s)
-  HFOV=150 WINDOW=0.078 eval_120 runs/r42eval/s$s 1 --model sam --ensemble 10 --weights "${W[@]}"
-done
+ros_per_seed r42ros runs/r42eval "6 7 8 9 10 11"
 for p in varied_start fixed_start; do
-  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-  $EVAL --from-csv runs/r42eval/s{6,7,8,9,10,11}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
-    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R42/$p
-  $EVAL --from-csv $R41/ros_12/$p/results.csv $R42/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
-    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R42/ros_18/$p
+  join_150 $R42 $p runs/r42eval/s{6,7,8,9,10,11}/$p/results.csv
+  join_150 $R42/ros_18 $p $R41/ros_12/$p/results.csv $R42/$p/results.csv
   python scripts/compare_models.py $R42/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a fresh_seeds \
     --b inprocess_40 --bar complex=0 > $R42/$p/against_inprocess_40.md
   python scripts/compare_models.py $R42/$p/results.csv $R41/ros_12/$p/results.csv --by file --a fresh_seeds \
@@ -1241,8 +1257,7 @@ for p in varied_start fixed_start; do
   python scripts/compare_models.py $R42/$p/results.csv $R36/pooled_40_seeds/$p/results.csv --by file --a fresh_seeds \
     --b inprocess_40 --bar paper > $R42/$p/bar_paper.md
 done
-cat runs/r42eval/s6/varied_start/crashes.csv > $R42/varied_start/crashes.csv
-for s in 7 8 9 10 11; do tail -n +2 runs/r42eval/s$s/varied_start/crashes.csv >> $R42/varied_start/crashes.csv; done
+join_crash_logs $R42 runs/r42eval "6 7 8 9 10 11"
 python scripts/repeat_failures.py $R42/fixed_start/results.csv $R41/ros_12/fixed_start/results.csv \
   $R36/pooled_40_seeds/fixed_start/results.csv --labels fresh_seeds ros_12 inprocess_40 > $R42/fixed_start_repeats.md
 
@@ -1251,17 +1266,10 @@ python scripts/repeat_failures.py $R42/fixed_start/results.csv $R41/ros_12/fixed
 # seed (rounds 38/40's push 50, 39/40's push 1, this) by scripts/seed_effect.py; against round 38/40's push 50
 # paired by seed; the 24 ROS runs pooled (rounds 38-40, 42, this) against the forty in-process seeds; repeats.
 R43=docs/results/round43_same_seeds_again
-for s in 0 1 2 3 4 5; do
-  install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/r43ros_sam_seed$s --no-resume
-  mapfile -t W < <(snap_group r43ros 10 $s)
-  HFOV=150 WINDOW=0.078 eval_120 runs/r43eval/s$s 1 --model sam --ensemble 10 --weights "${W[@]}"
-done
+ros_per_seed r43ros runs/r43eval "0 1 2 3 4 5"
 for p in varied_start fixed_start; do
-  V=(); [ $p = varied_start ] && V=("${VARIED[@]}")
-  $EVAL --from-csv runs/r43eval/s{0,1,2,3,4,5}/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
-    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R43/$p
-  $EVAL --from-csv $R42/ros_18/$p/results.csv $R43/$p/results.csv "${V[@]}" --sim-arg hfov_deg:=150.0 \
-    --sim-arg reward_window_fraction:=0.078 --inprocess --ensemble 10 --out $R43/ros_24/$p
+  join_150 $R43 $p runs/r43eval/s{0,1,2,3,4,5}/$p/results.csv
+  join_150 $R43/ros_24 $p $R42/ros_18/$p/results.csv $R43/$p/results.csv
   A=$R40/push_every_50/$p/results.csv B=$R40/push_every_update/$p/results.csv
   python scripts/seed_effect.py $A $B $R43/$p/results.csv --labels push50 push1 push50_again > $R43/$p/seed_effect.md
   python scripts/seed_effect.py $A $R43/$p/results.csv --labels push50 push50_again > $R43/$p/seed_effect_push50.md
@@ -1274,8 +1282,7 @@ for p in varied_start fixed_start; do
       --a ros_24 --b inprocess_40 --bar ${b%%:*} > $R43/ros_24/$p/${b#*:}_inprocess_40.md
   done
 done
-cat runs/r43eval/s0/varied_start/crashes.csv > $R43/varied_start/crashes.csv
-for s in 1 2 3 4 5; do tail -n +2 runs/r43eval/s$s/varied_start/crashes.csv >> $R43/varied_start/crashes.csv; done
+join_crash_logs $R43 runs/r43eval "0 1 2 3 4 5"
 python scripts/repeat_failures.py $R43/fixed_start/results.csv $R40/push_every_50/fixed_start/results.csv \
   $R40/push_every_update/fixed_start/results.csv $R42/fixed_start/results.csv $R36/pooled_40_seeds/fixed_start/results.csv \
   --labels again push50 push1 fresh_seeds inprocess_40 > $R43/fixed_start_repeats.md
