@@ -733,6 +733,9 @@ def test_seed_effect_finds_seeds_that_fail_alike_in_every_table_and_not_in_shuff
     two = [write("c1", [0, 0, 0, 2, 9, 1]), write("c2", [0, 0, 0, 1, 1, 30])]
     agree = run(*two).stdout.split("agreement")[1].splitlines()[0]
     assert "6 of 6 pairs of a seed's runs agree, one-sided p = 0.050 (exact)" in agree
+    many = [write(f"m{i}", [0] * 6 + list(range(1, 7))) for i in range(2)]  # 12 seeds alike: too many to enumerate
+    friedman = run(*many).stdout.split("Friedman")[1].splitlines()[0]
+    assert friedman.endswith("(200000 draws)") and float(friedman.split("p = ")[1].split()[0]) < 1e-4  # 1 in 665 280
     # Bad input: a one-line message and a non-zero exit.
     assert "a seed effect needs at least 3" in run(two[0], write("other", [1, 1], world="basic")).stderr
     dup = tmp_path / "dup.csv"
