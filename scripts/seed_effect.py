@@ -29,7 +29,7 @@ import math
 import sys
 
 import numpy as np
-from compare_models import seeds_of
+from compare_models import crash_rate, seeds_of
 from csv_input import add_table_arguments, read_csv, table_labels
 
 COLUMNS = ("model", "world", "weights", "steps", "crashes")
@@ -56,22 +56,15 @@ def rates_by_seed(rows: list[dict], model: str, world: str, path: str) -> dict[i
         seed = seeds.pop()
         if seed in out:
             raise SystemExit(f"{path}, line {line}: seed {seed} has a second {model} row in {world}")
-        out[seed] = 1000.0 * crashes / steps
+        out[seed] = crash_rate(r)
     return out
 
 
 def ranks(values: np.ndarray) -> np.ndarray:
     """Ranks from 1, ties sharing their mean rank."""
-    order = values.argsort(kind="stable")
-    out = np.empty(len(values))
-    i = 0
-    while i < len(values):
-        j = i
-        while j + 1 < len(values) and values[order[j + 1]] == values[order[i]]:
-            j += 1
-        out[order[i : j + 1]] = (i + j) / 2 + 1
-        i = j + 1
-    return out
+    _, where, counts = np.unique(values, return_inverse=True, return_counts=True)
+    last = np.cumsum(counts)  # each distinct value's ranks run from last - count + 1 to last
+    return ((2 * last - counts + 1) / 2)[where]
 
 
 def friedman_stat(sums: np.ndarray) -> np.ndarray:
@@ -84,9 +77,9 @@ def agreement_stat(sums: np.ndarray, tables: int) -> np.ndarray:
     return (sums * (sums - 1) / 2 + (tables - sums) * (tables - sums - 1) / 2).sum(axis=-1)
 
 
-def permutation_p(columns: list[np.ndarray], stat, rng: np.random.Generator) -> tuple[float, str]:
+def permutation_p(columns: list[np.ndarray], stat, rng: np.random.Generator) -> tuple[float, float, str]:
     """P(stat >= observed) with each column (one table's values over the seeds) shuffled on its own; the first
-    column stays put (moving all columns alike changes nothing). Returns (p, 'exact' or 'N draws')."""
+    column stays put (moving all columns alike changes nothing). Returns (observed, p, 'exact' or 'N draws')."""
     observed = stat(np.sum(columns, axis=0))
     n = len(columns[0])
     distinct = [
@@ -101,8 +94,8 @@ def permutation_p(columns: list[np.ndarray], stat, rng: np.random.Generator) -> 
         for c in columns[1:]:
             sums = sums + rng.permuted(np.tile(c, (DRAWS, 1)), axis=1)
         hits = int(np.sum(stat(sums) >= observed - 1e-9))
-        return (hits + 1) / (DRAWS + 1), f"{DRAWS} draws"  # the observed arrangement counts as one draw: never 0
-    return float(np.mean(stat(sums) >= observed - 1e-9)), "exact"
+        return observed, (hits + 1) / (DRAWS + 1), f"{DRAWS} draws"  # the observed arrangement counts as one draw
+    return observed, float(np.mean(stat(sums) >= observed - 1e-9)), "exact"
 
 
 def p_text(p: float) -> str:
@@ -133,15 +126,16 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(0)
     rank_cols = [ranks(r) for r in rates]
     crash_cols = [(r > 0).astype(float) for r in rates]
-    p_f, how_f = permutation_p(rank_cols, friedman_stat, rng)
-    p_a, how_a = permutation_p(crash_cols, lambda x: agreement_stat(x, len(tables)), rng)
+    friedman, p_f, how_f = permutation_p(rank_cols, friedman_stat, rng)
+    agree, p_a, how_a = permutation_p(crash_cols, lambda x: agreement_stat(x, len(tables)), rng)
     pairs = len(seeds) * math.comb(len(tables), 2)
-    agree = int(agreement_stat(np.sum(crash_cols, axis=0), len(tables)))
     print()
     print(f"{args.model} {args.world}, {len(seeds)} seeds x {len(tables)} tables:")
-    print(f"- Friedman (crash rates ranked within each table): statistic {friedman_stat(np.sum(rank_cols, axis=0)):.1f}, "
+    print(f"- Friedman (crash rates ranked within each table): statistic {friedman:.1f}, "
           f"one-sided p = {p_text(p_f)} ({how_f})")  # fmt: skip
-    print(f"- agreement (crash or not): {agree} of {pairs} pairs of a seed's runs agree, one-sided p = {p_text(p_a)} ({how_a})")
+    print(
+        f"- agreement (crash or not): {int(agree)} of {pairs} pairs of a seed's runs agree, one-sided p = {p_text(p_a)} ({how_a})"
+    )
     return 0
 
 
