@@ -2,7 +2,9 @@
 64 px, measured in the same run) and with random-shift augmentation (against without), the cost of
 sampling a batch from a full replay memory (batched stacking against one stack per slot, 3-step
 against 1-step returns, prioritized against uniform sampling with the priority write-back),
-environment steps/s and learner updates/s while training over ROS (capped and uncapped lockstep),
+environment steps/s and learner updates/s while training over ROS (learning in lockstep, train's default,
+against the same recipe in process: the ratio is the ROS overhead; and learning concurrently, capped and
+uncapped),
 and wall-clock on this machine from scratch until the SAM policy flies 1000 exploit steps in Basic
 with 0 crashes (in-process trainer, evaluated every --eval-every steps; evaluation time is included
 in the wall-clock).
@@ -91,30 +93,43 @@ def prioritized(mem: ReplayMemory, rng: np.random.Generator) -> None:
     mem.update_priorities(b["index"], b["writes"], rng.exponential(1.0, 32))
 
 
-def ros_throughput(steps: int, max_rate_hz: float, domain: int) -> tuple[float, float]:
+LEARNING_STARTS = 500
+
+
+def ros_throughput(steps: int, learning: str, max_rate_hz: float | None, domain: int) -> tuple[float, float]:
+    """(env steps/s, updates/s) of `train` once learning has started, from its metrics.csv."""
     with tempfile.TemporaryDirectory() as d:
-        cmd = [
-            str(ROOT / "install/uav_trainer/lib/uav_trainer/train"),
-            "--steps",
-            str(steps),
-            "--run-dir",
-            d,
-            "--max-rate-hz",
-            str(max_rate_hz),
-            "--params-dir",
-            str(ROOT / "params"),
-            "--trainer-arg",
-            "learning_starts:=500",
-            "--trainer-arg",
-            "log_interval_s:=2.0",
-        ]
+        cmd = [str(ROOT / "install/uav_trainer/lib/uav_trainer/train"), "--steps", str(steps), "--run-dir", d]
+        cmd += ["--learning", learning, "--params-dir", str(ROOT / "params")]
+        cmd += [] if max_rate_hz is None else ["--max-rate-hz", str(max_rate_hz)]
+        cmd += ["--trainer-arg", f"learning_starts:={LEARNING_STARTS}", "--trainer-arg", "log_interval_s:=2.0"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         rows = list(csv.DictReader(open(Path(d) / "metrics.csv")))
-    learning = [r for r in rows if int(r["updates"]) > 0][1:]  # steady state, after learning_starts
-    env_rate = sum(float(r["env_steps_per_s"]) for r in learning) / max(len(learning), 1)
-    upd_rate = sum(float(r["updates_per_s"]) for r in learning) / max(len(learning), 1)
+    learning_rows = [r for r in rows if int(r["updates"]) > 0][1:]  # steady state, after learning_starts
+    env_rate = sum(float(r["env_steps_per_s"]) for r in learning_rows) / max(len(learning_rows), 1)
+    upd_rate = sum(float(r["updates_per_s"]) for r in learning_rows) / max(len(learning_rows), 1)
     return env_rate, upd_rate
+
+
+def inprocess_throughput(steps: int) -> float:
+    """Env steps/s of the in-process loop once learning has started, with train's default recipe (one
+    torch thread, as trainer_node): what lockstep learning over ROS is to be compared with."""
+    torch.set_num_threads(1)
+    cfg = TrainerConfig(model="sam", total_steps=steps, learning_starts=LEARNING_STARTS, replay_ratio=0.5, turn_penalty=1.0)
+    marks = {}
+
+    def on_step(training):
+        if training.env_steps == LEARNING_STARTS + 100:  # as the ROS figure, past the first progress row
+            marks["t"] = time.perf_counter()
+        return False
+
+    recipe = {"world": "basic", "layout_per_episode": True, "world_every": 4, "hfov_deg": 150.0}
+    recipe |= {"reward_window_fraction": 0.078, "max_episode_steps": 300}
+    with tempfile.TemporaryDirectory() as d:
+        run_inprocess(cfg, d, log=lambda s: None, on_step=on_step, **recipe)
+        end = time.perf_counter()
+    return (steps - LEARNING_STARTS - 100) / (end - marks["t"])
 
 
 def time_to_zero_crashes(seed: int, eval_every: int, max_steps: int) -> tuple[float | None, int, list]:
@@ -173,12 +188,18 @@ def main() -> int:
     if a.updates_only:
         return 0
     if not a.skip_ros:
-        for cap in (0.0, 60.0):
-            env_rate, upd_rate = ros_throughput(a.ros_steps, cap, 70 + os.getpid() % 10)
-            label = "uncapped" if cap == 0 else f"capped at {cap:.0f} Hz"
+        base = inprocess_throughput(a.ros_steps)
+        print(f"in-process training, train's default recipe (1 thread): {base:.1f} env steps/s once learning")
+        for learning, cap in (("lockstep", None), ("concurrent", 0.0), ("concurrent", 60.0)):
+            env_rate, upd_rate = ros_throughput(a.ros_steps, learning, cap, 70 + os.getpid() % 10)
+            label = (
+                "learning in lockstep (uncapped)"
+                if cap is None
+                else f"learning concurrently, lockstep sim {'uncapped' if cap == 0 else f'capped at {cap:.0f} Hz'}"
+            )
             print(
-                f"ROS training, lockstep {label}: {env_rate:.1f} env steps/s, {upd_rate:.1f} updates/s, "
-                f"replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"
+                f"ROS training, {label}: {env_rate:.1f} env steps/s ({env_rate / base:.2f}x in-process), "
+                f"{upd_rate:.1f} updates/s, replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"
             )
     print(f"in-process SAM training (seed {a.seed}), exploit evaluation every {a.eval_every} steps:")
     t, steps, _ = time_to_zero_crashes(a.seed, a.eval_every, a.max_steps)

@@ -251,7 +251,7 @@ for p in varied_start fixed_start; do
     > $R5/cnn/$p/sam_against_cnn.md
 done
 for s in 0 1 2; do
-  install/uav_trainer/lib/uav_trainer/train --recipe single --model sam --seed $s --run-dir runs/main_sam_seed$s
+  install/uav_trainer/lib/uav_trainer/train --learning concurrent --recipe single --model sam --seed $s --run-dir runs/main_sam_seed$s
 done
 M=(runs/main_sam_seed{0,1,2}/policy_sam.safetensors)
 $EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbulent --steps 1000 "${VARIED[@]}" \
@@ -259,7 +259,7 @@ $EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbule
 $EVAL --inprocess --model sam --weights "${M[@]}" --worlds basic complex turbulent --steps 1000 \
   --out docs/results/main_job/fixed_start
 # The same main job with a new start heading for every layout (as round 5), seed 0.
-install/uav_trainer/lib/uav_trainer/train --recipe single --model sam --run-dir runs/main_redraw_sam_seed0 --sim-arg redraw_start_heading:=true
+install/uav_trainer/lib/uav_trainer/train --learning concurrent --recipe single --model sam --run-dir runs/main_redraw_sam_seed0 --sim-arg redraw_start_heading:=true
 $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_redraw/varied_start
 $EVAL --inprocess --model sam --weights runs/main_redraw_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
@@ -292,7 +292,7 @@ python scripts/compare_models.py $R6/varied_start/results.csv docs/results/behav
 python scripts/compare_models.py $R6/fixed_start/results.csv \
   docs/results/behaviour/turn_penalty_20_seeds_fixed_start/results.csv --by run --a tl300_sam --b turn_sam \
   > $R6/fixed_start/comparison_round4.md
-install/uav_trainer/lib/uav_trainer/train --recipe single --model sam --run-dir runs/main_tl300_sam_seed0 --sim-arg max_episode_steps:=300
+install/uav_trainer/lib/uav_trainer/train --learning concurrent --recipe single --model sam --run-dir runs/main_tl300_sam_seed0 --sim-arg max_episode_steps:=300
 $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
   --steps 1000 "${VARIED[@]}" --out docs/results/main_job_time_limit/varied_start
 $EVAL --inprocess --model sam --weights runs/main_tl300_sam_seed0/policy_sam.safetensors --worlds basic complex turbulent \
@@ -1137,7 +1137,7 @@ ros_ensemble() {  # tag folder "seeds" [train args]: `train --recipe ensemble` o
   local tag=$1 out=$2 seeds=$3 s W
   shift 3
   for s in $seeds; do
-    install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume "$@"
+    install/uav_trainer/lib/uav_trainer/train --learning concurrent --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume "$@"
   done
   mapfile -t W < <(snap_group "$tag" 10 $seeds)
   HFOV=150 WINDOW=0.078 eval_120 "$out" 1 --model sam --ensemble 10 --weights "${W[@]}"
@@ -1223,7 +1223,7 @@ ros_per_seed() {  # tag folder "seeds": `train --recipe ensemble` on those SAM s
   # both protocols, random starts with a crash log)
   local tag=$1 out=$2 s W
   for s in $3; do
-    install/uav_trainer/lib/uav_trainer/train --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume
+    install/uav_trainer/lib/uav_trainer/train --learning concurrent --recipe ensemble --model sam --seed $s --run-dir runs/${tag}_sam_seed$s --no-resume
     mapfile -t W < <(snap_group "$tag" 10 $s)
     HFOV=150 WINDOW=0.078 eval_120 "$out/s$s" 1 --model sam --ensemble 10 --weights "${W[@]}"
   done

@@ -110,10 +110,10 @@ def test_a_stalled_policy_does_not_answer_a_repeated_frame_twice(ros):
     assert checked >= 60
 
 
-def call_push(ros, blob: bytes, timeout_s=30.0):
+def call_push(ros, blob: bytes | None, timeout_s=30.0, **extra):
     client = ros.node.create_client(SetParameters, contract.PUSH_WEIGHTS_SERVICE)
     assert client.wait_for_service(timeout_sec=20)
-    fut = client.call_async(push_request(blob))
+    fut = client.call_async(push_request(blob, **extra))
     assert ros.spin_until(fut.done, timeout_s)
     return fut.result().results[0]
 
@@ -306,3 +306,34 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
     assert ros.spin_until(lambda: len(diag) > n + 1, 5)
     assert diag[-1].level == DiagnosticStatus.OK and values(diag[-1])["malformed_frames"] == "2"
     assert proc.poll() is None and "ignoring malformed depth frame" in ros.log_of(proc)
+
+
+def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pushed_weights_and_epsilon(ros):
+    """wait_for_trainer (lockstep learning): a frame is held until a push releases its stamp; the push's
+    weights and epsilon act on it. A frame nobody releases is answered after the timeout, with a warning."""
+    w = Watch(ros)
+    proc = start_pair(ros, "-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=3.0")
+    assert ros.spin_until(lambda: len(w.frames) >= 1, 30), ros.log_of(proc)
+    ros.spin_for(1.0)
+    assert w.actions == [], "a held frame must not be answered before its release"
+    first = w.frame_stamps()[0]
+    r = call_push(ros, forcing_action(3), epsilon=0.0, release_stamp_ns=first)
+    assert r.successful, r.reason
+    assert ros.spin_until(lambda: len(w.actions) == 1, 10)
+    assert contract.stamp_ns(w.actions[0].header.stamp) == first and w.actions[0].twist.linear.x == 2.0, "a3, pushed"
+    ros.spin_for(1.0)
+    assert len(w.actions) == 1, "the next frame waits for its own release"
+    # Releases go by stamp: one far ahead releases every frame up to it, here with no weights at all.
+    assert call_push(ros, None, epsilon=0.0, release_stamp_ns=10**15).successful
+    assert ros.spin_until(lambda: len(w.actions) >= 20, 30)
+    assert all(m.twist.linear.x == 2.0 for m in w.actions), "epsilon 0 with the pushed weights: always a3"
+    assert "answering each frame once trainer_node releases it (lockstep learning)" in ros.log_of(proc)
+    bad = call_push(ros, None, epsilon=1.5)
+    assert not bad.successful and "'epsilon' must lie in [0, 1]" in bad.reason
+
+
+def test_an_unreleased_frame_is_answered_after_the_timeout_with_a_warning(ros):
+    w = Watch(ros, actions_only=True)
+    proc = start_pair(ros, "-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=0.5")
+    assert ros.spin_until(lambda: len(w.actions) >= 3, 30), ros.log_of(proc)
+    assert "trainer_node did not release the frame" in ros.log_of(proc) and "no longer in lockstep" in ros.log_of(proc)

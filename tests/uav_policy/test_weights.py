@@ -136,11 +136,14 @@ def test_a_header_claiming_a_huge_network_is_refused_before_anything_is_allocate
         return real_build(cfg, seed)
 
     monkeypatch.setattr(wio, "build_network", build)
+    wio._expected_tensors.cache_clear()  # the meta build is cached per architecture
     with pytest.raises(wio.WeightsError, match="names differ|shape"):
         wio.load_bytes(b, SAM, sizes_from_blob=True)  # as policy_node loads files and pushes
     assert built_on == ["meta"]
     wio.load_bytes(blob(), SAM)  # a good blob: checked on the meta device, then built for real
     assert built_on[1:] == ["meta", "cpu"]
+    wio.load_bytes(blob(), SAM)  # the same architecture again (a lockstep push every other step): no meta build
+    assert built_on[3:] == ["cpu"]
 
 
 def test_a_file_over_the_size_limit_is_not_read(tmp_path):
@@ -236,3 +239,27 @@ def test_the_reward_window_is_recorded_when_given_and_hostile_entries_are_refuse
     )
     with pytest.raises(wio.WeightsError, match="reward_window_fraction"):
         wio.to_bytes(net, SAM, 150.0, 0.0)
+
+
+def test_a_push_request_reads_back_and_bad_pushes_are_named():
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+
+    from uav_policy.push import push_request, read_push
+
+    p = read_push(push_request(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000).parameters)
+    assert (p.weights, p.epsilon, p.release_stamp_ns) == (b"abc", 0.25, 1_500_000_000)
+    assert read_push(push_request(b"abc").parameters) == type(p)(b"abc", None, None)  # a plain weights push
+    with pytest.raises(ValueError, match="expected a BYTE_ARRAY parameter named 'weights'"):
+        read_push([])
+    with pytest.raises(ValueError, match="'epsilon' must lie in"):
+        read_push(push_request(None, epsilon=float("nan")).parameters)
+    with pytest.raises(ValueError, match="'release_stamp_ns' must be >= 0"):
+        read_push(push_request(None, release_stamp_ns=-1).parameters)
+    wrong = Parameter(name="weights", value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="x"))
+    with pytest.raises(ValueError, match="'weights' must be a BYTE_ARRAY"):
+        read_push([wrong])
+    with pytest.raises(ValueError, match="unknown push parameter 'gamma'"):
+        read_push([Parameter(name="gamma", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9))])
+    twice = push_request(None, epsilon=0.1).parameters * 2
+    with pytest.raises(ValueError, match="given twice"):
+        read_push(twice)

@@ -77,9 +77,9 @@ def test_thousands_of_steps_pair_exactly_in_any_interleaving():
         asm.add(stream, m)
     steps = [e for e in sink.events if e[0] == "step"]
     assert sink.events[0][0] == "first" and len(sink.events) == 1 + len(steps)
-    # The newest transition waits for the policy's answer to the frame it leads to (never sent here).
-    assert len(steps) == len(truth) - 1 == 2999, "no transition lost"
-    for k, (e, (a, rew, col, depth, _)) in enumerate(zip(steps, truth[:-1], strict=True)):
+    # The newest transition too: it is stored before the policy answers the frame it leads to.
+    assert len(steps) == len(truth) == 3000, "no transition lost"
+    for k, (e, (a, rew, col, depth, _)) in enumerate(zip(steps, truth, strict=True)):
         assert (e[1], e[3]) == (a, col), f"step {k}: action/done mis-paired"
         assert abs(e[2] - rew) < 1e-4, f"step {k}: reward mis-paired"
         np.testing.assert_array_equal(e[4], depth, err_msg=f"step {k}: next frame mis-paired")
@@ -102,10 +102,10 @@ def test_faults_are_counted_and_never_paired_wrongly():
     rep = asm.report()
     assert rep["frames_without_action"] == 1 and rep["unmatched_actions"] == 1 and rep["bad_frames"] == 1
     steps = [e for e in sink.events if e[0] == "step"]
-    # Lost: 49 and 50 (record 50 incomplete), 120 (unknown action), 159 and 160 (bad frame),
-    # and the newest, 199, which waits for an answer to frame 200. No others.
-    assert len(steps) == 200 - 6
-    expected = [t for k, t in enumerate(truth) if k not in (49, 50, 120, 159, 160, 199)]
+    # Lost: 50 (record 50 incomplete; 49 leads to frame 50 and is kept), 120 (unknown action),
+    # 159 and 160 (bad frame). No others.
+    assert len(steps) == 200 - 4
+    expected = [t for k, t in enumerate(truth) if k not in (50, 120, 159, 160)]
     for e, (a, rew, col, depth, _) in zip(steps, expected, strict=True):
         assert (e[1], e[3]) == (a, col) and abs(e[2] - rew) < 1e-4
         np.testing.assert_array_equal(e[4], depth)
@@ -113,18 +113,44 @@ def test_faults_are_counted_and_never_paired_wrongly():
 
 def test_a_time_limit_stores_no_transition_and_starts_a_new_chain():
     msgs, truth = simulate(400, seed=3, max_episode_steps=7)
-    cuts = [k for k, t in enumerate(truth[:-1]) if t[4]]
+    cuts = [k for k, t in enumerate(truth) if t[4]]
     assert len(cuts) > 10 and sum(t[2] for t in truth) > 0, "both ends of episodes should occur"
     sink = Sink()
     asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64))
     for stream, m in shuffled_across_streams(msgs, np.random.default_rng(4)):
         asm.add(stream, m)
     assert [e[0] for e in sink.events].count("truncated") == len(cuts)
-    events = sink.events[1:]  # after the first frame: one event per step but the pending newest
-    assert len(events) == len(truth) - 1
-    for k, (e, (a, rew, col, depth, cut)) in enumerate(zip(events, truth[:-1], strict=True)):
+    events = sink.events[1:]  # after the first frame: one event per step
+    assert len(events) == len(truth)
+    for k, (e, (a, rew, col, depth, cut)) in enumerate(zip(events, truth, strict=True)):
         assert e[0] == ("truncated" if cut else "step"), f"step {k}"
         np.testing.assert_array_equal(e[-1], depth)  # after a cut: the new episode's first frame
         if not cut:
             assert (e[1], e[3]) == (a, col) and abs(e[2] - rew) < 1e-4
     assert all(v == 0 for v in asm.report().values())
+
+
+def test_lockstep_release_follows_storage_and_waits_for_the_previous_answer():
+    """on_ready(stamp) comes once per observation, after the transition leading to it is stored, and an
+    observation whose predecessor's answer is late waits for it (lockstep learning depends on both)."""
+    msgs, truth = simulate(300, seed=5, max_episode_steps=9)
+    sink, released = Sink(), []
+    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), on_ready=lambda s: released.append((s, len(sink.events))))
+    # Each step's answer arrives after the next frame and outcome (a slow action writer): the worst order.
+    order, held = [], None
+    for stream, m in msgs:
+        if stream == "action":
+            held = (stream, m)
+            continue
+        order.append((stream, m))
+        if stream == "outcome" and held is not None:
+            order.append(held)
+            held = None
+    for stream, m in order:
+        asm.add(stream, m)
+    frames = [contract.stamp_ns(m.header.stamp) for s, m in msgs if s == "frame"]
+    assert [s for s, _ in released] == frames, "every observation released once, in order"
+    # Before observation k+1 is released its transition is in: events = first frame + k + 1 steps.
+    assert [n for _, n in released[1:]] == list(range(2, len(frames) + 1))
+    assert released[0] == (frames[0], 0), "the first frame is released before anything can be stored"
+    assert len(sink.events) == 1 + len(truth) and all(v == 0 for v in asm.report().values())

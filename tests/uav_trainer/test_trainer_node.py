@@ -48,10 +48,10 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     ros.spin_for(2.0)
     sim_steps = int(diag["uav_sim"]["steps"])
     t = diag["uav_trainer"]
-    # Record k (frame, outcome, action k) completes when action k arrives; transition k-1 -> k then.
-    # So transitions = actions - 1: S - 1, or S when the policy answered the last frame before it stopped.
-    assert int(t["env_steps"]) == len(actions) - 1, (t, len(actions))
-    assert sim_steps - 1 <= int(t["env_steps"]) <= sim_steps, (t, sim_steps)
+    # Transition k-1 -> k is stored once frame and outcome k are in (action k-1 came before them): every
+    # step the sim made, and so every action but one the policy sent as it stopped (never executed).
+    assert int(t["env_steps"]) == sim_steps, (t, sim_steps)
+    assert len(actions) - 1 <= sim_steps <= len(actions), (sim_steps, len(actions))
     for key in (
         "frames_without_action",
         "frames_without_outcome",
@@ -64,10 +64,8 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         "updates_behind",  # nothing is due before learning_starts
     ):
         assert t[key] == "0", f"{key}={t[key]}"
-    collisions, missing = int(diag["uav_sim"]["collisions"]), sim_steps - int(t["env_steps"])
-    # The transition into the sim's last step is missing when the policy stopped before answering
-    # its frame; if that step was a collision, the trainer has one episode fewer.
-    assert collisions > 20 and collisions - missing <= int(t["episodes"]) <= collisions, (t, collisions, sim_steps)
+    collisions = int(diag["uav_sim"]["collisions"])
+    assert collisions > 20 and int(t["episodes"]) == collisions, (t, collisions, sim_steps)
     assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
     assert "final checkpoint" in ros.log_of(trainer)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
@@ -113,6 +111,50 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     assert trained.steps == baseline.steps == 500
     assert trained.mean_reward > baseline.mean_reward + 0.5, (trained, baseline)
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
+
+
+def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path):
+    """train (default --learning lockstep) through the three nodes and inprocess with the same recipe and
+    seed: the same episodes, and bit-identical weights in all ten files (the snapshots and the final).
+    So the ROS main job is the in-process experiments' recipe, not another sample of it."""
+    import torch
+
+    from uav_trainer import inprocess
+    from uav_trainer.training import TrainerConfig
+
+    steps, seed, learn = 420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300}
+    ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
+    extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")]
+    r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=300)
+    assert "learning lockstep" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
+    cfg = TrainerConfig(model="sam", seed=seed, total_steps=steps, replay_ratio=0.5, turn_penalty=1.0, **learn)
+    _, snaps = snapshot_plan(9, steps)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # trainer_node's torch_threads (params/trainer.yaml)
+    try:
+        inprocess.run(
+            cfg,
+            str(ip_dir),
+            world="basic",
+            layout_per_episode=True,
+            world_every=4,
+            hfov_deg=150.0,
+            reward_window_fraction=0.078,
+            max_episode_steps=300,
+            save_weights_at=snaps,
+            log=lambda *_: None,
+        )
+    finally:
+        torch.set_num_threads(threads)
+    ros_rows = (ros_dir / "episodes.csv").read_text().splitlines()
+    assert len(ros_rows) > 20 and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
+    names = [f"policy_sam_step{n}.safetensors" for n in snaps] + ["policy_sam.safetensors"]
+    for name in names:
+        a, b = wio.load_file(ros_dir / name, NetConfig()), wio.load_file(ip_dir / name, NetConfig())
+        for (k, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+            assert torch.equal(x, y), f"{name}: tensor {k} differs"
+    # replay_ratio 0.5 after learning_starts, the last step's updates included; no step after the budget.
+    assert f"({steps} env steps, {(steps - 150) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
 
 
 def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path):

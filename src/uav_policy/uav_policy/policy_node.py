@@ -5,7 +5,10 @@ or NaN (a time limit or reset) marks the first frame of a new episode, which res
 stack). For every frame it publishes
 cmd_vel, action (TwistStamped carrying the frame's stamp), q_values, and for SAM the attention
 topics. New weights arrive on the ~/push_weights service (rcl_interfaces/srv/SetParameters with
-one BYTE_ARRAY parameter named 'weights' holding a safetensors blob). It also listens to
+one BYTE_ARRAY parameter named 'weights' holding a safetensors blob; uav_policy.push: a push may
+also carry epsilon and a release stamp). With wait_for_trainer (lockstep learning, set by train)
+it answers a frame only once trainer_node has released it, after learning from the step that
+produced it. It also listens to
 depth/camera_info and warns when the camera's field of view is not the one the weights were
 trained with (a network flies worse behind another camera).
 
@@ -45,6 +48,7 @@ from .agent import Agent
 from .attention import attention_map, overlay
 from .frame_stack import FrameStack, fit_to_network
 from .networks import ENSEMBLE_RULES, MAX_FRAMES, SAM_READOUTS, SIZE_FIELDS, NetConfig, QEnsemble, build_network, parameter_count
+from .push import read_push
 
 
 def weights_files(value: str) -> list[str]:
@@ -106,6 +110,19 @@ class PolicyNode(Node):
             choices=SAM_READOUTS,
         )
         self.publish_overlay = d("publish_overlay", True, "Publish attention/overlay (rgb8)")
+        self.wait_for_trainer = d(
+            "wait_for_trainer",
+            False,
+            "Lockstep learning: answer a frame only once trainer_node releases it over ~/push_weights (after its "
+            "updates from the step that produced the frame, with their weights and epsilon), as inprocess acts",
+        )
+        self.wait_timeout_s = d(
+            "wait_for_trainer_timeout_s",
+            10.0,
+            "wait_for_trainer: a frame held this long is answered anyway, with a warning (the run is then no longer in lockstep)",
+            0.1,
+            3600.0,
+        )
         threads = d("torch_threads", 1, "Torch intra-op threads (batch-1 inference gains nothing from more)", 1, 256)
         torch.set_num_threads(threads)
         try:
@@ -143,6 +160,11 @@ class PolicyNode(Node):
         # service needs its own callback group: a suspended async callback holds its group.
         self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
         self.stack = FrameStack(frames)
+        self.held: list[tuple[int, float, Image, Range]] = []  # wait_for_trainer: (stamp, since, frame, outcome)
+        self.released_ns = -1  # wait_for_trainer: frames stamped up to this may be answered
+        self.timed_out = 0
+        if self.wait_for_trainer:
+            self.create_timer(min(1.0, self.wait_timeout_s / 4), self._check_held)
         self.last_stamp = None
         self.last_cmd, self.last_cmd_unheard = None, False
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
@@ -156,6 +178,7 @@ class PolicyNode(Node):
             f"model {model} ({parameter_count(net)} parameters, {source}"
             + (f", trained with a {self.weights_hfov_deg:g} deg camera" if self.weights_hfov_deg is not None else "")
             + f") on {device}; epsilon {self.epsilon}; "
+            + ("answering each frame once trainer_node releases it (lockstep learning); " if self.wait_for_trainer else "")
             + (
                 "attention on attention, attention/overlay, attention/weights"
                 if model == "sam"
@@ -270,7 +293,9 @@ class PolicyNode(Node):
     # -- frames -------------------------------------------------------------------------
     def _on(self, stream: str, msg) -> None:
         joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
-        if joined is not None:
+        if joined is not None and self.wait_for_trainer and contract.stamp_ns(msg.header.stamp) > self.released_ns:
+            self.held.append((contract.stamp_ns(msg.header.stamp), time.monotonic(), joined["frame"], joined["outcome"]))
+        elif joined is not None:
             self._act(joined["frame"], joined["outcome"])
         elif stream == "frame" and contract.stamp_ns(msg.header.stamp) == self.last_stamp and self.last_cmd_unheard:
             # The simulator said an answered frame again, and our command went out before anyone
@@ -278,6 +303,25 @@ class PolicyNode(Node):
             # late (a busy machine); answering it twice would advance a lockstep sim two steps.
             self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0
             self.pub_cmd.publish(self.last_cmd)
+
+    def _answer_released(self) -> None:
+        """wait_for_trainer: answer the held frames trainer_node has released, oldest first."""
+        while self.held and self.held[0][0] <= self.released_ns:
+            _, _, img, outcome = self.held.pop(0)
+            self._act(img, outcome)
+
+    def _check_held(self) -> None:
+        """wait_for_trainer: a frame the trainer has not released in time is answered anyway (no trainer, or
+        one that stopped), so the vehicle never stalls; the run has left lockstep and the warning says so."""
+        if self.held and time.monotonic() - self.held[0][1] > self.wait_timeout_s:
+            self.timed_out += 1
+            self.get_logger().warning(
+                f"trainer_node did not release the frame at {self.held[0][0] / 1e9:.1f} s sim time within "
+                f"{self.wait_timeout_s:g} s: answering it anyway ({self.timed_out} so far; learning is no longer in lockstep)",
+                throttle_duration_sec=10.0,
+            )
+            self.released_ns = max(self.released_ns, self.held[0][0])
+            self._answer_released()
 
     def _act(self, img: Image, outcome: Range) -> None:
         t0 = time.perf_counter()
@@ -337,6 +381,8 @@ class PolicyNode(Node):
             "malformed_frames": self.bad_frames,
             "pushes_accepted": self.pushes_accepted,
             "pushes_rejected": self.pushes_rejected,
+            "frames_held": len(self.held),
+            "released_by_timeout": self.timed_out,
             "answers_per_s": f"{new_acts / max(now - when, 1e-6):.1f}",
             "ms_per_answer": f"{1e3 * self.act_s / new_acts:.2f}" if new_acts else "-",
         }
@@ -395,36 +441,44 @@ class PolicyNode(Node):
     async def _on_push(self, request, response):
         t0 = time.perf_counter()
         result = SetParametersResult(successful=False)
-        params = [p for p in request.parameters if p.name == contract.WEIGHTS_PARAMETER]
-        if len(params) != 1 or params[0].value.type != 5:  # PARAMETER_BYTE_ARRAY
-            result.reason = f"expected exactly one BYTE_ARRAY parameter named '{contract.WEIGHTS_PARAMETER}'"
-        else:
-            raw = params[0].value.byte_array_value
-            blob = raw if isinstance(raw, (bytes, bytearray)) else b"".join(raw)
-            try:
+        try:
+            push = read_push(request.parameters)
+            blob = push.weights
+            if blob is not None:
                 # The trainer owns the layer sizes: a push may bring others (the interface must match).
-                net = await self._in_thread(lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True))
-                replaced = self.agent.net
-                self.agent.swap(net)
-                if isinstance(replaced, QEnsemble):
-                    self.get_logger().info(f"pushed weights replace the ensemble of {len(replaced.members)} networks")
-                if net.cfg != self.cfg:
-                    sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
-                    self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
-                self.cfg = net.cfg
-                self.weights_hfov_deg = wio.read_header_camera(blob)
-                self._check_camera()
-                result.successful = True
-                self.pushes_accepted += 1
-                self.source = f"pushed weights ({len(blob)} bytes)"
-                result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms"
-            except wio.WeightsError as e:
-                result.reason = str(e)
+                load = lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True)  # noqa: E731
+                # A release is awaited by the frame it releases, so it loads here (a few ms): a worker thread's
+                # result wakes this executor only at its next event, up to a timer period later.
+                net = load() if push.release_stamp_ns is not None else await self._in_thread(load)
+                self._swap_in(net, blob)
+            if push.epsilon is not None:
+                self.epsilon = push.epsilon
+            result.successful = True
+            result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms" if blob else "ok"
+            if push.release_stamp_ns is not None:
+                self.released_ns = max(self.released_ns, push.release_stamp_ns)
+                self._answer_released()
+        except ValueError as e:  # WeightsError included
+            result.reason = str(e)
         if not result.successful:
             self.pushes_rejected += 1
             self.get_logger().warning(f"weights push rejected: {result.reason}")
         response.results = [result]
         return response
+
+    def _swap_in(self, net: torch.nn.Module, blob: bytes) -> None:
+        replaced = self.agent.net
+        self.agent.swap(net)
+        if isinstance(replaced, QEnsemble):
+            self.get_logger().info(f"pushed weights replace the ensemble of {len(replaced.members)} networks")
+        if net.cfg != self.cfg:
+            sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
+            self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
+        self.cfg = net.cfg
+        self.weights_hfov_deg = wio.read_header_camera(blob)
+        self._check_camera()
+        self.pushes_accepted += 1
+        self.source = f"pushed weights ({len(blob)} bytes)"
 
 
 def main(args=None) -> int:

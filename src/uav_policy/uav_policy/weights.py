@@ -13,6 +13,7 @@ with the paper's window.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -161,6 +162,15 @@ def _config_of(meta: dict) -> NetConfig:
         raise WeightsError(f"weights metadata 'config' is invalid: {e}") from None
 
 
+@functools.lru_cache(maxsize=16)
+def _expected_tensors(cfg: NetConfig) -> dict[str, torch.Tensor]:
+    """The tensors a network of `cfg` holds, built without storage (meta device): a hostile header
+    claiming a huge architecture allocates nothing before its tensors are found not to fit it. Cached:
+    lockstep learning loads a push every other step, and a meta build takes ~50 ms."""
+    with torch.device("meta"):
+        return build_network(cfg).state_dict()
+
+
 def load_bytes(blob: bytes, expected: NetConfig, sizes_from_blob: bool = False) -> torch.nn.Module:
     """A new network with the blob's weights, after checking everything; never touches a live net.
     `sizes_from_blob`: take the layer sizes (networks.SIZE_FIELDS) from the blob's header instead of
@@ -183,10 +193,7 @@ def load_bytes(blob: bytes, expected: NetConfig, sizes_from_blob: bool = False) 
         tensors = st_load(bytes(blob))
     except Exception as e:  # safetensors raises SafetensorError and others on corrupt input
         raise WeightsError(f"weights are corrupt or truncated: {e}") from None
-    # The shapes are checked on a network without storage (meta device) first: a hostile header
-    # claiming a huge architecture allocates nothing before its tensors are found not to fit it.
-    with torch.device("meta"):
-        want = build_network(expected).state_dict()
+    want = _expected_tensors(expected)
     missing, extra = set(want) - set(tensors), set(tensors) - set(want)
     if missing or extra:
         raise WeightsError(f"weights tensor names differ: missing {sorted(missing)[:5]}, unexpected {sorted(extra)[:5]}")

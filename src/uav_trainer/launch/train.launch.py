@@ -1,6 +1,6 @@
 """Minimal launch file for users with a full ROS 2 install: the same three nodes, parameter files and
-default recipe ("ensemble", for the default 30 000-step budget) as `ros2 run uav_trainer train`
-(which is what this repository tests; `launch` is not on PyPI).
+default recipe ("ensemble", for the default 30 000-step budget) and lockstep learning as
+`ros2 run uav_trainer train` (which is what this repository tests; `launch` is not on PyPI).
 
     ros2 launch uav_trainer train.launch.py params_dir:=$PWD/params
 """
@@ -23,7 +23,7 @@ def generate_launch_description():
                     PathJoinSubstitution([params, "sim.yaml"]),
                     {
                         "start_yaw_jitter_deg": 180.0,
-                        "max_rate_hz": 30.0,
+                        "max_rate_hz": 0.0,  # lockstep learning: acting waits for learning
                         "wait_for_subscribers": 2,
                         "world": "random_each_episode",
                         "hfov_deg": 150.0,
@@ -37,7 +37,7 @@ def generate_launch_description():
             Node(
                 package="uav_policy",
                 executable="policy_node",
-                parameters=[PathJoinSubstitution([params, "policy.yaml"]), {"epsilon": 1.0}],
+                parameters=[PathJoinSubstitution([params, "policy.yaml"]), {"epsilon": 1.0, "wait_for_trainer": True}],
             ),
             Node(
                 package="uav_trainer",
@@ -45,6 +45,7 @@ def generate_launch_description():
                 parameters=[
                     PathJoinSubstitution([params, "trainer.yaml"]),
                     {
+                        "lockstep_learning": True,
                         "turn_penalty": 1.0,
                         "replay_ratio": 0.5,
                         "total_steps": 30000,

@@ -1,14 +1,19 @@
 """Turning the three message streams into transitions, by exact stamp, never guessing.
 
 A record is (depth frame k, step outcome k, action answering frame k), joined on the stamp
-of frame k. Record k and record k+1 make the transition (s_k, a_k, r_k, s_{k+1}, done_k)
-when their stamps are exactly one step apart; r_k and done_k come from outcome k+1 (the
-outcome of the step that produced frame k+1). Anything else - a gap, an action that matches
-no known action, a malformed frame - starts a new chain and is counted. A transition is stored
-once the policy has answered the frame it leads to (record k+1 needs action k+1), so the
-newest transition of a run is always still pending when the run stops. A NaN outcome (the
-episode hit the simulator's time limit, or was reset) stores no transition: the frame it comes
-with starts the next episode's chain.
+of frame k. Record k and observation k+1 (frame and outcome k+1) make the transition
+(s_k, a_k, r_k, s_{k+1}, done_k) when their stamps are exactly one step apart; r_k and done_k
+come from outcome k+1 (the outcome of the step that produced frame k+1). The transition is
+stored as soon as observation k+1 is in, before the policy answers frame k+1: a trainer that
+learns in lockstep (trainer_node's lockstep_learning) learns from it before the policy acts on
+frame k+1, as the in-process loop does. Anything else - a gap, an action that matches no known
+action, a malformed frame - starts a new chain and is counted. A NaN outcome (the episode hit
+the simulator's time limit, or was reset) stores no transition: the frame it comes with starts
+the next episode's chain.
+
+`on_ready(stamp)` (optional) hears of each observation once nothing more will be stored before
+the policy's answer to it: after its transition is stored, or at once when it cannot be chained.
+An observation whose predecessor's answer has not arrived yet waits for it.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from uav_sim import contract
 class _Prev:
     stamp: int
     action: int | None
+    answered: bool = True  # False: the frame is stored, the policy's answer to it is not joined yet
 
 
 class TransitionAssembler:
@@ -31,43 +37,100 @@ class TransitionAssembler:
 
     STREAMS = ("frame", "outcome", "action")
 
-    def __init__(self, sink, actions, step_ns: int, net_hw: tuple[int, int], max_pending: int = 500):
+    def __init__(self, sink, actions, step_ns: int, net_hw: tuple[int, int], max_pending: int = 500, on_ready=None):
         self.sink, self.actions, self.step_ns, self.net_hw = sink, actions, step_ns, net_hw
+        self.on_ready = on_ready
         self.joiner = contract.StampJoiner(self.STREAMS, max_pending=max_pending)
         self.prev: _Prev | None = None
+        self.early: tuple[int, bool] | None = None  # (stamp, frame usable) stored before its record completed
+        self.released = -1  # the newest stamp handed to on_ready
         self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0}
 
     def add(self, stream: str, msg) -> None:
         joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
         if joined is not None:
             self._record(joined)
+        self._store_next()
+        self._release()
 
-    def _record(self, rec: dict) -> None:
-        stamp = contract.stamp_ns(rec["frame"].header.stamp)
+    def _frame(self, img):
+        """The frame at the network's size, or None (counted) when malformed."""
         try:
-            frame = fit_to_network(contract.image_to_depth(rec["frame"]), *self.net_hw)
+            return fit_to_network(contract.image_to_depth(img), *self.net_hw)
         except ValueError:
             self.counts["bad_frames"] += 1
-            self.prev = None
-            return
+            return None
+
+    def _action(self, rec: dict) -> int | None:
         tw = rec["action"].twist
         action = match_action(self.actions, tw.linear.x, tw.angular.z, self.step_ns / 1e9)
         if action is None:
             self.counts["unmatched_actions"] += 1
-        prev, out = self.prev, rec["outcome"]
-        truncated = contract.outcome_truncated(out)  # a new episode without a collision: nothing to learn
-        if prev is not None and prev.action is not None and stamp - prev.stamp == self.step_ns:
-            if truncated:
-                self.sink.add_truncated(frame)
-            else:
-                collided = contract.outcome_collided(out)
-                beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
-                self.sink.add_step(prev.action, beta, collided, frame)
+        return action
+
+    def _store(self, frame, out) -> None:
+        """The step from record self.prev to (frame, out), one step later."""
+        if contract.outcome_truncated(out):  # a new episode without a collision: nothing to learn
+            self.sink.add_truncated(frame)
         else:
-            if prev is not None and not truncated:  # ~/reset republishes at the same stamp: not a break
+            collided = contract.outcome_collided(out)
+            beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
+            self.sink.add_step(self.prev.action, beta, collided, frame)
+
+    def _record(self, rec: dict) -> None:
+        stamp = contract.stamp_ns(rec["frame"].header.stamp)
+        if self.early is not None and self.early[0] == stamp:  # the frame went in before its answer came
+            usable, self.early = self.early[1], None
+            self.prev = _Prev(stamp, self._action(rec)) if usable else None
+            return
+        frame = self._frame(rec["frame"])
+        if frame is None:
+            self.prev = None
+            return
+        action = self._action(rec)
+        prev, out = self.prev, rec["outcome"]
+        if prev is not None and prev.action is not None and prev.answered and stamp - prev.stamp == self.step_ns:
+            self._store(frame, out)
+        else:
+            if prev is not None and not contract.outcome_truncated(out):  # ~/reset republishes at the same stamp
                 self.counts["chain_breaks"] += 1
             self.sink.add_first(frame)
         self.prev = _Prev(stamp, action)
+
+    def _store_next(self) -> None:
+        """Store the observation one step after a complete record without waiting for its own answer."""
+        prev = self.prev
+        if prev is None or prev.action is None or not prev.answered:
+            return
+        stamp = prev.stamp + self.step_ns
+        slot = self.joiner.pending.get(stamp)
+        if slot is None or "frame" not in slot or "outcome" not in slot:
+            return
+        frame = self._frame(slot["frame"])
+        self.early = (stamp, frame is not None)
+        if frame is None:
+            self.prev = None
+            return
+        self._store(frame, slot["outcome"])
+        self.prev = _Prev(stamp, None, answered=False)
+
+    def _release(self) -> None:
+        if self.on_ready is None:
+            return
+        pending = self.joiner.pending
+
+        def observed(stamp: int) -> bool:  # frame and outcome in, the policy's answer not yet (else joined)
+            slot = pending.get(stamp)
+            return slot is not None and "frame" in slot and "outcome" in slot
+
+        ready = {s for s in pending if s > self.released and observed(s)}
+        if self.prev is not None and self.prev.stamp > self.released:  # joined at once (its answer came first)
+            ready.add(self.prev.stamp)
+        for s in sorted(ready):
+            if observed(s - self.step_ns):
+                break  # its transition needs the answer to the observation before it; later ones wait too
+            self.released = s
+            self.on_ready(s)
 
     def report(self) -> dict:
         j = self.joiner

@@ -92,8 +92,18 @@ def main(argv=None) -> int:
         "--max-rate-hz",
         type=float,
         default=None,
-        help="lockstep step-rate cap so the learner keeps its replay ratio on 2 CPU cores; 0 = uncapped "
+        help="with --learning concurrent: lockstep sim step-rate cap so the learner keeps its replay ratio on 2 CPU "
+        "cores; 0 = uncapped (--learning lockstep needs none: uncapped unless given) "
         f"(default: {DEFAULT_MAX_RATE_HZ:g}, recipe ensemble {RECIPES['ensemble']['max_rate_hz']:g}: twice the updates)",
+    )
+    ap.add_argument(
+        "--learning",
+        choices=("lockstep", "concurrent"),
+        default="lockstep",
+        help="lockstep: trainer_node learns after each step and releases the next frame to policy_node with the new "
+        "weights and epsilon, as inprocess does (for a seed, inprocess's episodes and weights); concurrent: a learner "
+        "thread beside acting, weights pushed every push_interval_updates, steps capped by --max-rate-hz (rounds 38-43) "
+        "(default: lockstep)",
     )
     ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
     ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml")
@@ -139,7 +149,11 @@ def main(argv=None) -> int:
         ap.error(f"--max-rate-hz must be >= 0, got {a.max_rate_hz:g}")
     recipe = RECIPES[a.recipe]
     world = a.world or recipe["world"]
-    max_rate_hz = recipe.get("max_rate_hz", DEFAULT_MAX_RATE_HZ) if a.max_rate_hz is None else a.max_rate_hz
+    lockstep = a.learning == "lockstep"
+    if a.max_rate_hz is not None:
+        max_rate_hz = a.max_rate_hz
+    else:  # lockstep: acting waits for learning, no cap needed
+        max_rate_hz = 0.0 if lockstep else recipe.get("max_rate_hz", DEFAULT_MAX_RATE_HZ)
     snapshots, snapshot_at = snapshot_plan(recipe.get("snapshots", 0), a.steps)
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
@@ -161,6 +175,7 @@ def main(argv=None) -> int:
         "policy_node",
         params_args(params, "policy")
         + p("", [f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0"])
+        + p("", [f"wait_for_trainer:={'true' if lockstep else 'false'}"])
         + p("", [f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
     )
     trainer = procs.start(
@@ -177,6 +192,7 @@ def main(argv=None) -> int:
                 f"total_steps:={a.steps}",
                 f"run_dir:={run_dir}",
                 f"resume:={'false' if a.no_resume else 'true'}",
+                f"lockstep_learning:={'true' if lockstep else 'false'}",
                 *recipe["trainer"],
                 *snapshots,
                 *[f"input_size_px:={px}" for px in size],
@@ -187,7 +203,7 @@ def main(argv=None) -> int:
     )
     print(
         f"training D3QN-{a.model.upper()} (recipe {a.recipe}: {' '.join(recipe['sim'] + recipe['trainer'] + snapshots)}) "
-        f"in '{world}' for {a.steps} steps -> {run_dir} (node logs in {logs})"
+        f"in '{world}' for {a.steps} steps, learning {a.learning} -> {run_dir} (node logs in {logs})"
     )
     interrupted = False
 

@@ -3,8 +3,15 @@
 Joins depth/image_raw, step_outcome and the policy's action (TwistStamped) by exact stamp.
 Consecutive steps (stamps one step_duration_s apart) make transitions (s, a, r, s', done) with
 the reward from uav_sim.reward; anything that does not pair is counted and reported on
-/diagnostics and in the log, never guessed. A learner thread updates the network; weights go
-to the policy over policy_node/push_weights, epsilon through policy_node's parameters.
+/diagnostics and in the log, never guessed.
+
+Two ways to learn. Concurrent (the default): a learner thread updates the network beside acting;
+weights go to the policy over policy_node/push_weights every push_interval_updates, epsilon
+through policy_node's parameters. Lockstep (`lockstep_learning`, with policy_node's
+wait_for_trainer; train sets both): after each step is stored, the updates replay_ratio allows
+run at once, then one push carries the new weights, the exact epsilon and the frame's release,
+so the policy acts on each frame exactly as the in-process loop does (for a seed, the same
+episodes and weights as `inprocess` on the same machine).
 """
 
 from __future__ import annotations
@@ -230,6 +237,13 @@ class TrainerNode(Node):
         policy = d("policy_node", "policy_node", "Name of the policy node to push weights and epsilon to")
         self.log_interval_s = d("log_interval_s", 10.0, "Seconds between progress lines and metrics rows", 0.1, 3600.0)
         threads = d("torch_threads", 1, "Torch intra-op threads for the learner (2 cores are shared)", 1, 256)
+        self.lockstep = d(
+            "lockstep_learning",
+            False,
+            "Learn in lockstep with acting: after each step, its updates, then release the next frame to the policy "
+            "with the new weights and epsilon (policy_node needs wait_for_trainer:=true); false: a learner thread "
+            "beside acting, pushing every push_interval_updates",
+        )
         try:
             self.actions = make_actions(names, lin, yaw)
         except ValueError as e:
@@ -243,7 +257,8 @@ class TrainerNode(Node):
 
         q = contract.DEEP_QOS
         hw = (self.training.net_cfg.height, self.training.net_cfg.width)
-        self.pairing = TransitionAssembler(self.training, self.actions, self.step_ns, hw)
+        on_ready = self._on_ready if self.lockstep else None
+        self.pairing = TransitionAssembler(self.training, self.actions, self.step_ns, hw, on_ready=on_ready)
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self.pairing.add("frame", m), q)
         self.create_subscription(Range, contract.OUTCOME_TOPIC, self._on_outcome, q)
         self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self.pairing.add("action", m), q)
@@ -262,8 +277,11 @@ class TrainerNode(Node):
         self.eps_sent = None
         self.exit_code = 0
         self._stop = threading.Event()
+        self._go_stamp = None  # lockstep: the newest frame to release, once the previous push is answered
+        self._pushed_updates = None  # lockstep: the update count of the weights the policy has
         self._learner_thread = threading.Thread(target=self._learn_loop, name="learner", daemon=True)
-        self._learner_thread.start()
+        if not self.lockstep:
+            self._learner_thread.start()
         self.create_timer(0.05, self._service_tick)
         self.create_timer(self.log_interval_s, self._report)
         self._closed = False
@@ -271,7 +289,8 @@ class TrainerNode(Node):
             f"training {self.cfg.model} ({parameter_count(self.training.learner.online)} parameters, seed {self.cfg.seed}) "
             f"on {device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
-            f"reward: {reward_description(self.cfg)}; {replay_description(self.cfg)}"
+            f"reward: {reward_description(self.cfg)}; {replay_description(self.cfg)}; "
+            + ("learning in lockstep with acting" if self.lockstep else "learning beside acting")
         )
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -316,6 +335,31 @@ class TrainerNode(Node):
             if not self.training.learn_once():
                 time.sleep(0.002)
 
+    def _on_ready(self, stamp: int) -> None:
+        """Lockstep: the step that produced frame `stamp` is stored. Learn what replay_ratio allows now,
+        write due snapshots, then release the frame to the policy with the new weights and epsilon. After
+        the budget's last step nothing is released: _service_tick stops the node."""
+        while self.training.learn_once():
+            pass
+        self._save_snapshots()
+        if self.training.failed or self.training.budget_done:
+            return
+        self._go_stamp = stamp
+        self._send_go()
+
+    def _send_go(self) -> None:
+        if self._go_stamp is None or self.push_in_flight is not None or not self.push_client.service_is_ready():
+            return  # _service_tick retries; a push in flight is answered before the next release goes
+        self.training.take_push()  # the release below carries the newest weights whenever they changed
+        updates = self.training.learner.updates
+        blob = self.training.weights_blob() if updates != self._pushed_updates else None
+        self._pushed_updates = updates
+        fut = self.push_client.call_async(push_request(blob, self.training.epsilon(), self._go_stamp))
+        self._go_stamp = None
+        t0 = time.perf_counter()
+        fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(f, t0, b is not None))
+        self.push_in_flight = fut
+
     def _save_snapshots(self) -> None:
         for path in self.training.save_due_snapshots():
             self.get_logger().info(f"step {self.training.env_steps}: weights snapshot {path}")
@@ -331,6 +375,9 @@ class TrainerNode(Node):
             self.get_logger().info(f"step budget of {self.cfg.total_steps} reached")
             self._shutdown()
             return
+        if self.lockstep:
+            self._send_go()
+            return
         if self.push_in_flight is None and self.push_client.service_is_ready():
             blob = self.training.take_push()
             if blob is not None:
@@ -345,15 +392,19 @@ class TrainerNode(Node):
             fut.add_done_callback(lambda f, e=eps: self._eps_done(f, e))
             self.eps_in_flight = fut
 
-    def _push_done(self, fut, t0: float) -> None:
+    def _push_done(self, fut, t0: float, weights: bool = True) -> None:
         self.push_in_flight = None
         res = fut.result().results[0] if fut.result() else None
         if res is not None and res.successful:
-            self.counts["pushes_ok"] += 1
-            self.push_latency_ms.append(1e3 * (time.perf_counter() - t0))
+            if weights:
+                self.counts["pushes_ok"] += 1
+                self.push_latency_ms.append(1e3 * (time.perf_counter() - t0))
         else:
             self.counts["pushes_rejected"] += 1
             self.get_logger().error(f"policy rejected pushed weights: {res.reason if res else 'no answer'}")
+            self._pushed_updates = None  # lockstep: the next release carries the weights again
+        if self.lockstep:
+            self._send_go()
 
     def _eps_done(self, fut, eps: float) -> None:
         self.eps_in_flight = None
@@ -414,7 +465,8 @@ class TrainerNode(Node):
             return
         self._closed = True
         self._stop.set()
-        self._learner_thread.join(timeout=30)
+        if self._learner_thread.is_alive():
+            self._learner_thread.join(timeout=30)
         self._save_snapshots()  # steps the learner thread did not see before the budget stopped it
         path = self.training.save_checkpoint(final=True)
         if path is not None:
