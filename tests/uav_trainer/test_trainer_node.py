@@ -157,6 +157,27 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     assert f"({steps} env steps, {(steps - 150) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
 
 
+def test_a_lockstep_trainer_beside_a_policy_that_does_not_wait_says_so(ros, tmp_path):
+    """lockstep_learning without policy_node's wait_for_trainer is no lockstep: the trainer warns, naming both."""
+    diag = diagnostics(ros)
+    ros.start("uav_sim", "sim_node")
+    ros.start("uav_policy", "policy_node")
+    trainer = ros.start(
+        "uav_trainer",
+        "trainer_node",
+        "-p",
+        f"run_dir:={tmp_path / 'run'}",
+        "-p",
+        "lockstep_learning:=true",
+        "-p",
+        "log_interval_s:=0.5",
+    )
+    warned = lambda: "answered a frame this node had not released" in ros.log_of(trainer)  # noqa: E731
+    assert ros.spin_until(warned, 60), ros.log_of(trainer)[-2000:]
+    assert "wait_for_trainer:=true" in ros.log_of(trainer)
+    assert ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("unreleased_answers", 0)) > 0, 30)
+
+
 def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path):
     """Without --recipe, train sets up what the packaged weights were trained with (round 35's recipe):
     nine snapshots besides the final weights, flown as one policy."""

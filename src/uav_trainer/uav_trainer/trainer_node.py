@@ -5,7 +5,7 @@ Consecutive steps (stamps one step_duration_s apart) make transitions (s, a, r, 
 the reward from uav_sim.reward; anything that does not pair is counted and reported on
 /diagnostics and in the log, never guessed.
 
-Two ways to learn. Concurrent (the default): a learner thread updates the network beside acting;
+Two ways to learn. Concurrent (this node's default): a learner thread updates the network beside acting;
 weights go to the policy over policy_node/push_weights every push_interval_updates, epsilon
 through policy_node's parameters. Lockstep (`lockstep_learning`, with policy_node's
 wait_for_trainer; train sets both): after each step is stored, the updates replay_ratio allows
@@ -261,7 +261,7 @@ class TrainerNode(Node):
         self.pairing = TransitionAssembler(self.training, self.actions, self.step_ns, hw, on_ready=on_ready)
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self.pairing.add("frame", m), q)
         self.create_subscription(Range, contract.OUTCOME_TOPIC, self._on_outcome, q)
-        self.create_subscription(TwistStamped, contract.ACTION_TOPIC, lambda m: self.pairing.add("action", m), q)
+        self.create_subscription(TwistStamped, contract.ACTION_TOPIC, self._on_action, q)
         # The camera's field of view goes into every weights file (policy_node warns on a mismatch), and so
         # does sim_node's reward window when it is not the paper's, read back from step_outcome's field_of_view.
         self.camera_width_px = None
@@ -270,7 +270,8 @@ class TrainerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
         self.param_client = self.create_client(SetParameters, f"{policy}/set_parameters")
-        self.counts = {"pushes_ok": 0, "pushes_rejected": 0}
+        # unreleased_answers (lockstep): answers to frames this node had not released, i.e. not in lockstep
+        self.counts = {"pushes_ok": 0, "pushes_rejected": 0, "unreleased_answers": 0}
         self.push_in_flight = None
         self.push_latency_ms: list[float] = []
         self.eps_in_flight = None
@@ -306,6 +307,17 @@ class TrainerNode(Node):
             self.training.camera_hfov_deg = hfov
         self.camera_width_px = msg.width
         self._update_window()
+
+    def _on_action(self, msg: TwistStamped) -> None:
+        if self.lockstep and contract.stamp_ns(msg.header.stamp) > self.pairing.released:
+            self.counts["unreleased_answers"] += 1
+            self.get_logger().warning(
+                f"policy_node answered a frame this node had not released ({self.counts['unreleased_answers']} so far): learning "
+                "is not in lockstep; give policy_node wait_for_trainer:=true (train does), or this node "
+                "lockstep_learning:=false",
+                throttle_duration_sec=30.0,
+            )
+        self.pairing.add("action", msg)
 
     def _on_outcome(self, msg: Range) -> None:
         self.pairing.add("outcome", msg)
