@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from conftest import ROOT, executable, script_module
 from uav_policy import weights as wio
@@ -742,3 +743,49 @@ def test_seed_effect_finds_seeds_that_fail_alike_in_every_table_and_not_in_shuff
     dup.write_text("model,world,weights,steps,crashes\nsam,complex,r/a_sam_seed1/w,1000,0\nsam,complex,r/b_sam_seed1/w,1000,2\n")
     assert "line 3: seed 1 has a second sam row in complex" in run(str(dup), two[0]).stderr
     assert "name at least two tables" in run(two[0]).stderr
+
+
+def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_path):
+    """scripts/same_run.py: episodes and weights tensor by tensor, a run against the packaged files, and a
+    run's evaluate rows against another run's: 'same' (exit 0) only when nothing differs."""
+
+    def same_run(*args):
+        r = subprocess.run([sys.executable, str(ROOT / "scripts" / "same_run.py"), *args], capture_output=True, text=True)
+        assert r.returncode in (0, 1), r.stderr
+        return r.returncode, r.stdout
+
+    packaged = wio.packaged_weights("sam")
+    assert len(packaged) == 10
+    a, b = tmp_path / "a", tmp_path / "b"
+    for run in (a, b):
+        run.mkdir()
+        (run / "episodes.csv").write_text("episode,env_step,length,reward,end\n1,7,7,-3.000,crash\n")
+        names = [f"policy_sam_step{n}.safetensors" for n in range(21000, 30000, 1000)] + ["policy_sam.safetensors"]
+        for name, src in zip(names, packaged, strict=True):
+            shutil.copy(src, run / name)
+    rc, out = same_run(str(a), str(b))
+    assert rc == 0 and out.endswith("same\n") and "policy_sam_step29000.safetensors: identical" in out
+    assert same_run(str(a), "--packaged", "sam")[0] == 0, "a run's ten files in step order are the packaged ten"
+    net = wio.load_file(packaged[3], NetConfig())
+    with torch.no_grad():
+        net.dueling_head.advantage[-1].bias[0] += 1e-6  # one value of one tensor
+    wio.save_file(net, net.cfg, b / "policy_sam_step24000.safetensors", 150.0, 0.078)
+    rc, out = same_run(str(a), str(b))
+    assert rc == 1
+    assert "policy_sam_step24000.safetensors: 1 of 28 tensors differ" in out and out.endswith("DIFFERENT\n")
+    assert "policy_sam_step23000.safetensors: identical" in out
+    (b / "episodes.csv").write_text("episode,env_step,length,reward,end\n1,7,7,-3.001,crash\n")
+    rc, out = same_run(str(a), str(b))
+    assert rc == 1 and "episodes.csv (1 episodes): differs" in out
+    header = "model,world,weights,steps,crashes,mean_reward\n"
+
+    def row(run, world, crashes):
+        return f"sam,{world},{run}/policy_sam_step21000.safetensors+{run}/policy_sam.safetensors,1000,{crashes},3.1\n"
+
+    ta, tb = tmp_path / "ta.csv", tmp_path / "tb.csv"
+    ta.write_text(header + row("x/a", "basic", 0) + row("x/a", "complex", 1) + row("x/other", "basic", 5))
+    tb.write_text(header + row("y/b", "complex", 1) + row("y/b", "basic", 0))
+    assert same_run("x/a", "y/b", "--tables", str(ta), str(tb)) == (0, "sam basic: identical\nsam complex: identical\nsame\n")
+    tb.write_text(header + row("y/b", "complex", 2) + row("y/b", "basic", 0))
+    rc, out = same_run("x/a", "y/b", "--tables", str(ta), str(tb))
+    assert rc == 1 and "sam complex: crashes differ" in out
