@@ -166,6 +166,7 @@ def main() -> int:
     ap.add_argument("--max-steps", type=int, default=60000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-ros", action="store_true")
+    ap.add_argument("--skip-time-to-zero", action="store_true", help="stop after the throughput figures")
     ap.add_argument("--input-sizes", type=int, nargs="+", default=[64, 84], metavar="PX", help="update cost at these inputs")
     ap.add_argument("--updates-only", action="store_true", help="print the update costs and stop")
     ap.add_argument("--threads", type=int, default=1, help="torch threads for the update costs")
@@ -201,6 +202,8 @@ def main() -> int:
                 f"ROS training, {label}: {env_rate:.1f} env steps/s ({env_rate / base:.2f}x in-process), "
                 f"{upd_rate:.1f} updates/s, replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"
             )
+    if a.skip_time_to_zero:
+        return 0
     print(f"in-process SAM training (seed {a.seed}), exploit evaluation every {a.eval_every} steps:")
     t, steps, _ = time_to_zero_crashes(a.seed, a.eval_every, a.max_steps)
     if t is None:

@@ -33,9 +33,10 @@
 # recipe as the main job over ROS, `train --recipe ensemble`), a thirty-ninth (the same with the weights
 # pushed after every update), a fortieth (both on three more seeds), a forty-first (in-process, acting on
 # the network pushed every 50 updates, as policy_node beside the ROS trainer), a forty-second (the main job
-# on fresh seeds 6-11) and a forty-third (the main job on seeds 0-5 again: seed or run?); then it packages round 35-37's
+# on fresh seeds 6-11), a forty-third (the main job on seeds 0-5 again: seed or run?) and a forty-fourth (the main
+# job learning in lockstep against round 35's in-process runs and the packaged SAM); then it packages round 35-37's
 # best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
-# figures with them. About 70 h on 2 cores.
+# figures with them. About 71 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1286,6 +1287,28 @@ join_crash_logs $R43 runs/r43eval "0 1 2 3 4 5"
 python scripts/repeat_failures.py $R43/fixed_start/results.csv $R40/push_every_50/fixed_start/results.csv \
   $R40/push_every_update/fixed_start/results.csv $R42/fixed_start/results.csv $R36/pooled_40_seeds/fixed_start/results.csv \
   --labels again push50 push1 fresh_seeds inprocess_40 > $R43/fixed_start_repeats.md
+
+# Round 44: the main job learning in lockstep (train's default since this round: trainer_node learns after
+# each step and releases the next frame to policy_node) against round 35's in-process command, SAM seed 0,
+# trained side by side: episodes and all ten weights files compared bit for bit; its ten files flown as round
+# 35 flew its runs (and from the fixed start through the ROS nodes too), row for row against round 35's seed 0;
+# and `train --seed 20` on the embedded defaults against the packaged SAM (round 36's seed 20).
+R44=docs/results/round44_lockstep_learning
+install/uav_trainer/lib/uav_trainer/train --model sam --seed 0 --no-resume --run-dir runs/r44_ros_sam_seed0 > runs/r44_ros_sam_seed0.log 2>&1 &
+python -m uav_trainer.inprocess --threads 1 --model sam --steps 30000 --seed 0 --layout-per-episode "${ROUND6[@]}" "${R24ARGS[@]}" \
+  --world basic --world-every 4 --save-weights-at "${SNAPS[@]}" --run-dir runs/r44_inproc_sam_seed0 > runs/r44_inproc_sam_seed0.log 2>&1 &
+wait
+python scripts/same_run.py runs/r44_ros_sam_seed0 runs/r44_inproc_sam_seed0 > $R44/same_seed0_ros_vs_inprocess.txt
+mapfile -t W < <(snap_group r44_ros 10 0)
+HFOV=150 WINDOW=0.078 eval_120 $R44/seed0 1 --model sam --ensemble 10 --weights "${W[@]}"
+$EVAL --model sam --ensemble 10 --weights "${W[@]}" --worlds basic complex turbulent --steps 1000 \
+  --sim-arg hfov_deg:=150.0 --sim-arg reward_window_fraction:=0.078 --out $R44/seed0/fixed_start_ros
+for p in varied_start fixed_start fixed_start_ros; do
+  python scripts/same_run.py runs/r44_ros_sam_seed0 runs/r35basic150_sam_seed0 --tables $R44/seed0/$p/results.csv \
+    $R35/${p%_ros}/results.csv > $R44/same_seed0_vs_round35_$p.txt
+done
+install/uav_trainer/lib/uav_trainer/train --model sam --seed 20 --no-resume --run-dir runs/r44_ros_sam_seed20 > runs/r44_ros_sam_seed20.log 2>&1
+python scripts/same_run.py runs/r44_ros_sam_seed20 --packaged sam > $R44/same_seed20_vs_packaged.txt
 
 # Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
 # and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
