@@ -11,6 +11,11 @@ earlier packaged weights' recipe (round 4): a 120 deg camera, a new procedural l
 episode and a turn penalty of 1.0, one network; `paper` is the paper's setting: a 90 deg camera in
 the Basic world with the paper's reward.
 
+Learning (`--learning`): `lockstep` (default) has trainer_node learn after each step and release the
+next frame to policy_node with the new weights and epsilon, so a run is, bit for bit, the in-process
+run of its seed (docs/RESULTS.md, round 44); `concurrent` runs a learner thread beside acting, with
+the step rate capped so that it keeps up (rounds 38-43).
+
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
 policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint with
 the replay memory, then the policy and the simulator. Running it again with the same run
@@ -33,7 +38,8 @@ from .training import snapshot_file, snapshot_steps
 
 # What each recipe sets on top of params/*.yaml; --world, --sim-arg and --trainer-arg still win.
 # `snapshots`: that many weight snapshots, one every thirtieth of the budget, ending one before it
-# (30 000 steps: 21 000 ... 29 000); `max_rate_hz`: the step-rate cap unless --max-rate-hz says.
+# (30 000 steps: 21 000 ... 29 000); `max_rate_hz`: the step-rate cap of --learning concurrent unless
+# --max-rate-hz says.
 RECIPES = {
     "ensemble": {
         "world": "random_each_episode",
