@@ -1,6 +1,7 @@
 """Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN, alone and as
 ensembles of 3 and 10 networks; lockstep steps/s of sim_node <-> policy_node over ROS on their defaults
-(the packaged weights) against the same loop in-process; weight-push latency.
+(the packaged weights) against the same loop in-process; weight-push latency, the blob as a BYTE_ARRAY
+against as base64 text (what lockstep learning sends), measured in the same run.
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_policy.py
 """
@@ -61,7 +62,7 @@ def in_process_loop(model: str, steps: int) -> float:
     return rate
 
 
-def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) -> tuple[float, list[float]]:
+def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) -> tuple[float, dict[bool, list[float]], int]:
     import rclpy
     from rcl_interfaces.srv import SetParameters
 
@@ -89,13 +90,13 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
         blob = wio.to_bytes(build_network(cfg, seed=1), cfg)
         client = node.create_client(SetParameters, contract.PUSH_WEIGHTS_SERVICE)
         client.wait_for_service(timeout_sec=10)
-        lat = []
-        for _ in range(pushes):
+        lat = {False: [], True: []}  # as_base64: latencies (ms), the two encodings taking turns
+        for i in range(2 * pushes):
             t = time.perf_counter()
-            fut = client.call_async(push_request(blob))
+            fut = client.call_async(push_request(blob, as_base64=bool(i % 2)))
             rclpy.spin_until_future_complete(node, fut, timeout_sec=10)
             assert fut.result().results[0].successful, fut.result().results[0].reason
-            lat.append((time.perf_counter() - t) * 1e3)
+            lat[bool(i % 2)].append((time.perf_counter() - t) * 1e3)
         return rate, lat, len(blob)
     finally:
         node.destroy_node()
@@ -121,9 +122,11 @@ def main() -> int:
         base = in_process_loop(model, a.steps)
         ros, lat, size = ros_loop_and_pushes(model, a.seconds, a.pushes, 80 + (os.getpid() + i) % 10)
         print(f"[{model}] lockstep loop: in-process {base:.1f} steps/s, over ROS {ros:.1f} steps/s, ratio {ros / base:.3f}")
+        raw, text = (float(np.percentile(lat[k], 50)) for k in (False, True))
         print(
-            f"[{model}] weight push ({size / 1024:.0f} KiB, SetParameters BYTE_ARRAY): "
-            f"p50 {np.percentile(lat, 50):.1f} ms, max {max(lat):.1f} ms over {len(lat)}"
+            f"[{model}] weight push ({size / 1024:.0f} KiB, SetParameters): BYTE_ARRAY p50 {raw:.1f} ms, max "
+            f"{max(lat[False]):.1f} ms; base64 STRING p50 {text:.1f} ms ({raw / text:.1f}x faster), max "
+            f"{max(lat[True]):.1f} ms; {len(lat[True])} each"
         )
     return 0
 

@@ -246,20 +246,33 @@ def test_a_push_request_reads_back_and_bad_pushes_are_named():
 
     from uav_policy.push import push_request, read_push
 
-    p = read_push(push_request(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000).parameters)
+    def read(params):
+        return read_push(params, wio.MAX_BYTES)
+
+    p = read(push_request(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000).parameters)
     assert (p.weights, p.epsilon, p.release_stamp_ns) == (b"abc", 0.25, 1_500_000_000)
-    assert read_push(push_request(b"abc").parameters) == type(p)(b"abc", None, None)  # a plain weights push
+    assert read(push_request(b"abc").parameters) == type(p)(b"abc", None, None)  # a plain weights push
+    blob = wio.to_bytes(build_network(SAM, seed=0), SAM)
+    assert read(push_request(blob, 0.5, 7, as_base64=True).parameters) == type(p)(blob, 0.5, 7), "base64 text, the same blob"
+    both = push_request(b"abc").parameters + push_request(b"abc", as_base64=True).parameters
+    with pytest.raises(ValueError, match="'weights' or 'weights_base64', not both"):
+        read(both)
+    text = Parameter(name="weights_base64", value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="ab$c"))
+    with pytest.raises(ValueError, match="'weights_base64' is not base64"):
+        read([text])
+    with pytest.raises(ValueError, match="would hold more than the 3 bytes allowed"):
+        read_push(push_request(b"abcdefgh", as_base64=True).parameters, 3)
     with pytest.raises(ValueError, match="expected a BYTE_ARRAY parameter named 'weights'"):
-        read_push([])
+        read([])
     with pytest.raises(ValueError, match="'epsilon' must lie in"):
-        read_push(push_request(None, epsilon=float("nan")).parameters)
+        read(push_request(None, epsilon=float("nan")).parameters)
     with pytest.raises(ValueError, match="'release_stamp_ns' must be >= 0"):
-        read_push(push_request(None, release_stamp_ns=-1).parameters)
+        read(push_request(None, release_stamp_ns=-1).parameters)
     wrong = Parameter(name="weights", value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="x"))
     with pytest.raises(ValueError, match="'weights' must be a BYTE_ARRAY"):
-        read_push([wrong])
+        read([wrong])
     with pytest.raises(ValueError, match="unknown push parameter 'gamma'"):
-        read_push([Parameter(name="gamma", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9))])
+        read([Parameter(name="gamma", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9))])
     twice = push_request(None, epsilon=0.1).parameters * 2
     with pytest.raises(ValueError, match="given twice"):
-        read_push(twice)
+        read(twice)

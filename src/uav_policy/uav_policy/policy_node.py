@@ -442,7 +442,7 @@ class PolicyNode(Node):
         t0 = time.perf_counter()
         result = SetParametersResult(successful=False)
         try:
-            push = read_push(request.parameters)
+            push = read_push(request.parameters, wio.MAX_BYTES)
             blob = push.weights
             if blob is not None:
                 # The trainer owns the layer sizes: a push may bring others (the interface must match).

@@ -366,7 +366,7 @@ class TrainerNode(Node):
         updates = self.training.learner.updates
         blob = self.training.weights_blob() if updates != self._pushed_updates else None
         self._pushed_updates = updates
-        fut = self.push_client.call_async(push_request(blob, self.training.epsilon(), self._go_stamp))
+        fut = self.push_client.call_async(push_request(blob, self.training.epsilon(), self._go_stamp, as_base64=True))
         self._go_stamp = None
         t0 = time.perf_counter()
         fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(f, t0, b is not None))
