@@ -26,7 +26,7 @@ import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
@@ -270,6 +270,10 @@ class TrainerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
         self.param_client = self.create_client(SetParameters, f"{policy}/set_parameters")
+        # lockstep: whether policy_node waits for releases, asked once (None: not yet known)
+        self.get_param_client = self.create_client(GetParameters, f"{policy}/get_parameters")
+        self.policy_waits: bool | None = None
+        self._wait_query = None
         # unreleased_answers (lockstep): answers to frames this node had not released, i.e. not in lockstep
         self.counts = {"pushes_ok": 0, "pushes_rejected": 0, "unreleased_answers": 0}
         self.push_in_flight = None
@@ -307,6 +311,23 @@ class TrainerNode(Node):
             self.training.camera_hfov_deg = hfov
         self.camera_width_px = msg.width
         self._update_window()
+
+    def _check_policy_waits(self) -> None:
+        """Lockstep: ask policy_node once whether it waits for releases; say so loudly when it does not."""
+        if self.policy_waits is not None or self._wait_query is not None or not self.get_param_client.service_is_ready():
+            return
+        self._wait_query = self.get_param_client.call_async(GetParameters.Request(names=["wait_for_trainer"]))
+        self._wait_query.add_done_callback(self._policy_waits_known)
+
+    def _policy_waits_known(self, fut) -> None:
+        values = fut.result().values if fut.result() else []
+        self.policy_waits = bool(values) and values[0].type == ParameterType.PARAMETER_BOOL and values[0].bool_value
+        if not self.policy_waits:
+            self.get_logger().error(
+                "lockstep_learning: policy_node does not wait for releases (its wait_for_trainer is not true), so it acts "
+                "before learning and the run is not in lockstep; give policy_node wait_for_trainer:=true (train does), "
+                "or this node lockstep_learning:=false"
+            )
 
     def _on_action(self, msg: TwistStamped) -> None:
         if self.lockstep and contract.stamp_ns(msg.header.stamp) > self.pairing.released:
@@ -388,6 +409,7 @@ class TrainerNode(Node):
             self._shutdown()
             return
         if self.lockstep:
+            self._check_policy_waits()
             self._send_go()
             return
         if self.push_in_flight is None and self.push_client.service_is_ready():
