@@ -36,7 +36,7 @@
 # on fresh seeds 6-11), a forty-third (the main job on seeds 0-5 again: seed or run?) and a forty-fourth (the main
 # job learning in lockstep against round 35's in-process runs and the packaged SAM); then it packages round 35-37's
 # best runs as policy_node's default weights, measures them through the ROS nodes and draws the attention
-# figures with them. About 71 h on 2 cores.
+# figures with them. About 72 h on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
@@ -1292,7 +1292,8 @@ python scripts/repeat_failures.py $R43/fixed_start/results.csv $R40/push_every_5
 # each step and releases the next frame to policy_node) against round 35's in-process command, SAM seed 0,
 # trained side by side: episodes and all ten weights files compared bit for bit; its ten files flown as round
 # 35 flew its runs (and from the fixed start through the ROS nodes too), row for row against round 35's seed 0;
-# and `train --seed 20` on the embedded defaults against the packaged SAM (round 36's seed 20).
+# and `train --seed 20` on the embedded defaults against the packaged SAM (round 36's seed 20), `--model cnn
+# --seed 13` against the packaged CNN (round 37's seed 13).
 R44=docs/results/round44_lockstep_learning
 install/uav_trainer/lib/uav_trainer/train --model sam --seed 0 --no-resume --run-dir runs/r44_ros_sam_seed0 > runs/r44_ros_sam_seed0.log 2>&1 &
 python -m uav_trainer.inprocess --threads 1 --model sam --steps 30000 --seed 0 --layout-per-episode "${ROUND6[@]}" "${R24ARGS[@]}" \
@@ -1309,6 +1310,8 @@ for p in varied_start fixed_start fixed_start_ros; do
 done
 install/uav_trainer/lib/uav_trainer/train --model sam --seed 20 --no-resume --run-dir runs/r44_ros_sam_seed20 > runs/r44_ros_sam_seed20.log 2>&1
 python scripts/same_run.py runs/r44_ros_sam_seed20 --packaged sam > $R44/same_seed20_vs_packaged.txt
+install/uav_trainer/lib/uav_trainer/train --model cnn --seed 13 --no-resume --run-dir runs/r44_ros_cnn_seed13 > runs/r44_ros_cnn_seed13.log 2>&1
+python scripts/same_run.py runs/r44_ros_cnn_seed13 --packaged cnn > $R44/same_cnn_seed13_vs_packaged.txt
 
 # Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
 # and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
