@@ -292,12 +292,13 @@ class PolicyNode(Node):
 
     # -- frames -------------------------------------------------------------------------
     def _on(self, stream: str, msg) -> None:
-        joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
-        if joined is not None and self.wait_for_trainer and contract.stamp_ns(msg.header.stamp) > self.released_ns:
-            self.held.append((contract.stamp_ns(msg.header.stamp), time.monotonic(), joined["frame"], joined["outcome"]))
+        stamp = contract.stamp_ns(msg.header.stamp)
+        joined = self.joiner.add(stream, stamp, msg)
+        if joined is not None and self.wait_for_trainer and stamp > self.released_ns:
+            self.held.append((stamp, time.monotonic(), joined["frame"], joined["outcome"]))
         elif joined is not None:
             self._act(joined["frame"], joined["outcome"])
-        elif stream == "frame" and contract.stamp_ns(msg.header.stamp) == self.last_stamp and self.last_cmd_unheard:
+        elif stream == "frame" and stamp == self.last_stamp and self.last_cmd_unheard:
             # The simulator said an answered frame again, and our command went out before anyone
             # listened (discovery): answer again. A command that had a reliable listener is only
             # late (a busy machine); answering it twice would advance a lockstep sim two steps.
