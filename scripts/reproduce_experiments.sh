@@ -1313,6 +1313,48 @@ python scripts/same_run.py runs/r44_ros_sam_seed20 --packaged sam > $R44/same_se
 install/uav_trainer/lib/uav_trainer/train --model cnn --seed 13 --no-resume --run-dir runs/r44_ros_cnn_seed13 > runs/r44_ros_cnn_seed13.log 2>&1
 python scripts/same_run.py runs/r44_ros_cnn_seed13 --packaged cnn > $R44/same_cnn_seed13_vs_packaged.txt
 
+# Round 45: round 44's CNN stall looked for again. train --model cnn --seed 13 alone (compared with the packaged
+# CNN once more), then short CNN runs idle, beside busy loops and beside the whole test suite, on a domain the
+# tests never use (230) and on round 44's (64, inside the tests' 1-100); and a py-spy profile of a SAM lockstep
+# run (docs/results/round45_cnn_lockstep_timing/sam_lockstep_profile.md says how; py-spy is not installed here).
+R45=docs/results/round45_cnn_lockstep_timing
+R45_ROWS="Each row: the rows of the run's metrics.csv after the first one with updates (steady state): 5 s rows for \
+the two full runs (30 000 steps, the embedded defaults), 2 s rows for the short ones (\`--trainer-arg \
+learning_starts:=500 --trainer-arg log_interval_s:=2.0\`). Busy loops: \`python -c 'while True: pass'\`. All runs \
+with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. Commands: the round 45 block of \`scripts/reproduce_experiments.sh\`."
+ROS_DOMAIN_ID=230 install/uav_trainer/lib/uav_trainer/train --model cnn --seed 13 --no-resume --run-dir runs/r45_ros_cnn_seed13 \
+  > runs/r45_ros_cnn_seed13.log 2>&1
+python scripts/same_run.py runs/r45_ros_cnn_seed13 --packaged cnn > $R45/same_cnn_seed13_vs_packaged.txt
+cnn_short() {  # NAME DOMAIN STEPS BUSY_LOOPS
+  local busy=() i
+  for ((i = 0; i < $4; i++)); do python -c 'while True: pass' & busy+=($!); done
+  ROS_DOMAIN_ID=$2 install/uav_trainer/lib/uav_trainer/train --model cnn --steps $3 --seed 13 --no-resume \
+    --run-dir runs/shm/$1 --trainer-arg learning_starts:=500 --trainer-arg log_interval_s:=2.0 > runs/shm/$1.out 2>&1
+  if ((${#busy[@]})); then kill "${busy[@]}"; fi
+}
+mkdir -p runs/shm
+cnn_short idle_default 77 2500 0
+cnn_short load1_default 77 2500 1
+cnn_short load3_default 77 2500 3
+for dom in 230 64; do
+  bash scripts/test.sh -q > runs/shm/suite_d$dom.out 2>&1 &
+  cnn_short suite_default_d$dom $dom 12000 0
+  wait
+done
+{
+  echo "# D3QN-CNN lockstep \`train\` step rates (seed 13, learning in lockstep; progress rows once learning runs)"
+  echo
+  echo "$R45_ROWS"
+  echo
+  python scripts/step_rates.py runs/r44_ros_cnn_seed13 runs/r45_ros_cnn_seed13 runs/shm/{idle,load1,load3}_default \
+    runs/shm/suite_default_d{230,64} --labels \
+    "round 44: full run, domain 64, part of it beside a clean-clone CI run (the suite's tests use domains 1-100)" \
+    "round 45: full run, domain 230, machine otherwise idle" "2 500 steps, domain 77, idle" \
+    "2 500 steps, domain 77, one busy-loop process beside it" "2 500 steps, domain 77, three busy-loop processes beside it" \
+    "12 000 steps, domain 230, beside the full test suite (scripts/test.sh)" \
+    "12 000 steps, domain 64, beside the full test suite (scripts/test.sh)"
+} > $R45/step_rates.md
+
 # Shipping round 35's recipe (docs/RESULTS.md, "Shipped weights"): of the forty SAM runs (rounds 35 and 36)
 # and the twenty CNN runs (round 37), the one with the fewest crashes over both protocols, ties by reward
 # (scripts/pick_shipped.py: SAM seed 20, CNN seed 13); its ten files packaged as policy_node's default,

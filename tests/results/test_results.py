@@ -789,3 +789,26 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
     tb.write_text(header + row("y/b", "complex", 2) + row("y/b", "basic", 0))
     rc, out = same_run("x/a", "y/b", "--tables", str(ta), str(tb))
     assert rc == 1 and "sam complex: crashes differ" in out
+
+
+def test_step_rates_reads_the_steady_state_rows_and_counts_stalls(tmp_path):
+    """scripts/step_rates.py: the rows after the first one with updates, their mean and least rate and the rows
+    under 10 and 5 steps/s; a missing file or a row that is not a number is a one-line error."""
+
+    def step_rates(*args):
+        return subprocess.run([sys.executable, str(ROOT / "scripts" / "step_rates.py"), *args], capture_output=True, text=True)
+
+    head = "wall_s,env_steps,updates,env_steps_per_s\n"
+    run = tmp_path / "cnn_seed13"
+    run.mkdir()
+    # 100/s before learning, the first learning row (warm-up, left out), then 20, 8 and 4 steps/s.
+    (run / "metrics.csv").write_text(head + "5,500,0,100\n10,600,10,50\n15,700,60,20\n20,740,80,8\n25,760,90,4\n")
+    r = step_rates(str(run), "--labels", "alone")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines()[-1] == "| cnn_seed13 | alone | 3 | 10.7 | 4.0 | 2 | 1 |"
+    (run / "metrics.csv").write_text(head + "5,500,1,20\n10,600,2,x\n")
+    bad = step_rates(str(run))
+    assert bad.returncode != 0 and "is not a number" in bad.stderr and "|" not in bad.stdout
+    missing = step_rates(str(tmp_path / "none"))
+    assert missing.returncode != 0 and "cannot read" in missing.stderr
+    assert step_rates(str(run), "--labels", "a", "b").returncode == 2
