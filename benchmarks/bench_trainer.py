@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from uav_policy.networks import NetConfig
+from uav_trainer.episodes import steady_metrics_rows
 from uav_trainer.evaluate import evaluate_inprocess
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.learner import Learner, LearnerConfig
@@ -106,7 +107,7 @@ def ros_throughput(steps: int, learning: str, max_rate_hz: float | None, domain:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         rows = list(csv.DictReader(open(Path(d) / "metrics.csv")))
-    learning_rows = [r for r in rows if int(r["updates"]) > 0][1:]  # steady state, after learning_starts
+    learning_rows = steady_metrics_rows(rows)  # after learning_starts
     env_rate = sum(float(r["env_steps_per_s"]) for r in learning_rows) / max(len(learning_rows), 1)
     upd_rate = sum(float(r["updates_per_s"]) for r in learning_rows) / max(len(learning_rows), 1)
     return env_rate, upd_rate

@@ -16,6 +16,8 @@ from pathlib import Path
 
 from csv_input import read_csv
 
+from uav_trainer.episodes import steady_metrics_rows
+
 COLUMNS = ("updates", "env_steps_per_s")
 
 
@@ -23,8 +25,7 @@ def steady_rates(metrics: Path) -> list[float]:
     """env_steps_per_s of the rows after the first one with updates; exits with a message on bad input."""
     _, rows = read_csv(str(metrics), COLUMNS, "a training run's metrics.csv")
     try:
-        learning = [r for r in rows if int(r["updates"]) > 0][1:]
-        rates = [float(r["env_steps_per_s"]) for r in learning]
+        rates = [float(r["env_steps_per_s"]) for r in steady_metrics_rows(rows)]
     except (TypeError, ValueError):
         raise SystemExit(f"{metrics}: a row's updates or env_steps_per_s is not a number") from None
     if not rates or not all(math.isfinite(x) for x in rates):

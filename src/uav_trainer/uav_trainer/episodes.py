@@ -1,4 +1,5 @@
-"""Episode bookkeeping shared by the trainer node, the in-process trainer and evaluation."""
+"""Episode bookkeeping shared by the trainer node, the in-process trainer and evaluation, and reading a
+run's progress rows back."""
 
 from __future__ import annotations
 
@@ -37,3 +38,9 @@ class EpisodeStats:
 
     def mean_reward(self) -> float:
         return sum(x[1] for x in self._recent) / len(self._recent) if self._recent else float("nan")
+
+
+def steady_metrics_rows(rows: list[dict]) -> list[dict]:
+    """A run's metrics.csv rows (csv.DictReader's) once learning runs: after the first row with updates,
+    whose rates still mix in the steps before learning started."""
+    return [r for r in rows if int(r["updates"]) > 0][1:]
