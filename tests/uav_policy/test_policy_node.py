@@ -310,9 +310,9 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
 
 def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pushed_weights_and_epsilon(ros):
     """wait_for_trainer (lockstep learning): a frame is held until a push releases its stamp; the push's
-    weights and epsilon act on it. A frame nobody releases is answered after the timeout, with a warning."""
+    weights and epsilon act on it; refused weights do not hold the frame their push releases."""
     w = Watch(ros)
-    proc = start_pair(ros, "-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=3.0")
+    proc = start_pair(ros, "-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0")
     assert ros.spin_until(lambda: len(w.frames) >= 1, 30), ros.log_of(proc)
     ros.spin_for(1.0)
     assert w.actions == [], "a held frame must not be answered before its release"
@@ -323,6 +323,13 @@ def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pus
     assert contract.stamp_ns(w.actions[0].header.stamp) == first and w.actions[0].twist.linear.x == 2.0, "a3, pushed"
     ros.spin_for(1.0)
     assert len(w.actions) == 1, "the next frame waits for its own release"
+    # A release whose weights are refused still releases (it was held up to the timeout before): the
+    # frame is answered at once on the weights in use.
+    second = min(s for s in w.frame_stamps() if s > first)
+    r = call_push(ros, forcing_action_cnn(), release_stamp_ns=second)
+    assert not r.successful and "its frame release was applied" in r.reason, r.reason
+    assert ros.spin_until(lambda: len(w.actions) == 2, 10), "a refused push's release must not wait for the timeout"
+    assert contract.stamp_ns(w.actions[1].header.stamp) == second and w.actions[1].twist.linear.x == 2.0, "a3, in use"
     # Releases go by stamp: one far ahead releases every frame up to it, here with no weights at all.
     assert call_push(ros, None, epsilon=0.0, release_stamp_ns=10**15).successful
     assert ros.spin_until(lambda: len(w.actions) >= 20, 30)

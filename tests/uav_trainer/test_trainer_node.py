@@ -177,6 +177,29 @@ def test_a_lockstep_trainer_beside_a_policy_that_does_not_wait_says_so(ros, tmp_
     assert "give policy_node wait_for_trainer:=true" in ros.log_of(trainer)
 
 
+def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_and_keeps_its_checkpoint(ros, tmp_path):
+    """A policy that refuses the learner's weights (here another frame stack) would act on other weights for the
+    whole run, each step held for its timeout: the trainer stops at the first refused release, exit code 3, and
+    writes its final checkpoint so the run resumes once the nodes agree."""
+    run_dir = tmp_path / "run"
+    ros.start("uav_sim", "sim_node")
+    policy = ros.start("uav_policy", "policy_node", "-p", "wait_for_trainer:=true", "-p", "frame_stack:=3")
+    trainer = ros.start(
+        "uav_trainer", "trainer_node", "-p", f"run_dir:={run_dir}", "-p", "lockstep_learning:=true", "-p", "learning_starts:=1000"
+    )
+    try:
+        code = trainer.wait(90)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the trainer kept running beside a policy that refuses its weights:\n" + ros.log_of(trainer)[-2000:])
+    log = ros.log_of(trainer)
+    assert code == 3, log[-2000:]
+    assert "policy_node rejected the weights of a release" in log and '"frames": 5' in log, log[-2000:]
+    assert "same model, frame_stack, input size" in log
+    assert "final checkpoint" in log and list((run_dir / "checkpoints").glob("*")), log[-2000:]
+    assert "its frame release was applied" in ros.log_of(policy)
+    assert "did not release the frame" not in ros.log_of(policy), "the refused release must not wait for the timeout"
+
+
 def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path):
     """Without --recipe, train sets up what the packaged weights were trained with (round 35's recipe):
     nine snapshots besides the final weights, flown as one policy."""

@@ -442,6 +442,7 @@ class PolicyNode(Node):
     async def _on_push(self, request, response):
         t0 = time.perf_counter()
         result = SetParametersResult(successful=False)
+        push = None
         try:
             push = read_push(request.parameters, wio.MAX_BYTES)
             blob = push.weights
@@ -463,7 +464,14 @@ class PolicyNode(Node):
             result.reason = str(e)
         if not result.successful:
             self.pushes_rejected += 1
+            released = push is not None and push.release_stamp_ns is not None
+            if released:
+                # The trainer released the frame; refused weights do not hold it for wait_for_trainer_timeout_s.
+                result.reason += "; its frame release was applied, acting on the weights and epsilon in use"
             self.get_logger().warning(f"weights push rejected: {result.reason}")
+            if released:
+                self.released_ns = max(self.released_ns, push.release_stamp_ns)
+                self._answer_released()
         response.results = [result]
         return response
 

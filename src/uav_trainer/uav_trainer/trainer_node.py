@@ -435,6 +435,19 @@ class TrainerNode(Node):
                 self.push_latency_ms.append(1e3 * (time.perf_counter() - t0))
         else:
             self.counts["pushes_rejected"] += 1
+            if self.lockstep and res is not None and self.exit_code == 0:
+                # The policy refused the learner's weights: it would act on others for the rest of the run, so
+                # no step would be in lockstep (each one held for its wait_for_trainer_timeout_s). Stop now;
+                # close() writes the final checkpoint, so the same command resumes once the nodes agree.
+                self.get_logger().error(
+                    f"lockstep_learning: policy_node rejected the weights of a release: {res.reason}. Stopping: in "
+                    "lockstep the policy must act on this node's weights. Give policy_node and trainer_node the same "
+                    "model, frame_stack, input size (policy_node input_width and input_height, this node input_size_px) "
+                    "and action_* parameters (train does), then run again to resume from the final checkpoint"
+                )
+                self.exit_code = 3
+                self._shutdown()
+                return
             self.get_logger().error(f"policy rejected pushed weights: {res.reason if res else 'no answer'}")
             self._pushed_updates = None  # lockstep: the next release carries the weights again
         if self.lockstep:
