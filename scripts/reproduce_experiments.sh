@@ -1372,3 +1372,41 @@ $EVAL --model sam --model cnn --worlds basic complex turbulent --steps 1000 "${V
 python $X docs/results/shipped/fixed_start/results.csv --hfov-deg 150
 python $X docs/results/shipped/varied_start/results.csv "${VARIED[@]}" --hfov-deg 150
 install/uav_policy/lib/uav_policy/attention_figures --model sam --worlds basic turbulent --steps 150 --out docs/figures
+
+# Round 46: round 35's recipe on held-out layouts (generalisation). SAM seeds 0-3 (round 35's runs) and CNN
+# seeds 0-3 (round 37's), each run's ten files as one policy, and the packaged files (SAM seed 20, CNN seed 13),
+# 1000 steps from a random heading on each of random:400..409 (unseen layouts of the generator training draws
+# from) and random_partitions:400..409 (long partitions, a family training never flew); a table per family,
+# and SAM against CNN with each policy's ten layouts pooled. After the shipping block: it flies the packaged files.
+R46=docs/results/round46_heldout_layouts
+WL=(); WP=()
+for k in $(seq 400 409); do WL+=("random:$k"); WP+=("random_partitions:$k"); done
+R46ARGS=(--inprocess --ensemble 10 --steps 1000 --start-yaw-jitter-deg 180 --seed 0 --sim-arg hfov_deg:=150.0
+  --sim-arg reward_window_fraction:=0.078)
+for m in sam cnn; do
+  mapfile -t W < <(MODEL=$m snap_group r35basic150 10 0 1 2 3)
+  [ -f runs/r46held_$m/results.csv ] || $EVAL "${R46ARGS[@]}" --crash-log --model $m --weights "${W[@]}" \
+    --worlds "${WL[@]}" "${WP[@]}" --out runs/r46held_$m > runs/r46held_$m.log &
+  [ -f runs/r46held_packaged_$m/results.csv ] || $EVAL "${R46ARGS[@]}" --crash-log --model $m \
+    --weights src/uav_policy/weights/$m/${m}_0{0..9}.safetensors --worlds "${WL[@]}" "${WP[@]}" \
+    --out runs/r46held_packaged_$m > runs/r46held_packaged_$m.log &
+  wait
+done
+r46_table() {  # out family-name csv...: the family's rows of the csv files as one table
+  local out=$1 fam=$2 f
+  shift 2
+  mkdir -p "$out"
+  head -n 1 "$1" > "$out/rows.csv"
+  for f in "$@"; do grep -E "^[a-z]+,$fam:" "$f" >> "$out/rows.csv" || true; done
+}
+for fam in random random_partitions; do
+  if [ $fam = random ]; then W=("${WL[@]}"); else W=("${WP[@]}"); fi
+  r46_table $R46/$fam $fam runs/r46held_{sam,cnn}/results.csv
+  $EVAL --from-csv $R46/$fam/rows.csv --worlds "${W[@]}" "${R46ARGS[@]}" --out $R46/$fam
+  rm $R46/$fam/rows.csv
+  python scripts/compare_models.py $R46/$fam/results.csv --by model --a sam --b cnn --pool-worlds "${fam}_400_409" \
+    > $R46/$fam/sam_against_cnn.md
+  r46_table $R46/packaged/$fam $fam runs/r46held_packaged_{sam,cnn}/results.csv
+  $EVAL --from-csv $R46/packaged/$fam/rows.csv --worlds "${W[@]}" "${R46ARGS[@]}" --out $R46/packaged/$fam
+  rm $R46/packaged/$fam/rows.csv
+done
