@@ -183,7 +183,9 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
     writes its final checkpoint so the run resumes once the nodes agree."""
     run_dir = tmp_path / "run"
     ros.start("uav_sim", "sim_node")
-    policy = ros.start("uav_policy", "policy_node", "-p", "wait_for_trainer:=true", "-p", "frame_stack:=3")
+    # A long timeout: the trainer may come up well after the policy holds its first frame on a busy machine.
+    wait = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=300.0")
+    policy = ros.start("uav_policy", "policy_node", *wait, "-p", "frame_stack:=3")
     trainer = ros.start(
         "uav_trainer", "trainer_node", "-p", f"run_dir:={run_dir}", "-p", "lockstep_learning:=true", "-p", "learning_starts:=1000"
     )
