@@ -457,21 +457,19 @@ class PolicyNode(Node):
                 self.epsilon = push.epsilon
             result.successful = True
             result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms" if blob else "ok"
-            if push.release_stamp_ns is not None:
-                self.released_ns = max(self.released_ns, push.release_stamp_ns)
-                self._answer_released()
         except ValueError as e:  # WeightsError included
             result.reason = str(e)
+        # A well-formed push releases its frames even when its weights are refused (they are then answered on
+        # the weights and epsilon in use), so a refusal never holds a frame for wait_for_trainer_timeout_s.
+        released = push is not None and push.release_stamp_ns is not None
         if not result.successful:
             self.pushes_rejected += 1
-            released = push is not None and push.release_stamp_ns is not None
             if released:
-                # The trainer released the frame; refused weights do not hold it for wait_for_trainer_timeout_s.
                 result.reason += "; its frame release was applied, acting on the weights and epsilon in use"
             self.get_logger().warning(f"weights push rejected: {result.reason}")
-            if released:
-                self.released_ns = max(self.released_ns, push.release_stamp_ns)
-                self._answer_released()
+        if released:
+            self.released_ns = max(self.released_ns, push.release_stamp_ns)
+            self._answer_released()
         response.results = [result]
         return response
 
