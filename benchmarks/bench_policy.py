@@ -66,8 +66,8 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
     import rclpy
     from rcl_interfaces.srv import SetParameters
 
+    from uav_common import contract
     from uav_policy.push import push_request
-    from uav_sim import contract
 
     nodes = private_nodes(domain)
     rclpy.init(domain_id=domain)

@@ -37,7 +37,7 @@ def through_ros(world: str, steps: int, domain: int) -> float:
     from geometry_msgs.msg import Twist
     from sensor_msgs.msg import Image
 
-    from uav_sim import contract
+    from uav_common import contract
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     exe = ROOT / "install/uav_sim/lib/uav_sim/sim_node"

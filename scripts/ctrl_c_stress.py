@@ -22,7 +22,7 @@ NODE = """
 import sys
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
-from uav_sim.node_runner import run
+from uav_common.node_runner import run
 
 class Busy(Node):
     def __init__(self):

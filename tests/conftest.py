@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL = ROOT / "install"
-sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_sim", "uav_policy", "uav_trainer")]
+sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
 
 # A private domain per test: tests never hear each other or anything else on the machine.
 _domains = itertools.count(1 + (os.getpid() * 7) % 60)

@@ -24,7 +24,6 @@ setup(
     entry_points={
         "console_scripts": [
             "policy_node = uav_policy.policy_node:main",
-            "attention_figures = uav_policy.figures:main",
         ],
     },
 )

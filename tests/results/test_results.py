@@ -100,7 +100,7 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
 
 def test_attention_figures_are_written(tmp_path):
     r = run_tool(
-        "uav_policy",
+        "uav_trainer",
         "attention_figures",
         "--model",
         "sam",

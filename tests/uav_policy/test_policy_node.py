@@ -13,10 +13,10 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from conftest import deep_qos, run_to_exit
+from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_policy.push import push_request
-from uav_sim import contract
 
 SAM = NetConfig(model="sam")
 

@@ -12,7 +12,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Range
 
 from conftest import deep_qos, run_to_exit
-from uav_sim import contract
+from uav_common import contract
 
 
 class Recorder:

@@ -9,9 +9,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 
 from conftest import ROOT, deep_qos, executable, run_to_exit
+from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_sim import contract
 from uav_trainer.evaluate import ENSEMBLE_SEP, evaluate_once
 from uav_trainer.train import snapshot_plan
 from uav_trainer.trainer_node import snapshot_steps

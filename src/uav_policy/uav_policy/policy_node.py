@@ -38,9 +38,9 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image, Range
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
-from uav_sim import contract
-from uav_sim.node_runner import run
-from uav_sim.ros_params import ParameterError, declare
+from uav_common import contract
+from uav_common.node_runner import run
+from uav_common.ros_params import ParameterError, declare
 
 from . import weights as wio
 from .actions import PAPER_ACTIONS, make_actions

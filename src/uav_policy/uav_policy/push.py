@@ -20,7 +20,7 @@ import math
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 
-from uav_sim import contract
+from uav_common import contract
 
 WEIGHTS_BASE64_PARAMETER = "weights_base64"
 EPSILON_PARAMETER = "epsilon"

@@ -18,10 +18,11 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Range
 from std_srvs.srv import Trigger
 
-from . import contract
-from .node_runner import run
+from uav_common import contract
+from uav_common.node_runner import run
+from uav_common.ros_params import ParameterError, declare
+
 from .reward import window_fov_rad
-from .ros_params import ParameterError, declare
 from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
 from .vehicle import HOVER, BodyTwist, TwistLimits, twist_error
 from .world import EACH_EPISODE, PARTITIONS, WorldError, load_world, training_layouts

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uav_sim import contract
+from uav_common import contract
 from uav_sim.reward import step_reward
 
 from .launching import Processes, params_args

@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import dataclasses
 
+from uav_common import contract
 from uav_policy.actions import match_action
 from uav_policy.frame_stack import fit_to_network
-from uav_sim import contract
 
 
 @dataclasses.dataclass

@@ -30,14 +30,14 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
+from uav_common import contract
+from uav_common.node_runner import run
+from uav_common.ros_params import ParameterError, declare
 from uav_policy.actions import PAPER_ACTIONS, make_actions, turning_indices
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig, parameter_count
 from uav_policy.push import push_request
 from uav_policy.weights import HFOV_RANGE_DEG
-from uav_sim import contract
-from uav_sim.node_runner import run
 from uav_sim.reward import center_window_slices, window_fraction_for_fov
-from uav_sim.ros_params import ParameterError, declare
 
 from .learner import MAX_SHIFT_PX, LearnerConfig
 from .pairing import TransitionAssembler

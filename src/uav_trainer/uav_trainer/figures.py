@@ -1,6 +1,6 @@
 """attention_figures: pictures of what the agent attends to, made with the node's own overlay code.
 
-    ros2 run uav_policy attention_figures --model sam --weights W --worlds basic turbulent --out docs/figures
+    ros2 run uav_trainer attention_figures --model sam --weights W --worlds basic turbulent --out docs/figures
 
 Writes attention_<world>.png (depth frames and their attention overlays at representative
 steps, like the paper's attention figure) and flight_<world>.gif (an exploit-only flight).
@@ -13,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .actions import PAPER_ACTIONS
-from .agent import Agent
-from .attention import attention_map, colourise_depth, overlay
-from .frame_stack import FrameStack
-from .networks import build_network
+from uav_policy import weights as wio
+from uav_policy.actions import PAPER_ACTIONS
+from uav_policy.agent import Agent
+from uav_policy.attention import attention_map, colourise_depth, overlay
+from uav_policy.frame_stack import FrameStack
+from uav_policy.networks import build_network
 
 
 def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
@@ -26,8 +27,6 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
-
-    from . import weights as wio
 
     net = wio.load_files(files, model) if files else build_network(wio.config_for(model, None), seed=seed)
     cfg = net.cfg
@@ -118,9 +117,7 @@ def main(argv=None) -> int:
     if a.weights:
         files = [f for f in a.weights.split(",") if f]
     else:
-        from .weights import packaged_weights
-
-        files = [str(p) for p in packaged_weights(a.model)]
+        files = [str(p) for p in wio.packaged_weights(a.model)]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     for world in a.worlds:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import Image
 
-from uav_sim import contract
+from uav_common import contract
 
 
 def test_depth_image_round_trip_keeps_rep117_values():

@@ -7,13 +7,13 @@ import sys
 
 import pytest
 
-from uav_sim.node_runner import interrupted
+from uav_common.node_runner import interrupted
 
 # A node whose first timer callback raises what the test passes in; close() proves the clean-up ran.
 NODE = """
 import sys
 from rclpy.node import Node
-from uav_sim.node_runner import run
+from uav_common.node_runner import run
 
 class N(Node):
     def __init__(self):

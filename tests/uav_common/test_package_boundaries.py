@@ -1,0 +1,38 @@
+"""Package boundaries follow deployment: a drone that runs only the policy installs no simulator, and
+the simulator installs no torch."""
+
+import subprocess
+import sys
+
+from conftest import ROOT
+
+PATHS = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
+
+
+def imported_after(module: str) -> set[str]:
+    """The top-level modules loaded by importing `module` in a fresh interpreter."""
+    listing = "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))"
+    code = f"import sys; sys.path[:0] = {PATHS!r}; import {module}; {listing}"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return set(r.stdout.split())
+
+
+def test_the_policy_node_imports_no_simulator():
+    loaded = imported_after("uav_policy.policy_node")
+    assert "torch" in loaded  # it did import the network
+    assert not {"pybullet", "uav_sim", "uav_trainer"} & loaded
+
+
+def test_the_simulator_node_imports_no_torch():
+    loaded = imported_after("uav_sim.sim_node")
+    assert "pybullet" in loaded
+    assert not {"torch", "uav_policy", "uav_trainer"} & loaded
+
+
+def test_package_manifests_declare_what_the_code_imports():
+    """uav_policy and uav_sim depend on uav_common, never on each other."""
+    policy = (ROOT / "src/uav_policy/package.xml").read_text()
+    sim = (ROOT / "src/uav_sim/package.xml").read_text()
+    assert "<exec_depend>uav_common</exec_depend>" in policy and "uav_sim" not in policy
+    assert "<exec_depend>uav_common</exec_depend>" in sim and "uav_policy" not in sim
