@@ -17,14 +17,11 @@ import torch
 from common import private_nodes, sim_steps_reader
 
 from uav_policy import weights as wio
-from uav_policy.actions import PAPER_ACTIONS
 from uav_policy.agent import Agent
-from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import NetConfig, QEnsemble, build_network
-from uav_sim.sim_node import NODE_HFOV_DEG, NODE_REWARD_WINDOW_FRACTION
 from uav_sim.simulator import SimConfig, Simulator
-from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world
+from uav_trainer.rollout import Flight
 
 
 def inference_latency(model: str, n: int = 2000, members: int = 1) -> tuple[float, float]:
@@ -49,14 +46,11 @@ def in_process_loop(model: str, steps: int) -> float:
     packaged = wio.packaged_weights(model)
     net = wio.load_files(packaged, model) if packaged else build_network(NetConfig(model=model), seed=0)
     agent = Agent(net, net.cfg)
-    sim = Simulator(load_world("basic"), SimConfig(hfov_deg=NODE_HFOV_DEG, reward_window_fraction=NODE_REWARD_WINDOW_FRACTION))
-    stack = FrameStack(5)
-    r = sim.observe()
+    sim = Simulator(load_world("basic"), SimConfig())
+    flight = Flight(sim, agent, net.cfg.frames)
     t0 = time.perf_counter()
     for _ in range(steps):
-        state = stack.reset(r.depth_m) if (r.collided or stack.empty) else stack.push(r.depth_m)
-        a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
-        r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(0.5)))
+        flight.step(0.0)
     rate = steps / (time.perf_counter() - t0)
     sim.close()
     return rate

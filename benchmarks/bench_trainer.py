@@ -1,11 +1,8 @@
 """Trainer figures: the cost of one batch-32 learner update by network input size (ratio against
-64 px, measured in the same run) and with random-shift augmentation (against without), the cost of
-sampling a batch from a full replay memory (batched stacking against one stack per slot, 3-step
-against 1-step returns, prioritized against uniform sampling with the priority write-back),
-environment steps/s and learner updates/s while training over ROS (learning in lockstep, train's default,
-against the same recipe in process: the ratio is the ROS overhead; and learning concurrently, capped and
-uncapped),
-and wall-clock on this machine from scratch until the SAM policy flies 1000 exploit steps in Basic
+64 px, measured in the same run), the cost of sampling a batch from a full replay memory (batched
+stacking against one stack per slot), environment steps/s and learner updates/s while training over
+ROS (lockstep learning) against the same recipe in process (the ratio is the ROS overhead), and
+wall-clock on this machine from scratch until the SAM policy flies 1000 exploit steps in Basic
 with 0 crashes (in-process trainer, evaluated every --eval-every steps; evaluation time is included
 in the wall-clock).
 
@@ -25,21 +22,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from uav_common.settings import build
 from uav_policy.networks import NetConfig
+from uav_sim.simulator import SimConfig
 from uav_trainer.episodes import steady_metrics_rows
 from uav_trainer.evaluate import evaluate_inprocess
 from uav_trainer.inprocess import run as run_inprocess
+from uav_trainer.inprocess import sim_settings
 from uav_trainer.learner import Learner, LearnerConfig
+from uav_trainer.recipes import load_recipe
 from uav_trainer.replay import ReplayMemory
 from uav_trainer.training import TrainerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def update_ms(model: str, size: int, n: int = 30, shift_px: int = 0) -> float:
-    """Median wall-clock of one Double DQN update (batch 32, targets included) at a size x size input,
-    with shift_px of random-shift augmentation."""
-    cfg = LearnerConfig(augment_shift_px=shift_px)
+def update_ms(model: str, size: int, n: int = 30) -> float:
+    """Median wall-clock of one Double DQN update (batch 32, targets included) at a size x size input."""
+    cfg = LearnerConfig()
     learner = Learner(NetConfig(model=model, height=size, width=size), cfg)
     rng = np.random.default_rng(0)
     frames = lambda: rng.uniform(0, 10, (cfg.batch_size, 5, size, size)).astype(np.float32)  # noqa: E731
@@ -62,8 +62,7 @@ def update_ms(model: str, size: int, n: int = 30, shift_px: int = 0) -> float:
 def sample_ms(n: int = 100) -> dict[str, float]:
     """Median wall-clock (ms) on a full 50 000-frame 64 x 64 replay memory (episodes of 100 steps) of:
     building the states and next states of 32 transitions one `stack` call per slot (the earlier
-    code) and in one batched gather; a whole `sample` of batch 32 with 1-step and 3-step returns; and
-    a prioritized sample (alpha 0.6) plus its `update_priorities`."""
+    code) and in one batched gather; and a whole `sample` of batch 32."""
     mem = ReplayMemory(50000, (64, 64), 5, seed=0)
     rng = np.random.default_rng(0)
     mem.add_first(rng.uniform(0, 10, (64, 64)).astype(np.float32))
@@ -84,25 +83,17 @@ def sample_ms(n: int = 100) -> dict[str, float]:
         "per_slot": median_ms(lambda: (np.stack([mem.stack(i) for i in picks]), np.stack([mem.stack(i) for i in after]))),
         "batched": median_ms(lambda: (mem.stacks(picks), mem.stacks(after))),
         "sample": median_ms(lambda: mem.sample(32)),
-        "sample_n3": median_ms(lambda: mem.sample(32, n_step=3, gamma=0.99)),
-        "prioritized": median_ms(lambda: prioritized(mem, rng)),
     }
-
-
-def prioritized(mem: ReplayMemory, rng: np.random.Generator) -> None:
-    b = mem.sample(32, priority_alpha=0.6, priority_beta=0.4)
-    mem.update_priorities(b["index"], b["writes"], rng.exponential(1.0, 32))
 
 
 LEARNING_STARTS = 500
 
 
-def ros_throughput(steps: int, learning: str, max_rate_hz: float | None, domain: int) -> tuple[float, float]:
+def ros_throughput(steps: int, domain: int) -> tuple[float, float]:
     """(env steps/s, updates/s) of `train` once learning has started, from its metrics.csv."""
     with tempfile.TemporaryDirectory() as d:
         cmd = [str(ROOT / "install/uav_trainer/lib/uav_trainer/train"), "--steps", str(steps), "--run-dir", d]
-        cmd += ["--learning", learning, "--params-dir", str(ROOT / "params")]
-        cmd += [] if max_rate_hz is None else ["--max-rate-hz", str(max_rate_hz)]
+        cmd += ["--params-dir", str(ROOT / "params")]
         cmd += ["--trainer-arg", f"learning_starts:={LEARNING_STARTS}", "--trainer-arg", "log_interval_s:=2.0"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -117,7 +108,10 @@ def inprocess_throughput(steps: int) -> float:
     """Env steps/s of the in-process loop once learning has started, with train's default recipe (one
     torch thread, as trainer_node): what lockstep learning over ROS is to be compared with."""
     torch.set_num_threads(1)
-    cfg = TrainerConfig(model="sam", total_steps=steps, learning_starts=LEARNING_STARTS, replay_ratio=0.5, turn_penalty=1.0)
+    recipe = load_recipe("shipped", ROOT / "params")
+    values = {**recipe.node("trainer_node"), "total_steps": steps, "learning_starts": LEARNING_STARTS}
+    cfg = build(TrainerConfig, values)
+    sim_cfg, worlds = sim_settings(recipe.node("sim_node"), cfg.seed, cfg.input_size_px)
     marks = {}
 
     def on_step(training):
@@ -125,10 +119,8 @@ def inprocess_throughput(steps: int) -> float:
             marks["t"] = time.perf_counter()
         return False
 
-    recipe = {"world": "basic", "layout_per_episode": True, "world_every": 4, "hfov_deg": 150.0}
-    recipe |= {"reward_window_fraction": 0.078, "max_episode_steps": 300}
     with tempfile.TemporaryDirectory() as d:
-        run_inprocess(cfg, d, log=lambda s: None, on_step=on_step, **recipe)
+        run_inprocess(cfg, d, sim_cfg, worlds, log=lambda s: None, on_step=on_step)
         end = time.perf_counter()
     return (steps - LEARNING_STARTS - 100) / (end - marks["t"])
 
@@ -142,7 +134,7 @@ def time_to_zero_crashes(seed: int, eval_every: int, max_steps: int) -> tuple[fl
     def on_step(training):
         if training.env_steps % eval_every:
             return False
-        r = evaluate_inprocess("sam", "", "basic", 1000, net=training.learner.online)
+        r = evaluate_inprocess("sam", "", "basic", 1000, net=training.learner.online, hfov_deg=90.0)
         history.append((training.env_steps, r.crashes, round(r.mean_reward, 3), round(time.perf_counter() - t0, 1)))
         print(
             f"  after {training.env_steps} steps ({time.perf_counter() - t0:.0f} s): {r.crashes} crashes in 1000 "
@@ -155,8 +147,9 @@ def time_to_zero_crashes(seed: int, eval_every: int, max_steps: int) -> tuple[fl
         return False
 
     cfg = TrainerConfig(model="sam", seed=seed, total_steps=max_steps)
+    sim_cfg = SimConfig(seed=seed, hfov_deg=90.0, reward_window_fraction=0.2, start_yaw_jitter_deg=180.0)  # the paper's
     with tempfile.TemporaryDirectory() as d:
-        t = run_inprocess(cfg, d, log=lambda s: None, on_step=on_step)
+        t = run_inprocess(cfg, d, sim_cfg, log=lambda s: None, on_step=on_step)
     return found.get("t"), t.env_steps, history
 
 
@@ -178,31 +171,22 @@ def main() -> int:
         for size in a.input_sizes:
             ms = base if size == 64 else update_ms(model, size)
             print(f"[{model}] batch-32 update at {size}x{size} input ({a.threads} thread): {ms:.1f} ms, {ms / base:.2f}x 64x64")
-        ms = update_ms(model, 64, shift_px=4)
-        print(f"[{model}] the same at 64x64 with 4 px random shifts: {ms:.1f} ms, {ms / base:.2f}x without")
     ms = sample_ms()
     print(
         f"replay, full 50 000-frame memory: states of 32 transitions {ms['per_slot']:.2f} ms one slot at a time, "
         f"{ms['batched']:.2f} ms batched ({ms['per_slot'] / ms['batched']:.1f}x faster); a whole batch-32 sample "
-        f"{ms['sample']:.2f} ms, with 3-step returns {ms['sample_n3']:.2f} ms ({ms['sample_n3'] / ms['sample']:.2f}x), "
-        f"prioritized with the priority write-back {ms['prioritized']:.2f} ms ({ms['prioritized'] / ms['sample']:.2f}x)"
+        f"{ms['sample']:.2f} ms"
     )
     if a.updates_only:
         return 0
     if not a.skip_ros:
         base = inprocess_throughput(a.ros_steps)
         print(f"in-process training, train's default recipe (1 thread): {base:.1f} env steps/s once learning")
-        for learning, cap in (("lockstep", None), ("concurrent", 0.0), ("concurrent", 60.0)):
-            env_rate, upd_rate = ros_throughput(a.ros_steps, learning, cap, 70 + os.getpid() % 10)
-            label = (
-                "learning in lockstep (uncapped)"
-                if cap is None
-                else f"learning concurrently, lockstep sim {'uncapped' if cap == 0 else f'capped at {cap:.0f} Hz'}"
-            )
-            print(
-                f"ROS training, {label}: {env_rate:.1f} env steps/s ({env_rate / base:.2f}x in-process), "
-                f"{upd_rate:.1f} updates/s, replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"
-            )
+        env_rate, upd_rate = ros_throughput(a.ros_steps, 220 + os.getpid() % 10)
+        print(
+            f"ROS training, learning in lockstep: {env_rate:.1f} env steps/s ({env_rate / base:.2f}x in-process), "
+            f"{upd_rate:.1f} updates/s, replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"
+        )
     if a.skip_time_to_zero:
         return 0
     print(f"in-process SAM training (seed {a.seed}), exploit evaluation every {a.eval_every} steps:")

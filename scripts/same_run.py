@@ -2,8 +2,7 @@
 """Is a training run the same as another? Episodes, weights and flights, compared exactly.
 
     python scripts/same_run.py runs/sam_seed0 runs/inproc_sam_seed0
-    python scripts/same_run.py runs/sam_seed0 runs/r35basic150_sam_seed0 \\
-        --tables runs/eval/fixed_start/results.csv docs/results/round35_fov150_basic_episodes/fixed_start/results.csv
+    python scripts/same_run.py runs/sam_seed0 runs/inproc_sam_seed0 --tables runs/eval_a/results.csv runs/eval_b/results.csv
     python scripts/same_run.py runs/sam_seed20 --packaged sam
 
 Without --tables: the two run folders' episodes.csv (byte for byte) and every policy_*.safetensors
@@ -13,8 +12,7 @@ uav_policy for MODEL, in their order (the packaged files are a run's ten files).
 the evaluate rows of the first run in table A against the rows of the second run in table B, every
 column but the weights paths (a row belongs to a run when all its weights files lie in that run's
 folder; the folders need not exist). Prints one line per item and 'same' or 'DIFFERENT' last; exits
-1 when anything differs (round 44 in docs/RESULTS.md: the main job learning in lockstep over ROS
-against round 35's in-process runs).
+1 when anything differs (e.g. `train` against `python -m uav_trainer.inprocess` with the same recipe and seed).
 """
 
 from __future__ import annotations

@@ -115,20 +115,6 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_q_values(model):
         QEnsemble([members[0], other])
 
 
-def test_an_ensemble_with_the_min_rule_acts_on_each_actions_lowest_q_value():
-    members = [build_network(NetConfig(model="sam"), seed=s) for s in (1, 2, 3)]
-    x = depth_batch()
-    with torch.no_grad():
-        q, w = QEnsemble(members, rule="min")(x)
-        qs = torch.stack([m(x)[0] for m in members])
-    torch.testing.assert_close(q, qs.min(dim=0).values)
-    assert w.shape == (3, 9, 64, 64)
-    # per action, no member estimates lower, and one member estimates exactly that
-    assert bool((q <= qs).all()) and bool((q.unsqueeze(0) == qs).any(dim=0).all())
-    with pytest.raises(ValueError, match="ensemble rule must be one of mean, min, got 'median'"):
-        QEnsemble(members, rule="median")
-
-
 def test_normalisation_of_rep117_values():
     x = torch.tensor([float("inf"), float("-inf"), float("nan"), 5.0, 20.0])
     assert normalise_depth(x, 10.0).tolist() == [1.0, 0.0, 1.0, 0.5, 1.0]

@@ -272,20 +272,13 @@ def test_mix_world_every_flies_the_mixed_world_between_layouts(ros):
     assert "a new layout every episode ('complex' every 2 episodes), first world 'random:" in ros.log_of(proc)
 
 
-def test_layout_partitions_trains_on_partition_layouts(ros):
-    rec = Recorder(ros)
-    proc = ros.start("uav_sim", "sim_node", "-p", "world:=random_each_episode", "-p", "layout_partitions:=true", "-p", "seed:=2")
-    started = "a new layout every episode, first world 'random_partitions:201000'"
-    assert ros.spin_until(lambda: rec.by_topic["depth"] and started in ros.log_of(proc), 20), ros.log_of(proc)
-
-
 @pytest.mark.parametrize(
     "args, message",
     [
         (("mix_world_every:=3",), "parameter 'mix_world_every' (3)"),
         (("world:=random_each_episode", "mix_world_every:=1"), "parameter 'mix_world_every' (1)"),
         (("world:=random_each_episode", "mix_world_every:=2", "mix_world:=nowhere"), "parameter 'mix_world'"),
-        (("layout_partitions:=true",), "parameter 'layout_partitions' (true)"),
+        (("layout_partitions:=true",), "parameter 'layout_partitions' was removed"),
     ],
 )
 def test_bad_mix_world_parameters_fail_at_start_up(args, message):

@@ -13,8 +13,7 @@ from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_trainer.evaluate import ENSEMBLE_SEP, evaluate_once
-from uav_trainer.train import snapshot_plan
-from uav_trainer.trainer_node import snapshot_steps
+from uav_trainer.training import snapshot_steps
 
 SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
 
@@ -61,7 +60,6 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         "bad_frames",
         "out_of_order",
         "duplicates",
-        "updates_behind",  # nothing is due before learning_starts
     ):
         assert t[key] == "0", f"{key}={t[key]}"
     collisions = int(diag["uav_sim"]["collisions"])
@@ -100,7 +98,7 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     weights = run_dir / "policy_sam.safetensors"
     assert weights.is_file() and (run_dir / "curves.png").is_file()
     assert wio.read_file_camera(weights) == 90.0, "the paper recipe flies the paper's 90 deg camera"
-    assert "turn_penalty:=0.0" in r.stdout and "(recipe paper" in r.stdout
+    assert "turn_penalty:=0.0" in r.stdout and "recipes/paper.yaml" in r.stdout
     untrained = tmp_path / "untrained.safetensors"
     wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), untrained)
     os.environ["ROS_DOMAIN_ID"] = "73"
@@ -114,37 +112,33 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
 
 
 def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path):
-    """train (default --learning lockstep) through the three nodes and inprocess with the same recipe and
-    seed: the same episodes, and bit-identical weights in all ten files (the snapshots and the final).
-    So the ROS main job is the in-process experiments' recipe, not another sample of it."""
+    """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
+    bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
+    trainer train one recipe, read from one file."""
+    import dataclasses
+
     import torch
 
+    from uav_common.settings import build
     from uav_trainer import inprocess
+    from uav_trainer.recipes import load_recipe
     from uav_trainer.training import TrainerConfig
 
     steps, seed, learn = 420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300}
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")]
     r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=300)
-    assert "learning lockstep" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
+    assert "recipes/shipped.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
-    cfg = TrainerConfig(model="sam", seed=seed, total_steps=steps, replay_ratio=0.5, turn_penalty=1.0, **learn)
-    _, snaps = snapshot_plan(9, steps)
+    recipe = load_recipe("shipped", ROOT / "params")
+    cfg = build(TrainerConfig, {**recipe.node("trainer_node"), "seed": seed, "total_steps": steps, **learn})
+    cfg = dataclasses.replace(cfg, turning_actions=(1, 2))
+    sim_cfg, worlds = inprocess.sim_settings(recipe.node("sim_node"), seed, 64)
+    snaps = snapshot_steps(9, steps)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # trainer_node's torch_threads (params/trainer.yaml)
     try:
-        inprocess.run(
-            cfg,
-            str(ip_dir),
-            world="basic",
-            layout_per_episode=True,
-            world_every=4,
-            hfov_deg=150.0,
-            reward_window_fraction=0.078,
-            max_episode_steps=300,
-            save_weights_at=snaps,
-            log=lambda *_: None,
-        )
+        inprocess.run(cfg, str(ip_dir), sim_cfg, worlds, log=lambda *_: None)
     finally:
         torch.set_num_threads(threads)
     ros_rows = (ros_dir / "episodes.csv").read_text().splitlines()
@@ -159,7 +153,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
 
 
 def test_a_lockstep_trainer_beside_a_policy_that_does_not_wait_says_so(ros, tmp_path):
-    """lockstep_learning without policy_node's wait_for_trainer is no lockstep: the trainer says so, naming both."""
+    """Without policy_node's wait_for_trainer learning is not in lockstep: the trainer says so, naming the parameter."""
     ros.start("uav_sim", "sim_node")
     ros.start("uav_policy", "policy_node")
     trainer = ros.start(
@@ -167,8 +161,6 @@ def test_a_lockstep_trainer_beside_a_policy_that_does_not_wait_says_so(ros, tmp_
         "trainer_node",
         "-p",
         f"run_dir:={tmp_path / 'run'}",
-        "-p",
-        "lockstep_learning:=true",
         "-p",
         "log_interval_s:=0.5",
     )
@@ -186,9 +178,7 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
     # A long timeout: the trainer may come up well after the policy holds its first frame on a busy machine.
     wait = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=300.0")
     policy = ros.start("uav_policy", "policy_node", *wait, "-p", "frame_stack:=3")
-    trainer = ros.start(
-        "uav_trainer", "trainer_node", "-p", f"run_dir:={run_dir}", "-p", "lockstep_learning:=true", "-p", "learning_starts:=1000"
-    )
+    trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={run_dir}", "-p", "learning_starts:=1000")
     try:
         code = trainer.wait(90)
     except subprocess.TimeoutExpired:
@@ -203,15 +193,15 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
 
 
 def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path):
-    """Without --recipe, train sets up what the packaged weights were trained with (round 35's recipe):
+    """Without --recipe, train sets up what the packaged weights were trained with (params/recipes/shipped.yaml):
     nine snapshots besides the final weights, flown as one policy."""
     run_dir = tmp_path / "run"
     # With a short time limit (the recipe's is 300): the trainer must count cut episodes, never as crashes.
     r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=300)
     assert (
-        "(recipe ensemble: hfov_deg:=150.0 reward_window_fraction:=0.078 mix_world:=basic mix_world_every:=4 "
-        "max_episode_steps:=300 turn_penalty:=1.0 replay_ratio:=0.5 save_weights_every_steps:=2 "
-        "save_weights_from_step:=42) in 'random_each_episode'"
+        "recipes/shipped.yaml (sim_node: world:=random_each_episode mix_world:=basic mix_world_every:=4 "
+        "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 hfov_deg:=150.0 reward_window_fraction:=0.078; "
+        "trainer_node: turn_penalty:=1.0 replay_ratio:=0.5 snapshots:=9)"
     ) in r.stdout
     assert "a new layout every episode ('basic' every 4 episodes)" in logs["sim"]
     files = [run_dir / f"policy_sam_step{n}.safetensors" for n in range(42, 60, 2)] + [run_dir / "policy_sam.safetensors"]
@@ -231,39 +221,14 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     assert flown.steps == 20
 
 
-def test_the_single_network_recipe_trains_behind_a_120_deg_camera_with_the_papers_reward_window(tmp_path):
-    """train --recipe single: round 4's recipe (the earlier packaged weights'), against sim_node's 150 deg default."""
-    run_dir = tmp_path / "run"
-    r, logs = run_train(run_dir, "79", "--recipe", "single", "--steps", "60", timeout_s=300)
-    assert "(recipe single: hfov_deg:=120.0 reward_window_fraction:=0.2 turn_penalty:=1.0) in 'random_each_episode'" in r.stdout
-    assert "a new layout every episode, first world 'random:1000'" in logs["sim"]
-    assert "reward: the paper's - 1 per turning step" in logs["trainer"]
-    assert sorted(run_dir.glob("policy_sam*.safetensors")) == [run_dir / "policy_sam.safetensors"]
-    assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 120.0
-    assert wio.read_file_window(run_dir / "policy_sam.safetensors") is None  # the paper's window
-    assert "reward window:" not in logs["trainer"]
-    assert "sim_node --ros-args -p hfov_deg:=120.0 & " in r.stdout
-
-
-def test_trainer_snapshot_parameters_need_a_budget_they_fall_inside():
+def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_name_their_replacement():
     for args, what in (
-        (("-p", "save_weights_every_steps:=100"), "needs a step budget (total_steps > 0)"),
-        (("-p", "save_weights_from_step:=100"), "'save_weights_from_step' needs save_weights_every_steps > 0"),
-        (("-p", "total_steps:=500", "-p", "save_weights_every_steps:=100", "-p", "save_weights_from_step:=500"), "0 snapshots"),
-        (("-p", "total_steps:=100000", "-p", "save_weights_every_steps:=1"), "99999 snapshots fall below total_steps=100000"),
+        (("-p", "snapshots:=9"), "'snapshots'=9 needs a step budget of at least 30 (total_steps=0)"),
+        (("-p", "save_weights_every_steps:=100"), "'save_weights_every_steps' was removed: use 'snapshots'"),
+        (("-p", "lockstep_learning:=false"), "'lockstep_learning' was removed: trainer_node always learns in lockstep"),
     ):
         r = run_to_exit("uav_trainer", "trainer_node", *args)
         assert r.returncode == 2 and what in r.stderr, (args, r.stderr[-500:])
-
-
-def test_the_ensemble_recipes_snapshots_are_round_35s_steps():
-    assert snapshot_plan(9, 30000) == (
-        ["save_weights_every_steps:=1000", "save_weights_from_step:=21000"],
-        [21000, 22000, 23000, 24000, 25000, 26000, 27000, 28000, 29000],
-    )
-    assert snapshot_plan(0, 30000) == ([], [])
-    assert snapshot_steps(1000, 21000, 30000) == list(range(21000, 30000, 1000))
-    assert snapshot_steps(7, 0, 30) == [7, 14, 21, 28] and snapshot_steps(0, 0, 0) == []
 
 
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
@@ -288,17 +253,14 @@ def test_trainer_rejects_bad_parameters():
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "action_linear_x_mps:=[1.0, 2.0]")
     assert r.returncode == 2 and "action" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "d_model:=50")
-    assert r.returncode == 2 and "parameters 'd_model' (50) and 'heads' (3)" in r.stderr
+    assert r.returncode == 2 and "parameter 'd_model' (50) must be divisible by 'heads' (3)" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "conv_channels:=[16, 32, 32, 32, 32, 32, 32]")
     assert r.returncode == 2 and "parameter 'conv_channels'=[16, 32, 32, 32, 32, 32, 32]: 7 conv layers" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "conv_channels:=16")
     assert r.returncode == 2 and "parameter 'conv_channels'" in r.stderr and "INTEGER_ARRAY" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "n_step:=0")
-    assert r.returncode == 2 and "n_step" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "priority_alpha:=1.5")
-    assert r.returncode == 2 and "priority_alpha" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "augment_shift_px:=9")
-    assert r.returncode == 2 and "augment_shift_px" in r.stderr
+    for retired in ("n_step:=3", "priority_alpha:=0.6", "augment_shift_px:=2", "ema_decay:=0.99", "clearance_m:=1.0"):
+        r = run_to_exit("uav_trainer", "trainer_node", "-p", retired)
+        assert r.returncode == 2 and f"parameter '{retired.split(':=')[0]}' was removed" in r.stderr, r.stderr[-500:]
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "relational_blocks:=0")
     assert r.returncode == 2 and "relational_blocks" in r.stderr
     r = run_to_exit("uav_trainer", "trainer_node", "-p", "model:=cnn", "-p", "mlp_hidden:=192")
@@ -307,8 +269,7 @@ def test_trainer_rejects_bad_parameters():
 
 def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     """trainer_node builds SAM with its size parameters; policy_node (packaged default weights)
-    takes the pushed network of other sizes and flies it. The trainer learns with the extensions on
-    (3-step returns, prioritized replay, shift augmentation) and says so."""
+    takes the pushed network of other sizes and flies it."""
     from std_msgs.msg import Float32MultiArray
 
     diag = diagnostics(ros)
@@ -316,8 +277,7 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     ros.node.create_subscription(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, att.append, 10)
     ros.start("uav_sim", "sim_node")
     ros.start("uav_policy", "policy_node")
-    sizes = ("-p", "d_model:=24", "-p", "heads:=2", "-p", "relational_blocks:=2", "-p", "mlp_hidden:=32", "-p", "n_step:=3")
-    sizes += ("-p", "priority_alpha:=0.6", "-p", "augment_shift_px:=2")
+    sizes = ("-p", "d_model:=24", "-p", "heads:=2", "-p", "relational_blocks:=2", "-p", "mlp_hidden:=32")
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path}", "-p", "log_interval_s:=0.5", *sizes)
     pushed = lambda: int(diag.get("uav_trainer", {}).get("pushes_ok", 0)) >= 1  # noqa: E731
     assert ros.spin_until(pushed, 120), ros.log_of(trainer)[-2000:]
@@ -325,18 +285,25 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     assert ros.spin_until(lambda: att and att[-1].layout.dim[0].size == 2, 30), "the policy flies 2 heads"
     assert ros.spin_until(lambda: "uav_policy" in diag, 10)
     assert diag["uav_trainer"]["pushes_rejected"] == "0" and diag["uav_policy"]["pushes_rejected"] == "0"
-    assert (
-        "prioritized replay (alpha 0.6, beta 0.4 -> 1 over 30000 steps), 3-step returns, states shifted by up to 2 px"
-        in ros.log_of(trainer)
-    )
     assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
     made = wio.read_file_config(tmp_path / "policy_sam.safetensors")
     assert (made.d_model, made.heads, made.relational_blocks, made.mlp_hidden) == (24, 2, 2, 32)
 
 
-def test_launcher_rejects_a_bad_budget():
-    r = subprocess.run([str(executable("uav_trainer", "train")), "--steps", "0"], capture_output=True, text=True)
-    assert r.returncode == 2 and "--steps must be positive" in r.stderr
+def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
+    train = lambda *a: subprocess.run([str(executable("uav_trainer", "train")), *a], capture_output=True, text=True)  # noqa: E731
+    for args, said in (
+        (("--steps", "0"), "--steps must be positive"),
+        (
+            ("--recipe", "single"),
+            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, shipped)",
+        ),
+        (("--learning", "concurrent"), "--learning was removed: train always learns in lockstep"),
+        (("--max-rate-hz=30",), "--max-rate-hz was removed"),
+        (("--steps", "20"), "'snapshots'=9 needs a step budget of at least 30 (total_steps=20)"),
+    ):
+        r = train(*args)
+        assert r.returncode == 2 and said in r.stderr, (args, r.stderr[-800:])
 
 
 @pytest.mark.parametrize(

@@ -17,8 +17,10 @@ from collections import OrderedDict
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Range
+from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 DEPTH_TOPIC = "depth/image_raw"
 CAMERA_INFO_TOPIC = "depth/camera_info"
@@ -79,6 +81,42 @@ def image_to_depth(msg: Image) -> np.ndarray:
     dtype = ">f4" if msg.is_bigendian else "<f4"
     rows = np.frombuffer(bytes(msg.data[: msg.step * h]), dtype=np.uint8).reshape(h, msg.step)
     return rows[:, : 4 * w].copy().view(dtype).reshape(h, w).astype(np.float32)
+
+
+def diagnostics(node, name: str, level: str, message: str, values: dict) -> DiagnosticArray:
+    """A one-status /diagnostics message from `node` (level: OK, WARN or ERROR), values as strings."""
+    st = DiagnosticStatus(level=getattr(DiagnosticStatus, level), name=name, message=message)
+    st.hardware_id = node.get_fully_qualified_name()
+    st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+    msg = DiagnosticArray(status=[st])
+    msg.header.stamp = node.get_clock().now().to_msg()
+    return msg
+
+
+def rgb_image(header, rgb: np.ndarray) -> Image:
+    """An rgb8 Image of an (H, W, 3) uint8 array."""
+    h, w = rgb.shape[:2]
+    return Image(header=header, height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w, data=rgb.tobytes())
+
+
+def q_values_msg(q: np.ndarray, label: str) -> Float32MultiArray:
+    """Q per action, `layout.dim[0].label` naming the actions."""
+    msg = Float32MultiArray(data=q.astype(np.float32).tolist())
+    msg.layout.dim = [MultiArrayDimension(label=label, size=len(q), stride=len(q))]
+    return msg
+
+
+def attention_weights_msg(w: np.ndarray, grid_hw: tuple[int, int]) -> Float32MultiArray:
+    """SAM's raw attention [heads, query_nodes, key_nodes], nodes row-major on the grid."""
+    h, n, _ = w.shape
+    msg = Float32MultiArray()
+    msg.layout.dim = [
+        MultiArrayDimension(label="heads", size=h, stride=h * n * n),
+        MultiArrayDimension(label=f"query_nodes(grid {grid_hw[0]}x{grid_hw[1]} row-major)", size=n, stride=n * n),
+        MultiArrayDimension(label="key_nodes", size=n, stride=n),
+    ]
+    msg.data = w.astype(np.float32).ravel().tolist()
+    return msg
 
 
 def make_outcome(

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import sys
+import threading
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.task import Future
 
 from .ros_params import ParameterError
 
@@ -44,6 +46,21 @@ def run(node_factory, args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def in_thread(executor, fn) -> Future:
+    """Run fn on a worker thread; the returned future can be awaited in an async callback, so the executor
+    keeps serving other callbacks meanwhile."""
+    fut = Future(executor=executor)
+
+    def work():
+        try:
+            fut.set_result(fn())
+        except Exception as e:  # handed to the awaiting callback
+            fut.set_exception(e)
+
+    threading.Thread(target=work, daemon=True).start()
+    return fut
 
 
 def interrupted(e: BaseException | None) -> bool:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from uav_common.settings import setting
+
 
 @dataclasses.dataclass(frozen=True)
 class Action:
@@ -45,3 +47,23 @@ def match_action(actions, linear_x_mps: float, yaw_rate_radps: float, step_durat
         if abs(a.linear_x_mps - linear_x_mps) <= tol and abs(a.yaw_rate_radps(step_duration_s) - yaw_rate_radps) <= tol:
             return i
     return None
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionSettings:
+    """The action table as parameters (policy_node and trainer_node must be given the same)."""
+
+    action_names: tuple[str, ...] = setting(tuple(a.name for a in PAPER_ACTIONS), "Action names (q_values labels)")
+    action_linear_x_mps: tuple[float, ...] = setting(
+        tuple(a.linear_x_mps for a in PAPER_ACTIONS), "Forward speed of each action (m/s)"
+    )
+    action_yaw_deg: tuple[float, ...] = setting(
+        tuple(a.yaw_deg_per_step for a in PAPER_ACTIONS), "Yaw turned during one step by each action (deg, left +)"
+    )
+
+    def table(self) -> tuple[Action, ...]:
+        """The actions; ValueError when the lists disagree or the networks' four outputs do not fit."""
+        actions = make_actions(self.action_names, self.action_linear_x_mps, self.action_yaw_deg)
+        if len(actions) != 4:
+            raise ValueError(f"the networks have 4 outputs, got {len(actions)} actions")
+        return actions

@@ -10,6 +10,16 @@ import torch
 from .networks import NetConfig
 
 
+def resolve_device(name: str) -> str:
+    """A torch device for 'auto' (cuda when present, else cpu), 'cpu' or 'cuda'; ValueError when cuda is
+    asked for and there is none."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("'device'='cuda' but no CUDA device is available (use 'auto' or 'cpu')")
+    return name
+
+
 class Agent:
     def __init__(self, net: torch.nn.Module, cfg: NetConfig, device: str = "cpu", seed: int = 0):
         self.cfg = cfg

@@ -17,9 +17,8 @@ D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10).
 
 QEnsemble (an extension; evaluate --ensemble K): several networks of one model (seeds, or one run's
-snapshots) act as one by the mean of their Q-values, or (rule "min", an extension) by each action's
-lowest Q-value over the members: the action whose worst estimate is best; its attention is every
-member's heads side by side (B, members x heads, nodes, nodes).
+snapshots) act as one by the mean of their Q-values; its attention is every member's heads side by
+side (B, members x heads, nodes, nodes).
 """
 
 from __future__ import annotations
@@ -33,8 +32,6 @@ from torch import nn
 
 MODELS = ("sam", "cnn")
 SAM_READOUTS = ("max", "flatten")
-# How a QEnsemble joins its members' Q-values: their mean, or each action's minimum (pessimistic).
-ENSEMBLE_RULES = ("mean", "min")
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
@@ -255,13 +252,10 @@ class D3QNCnn(nn.Module):
 
 class QEnsemble(nn.Module):
     """Networks of one architecture (e.g. several training seeds) acting as one: Q is the mean of
-    the members' Q-values (rule "mean") or each action's minimum over them (rule "min"), the
-    attention the members' heads concatenated (None for CNN)."""
+    the members' Q-values, the attention the members' heads concatenated (None for CNN)."""
 
-    def __init__(self, members: list[nn.Module], rule: str = "mean"):
+    def __init__(self, members: list[nn.Module]):
         super().__init__()
-        if rule not in ENSEMBLE_RULES:
-            raise ValueError(f"ensemble rule must be one of {', '.join(ENSEMBLE_RULES)}, got {rule!r}")
         if len(members) < 2:
             raise ValueError(f"an ensemble needs at least 2 networks, got {len(members)}")
         first = dataclasses.asdict(members[0].cfg)
@@ -271,7 +265,6 @@ class QEnsemble(nn.Module):
                 raise ValueError(f"ensemble members must share one architecture: member {i} differs from member 0 in {differ}")
         self.members = nn.ModuleList(members)
         self.cfg = members[0].cfg
-        self.rule = rule
 
     @property
     def grid_hw(self) -> tuple[int, int]:
@@ -279,8 +272,7 @@ class QEnsemble(nn.Module):
 
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         qs, ws = zip(*(m(depth_m) for m in self.members), strict=True)
-        q = torch.stack(qs)
-        q = q.mean(dim=0) if self.rule == "mean" else q.amin(dim=0)
+        q = torch.stack(qs).mean(dim=0)
         return q, None if ws[0] is None else torch.cat(ws, dim=1)
 
 

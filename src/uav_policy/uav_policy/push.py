@@ -99,3 +99,37 @@ def read_push(params, max_bytes: int) -> Push:
     if stamp is not None and stamp < 0:
         raise ValueError(f"push parameter 'release_stamp_ns' must be >= 0, got {stamp}")
     return Push(blob, eps, stamp)
+
+
+class ReleaseGate:
+    """wait_for_trainer: frames held until trainer_node releases them (a push's release_stamp_ns), or until
+    one has waited `timeout_s` (no trainer, or one that stopped: the vehicle must not stall)."""
+
+    def __init__(self, timeout_s: float):
+        self.timeout_s = timeout_s
+        self.held: list[tuple[int, float, object]] = []  # (stamp, held since, item), oldest first
+        self.released_ns = -1  # frames stamped up to this may be answered
+        self.timed_out = 0  # frames answered without a release
+
+    def hold(self, stamp: int, item, now: float) -> bool:
+        """Hold `item` unless its frame is already released; whether it was held."""
+        if stamp <= self.released_ns:
+            return False
+        self.held.append((stamp, now, item))
+        return True
+
+    def release(self, stamp: int) -> list:
+        """The held items released by a release up to `stamp`, oldest first."""
+        self.released_ns = max(self.released_ns, stamp)
+        out = []
+        while self.held and self.held[0][0] <= self.released_ns:
+            out.append(self.held.pop(0)[2])
+        return out
+
+    def expired(self, now: float) -> tuple[int | None, list]:
+        """(the stamp of the oldest frame held past the timeout, or None; the items that releases)."""
+        if not self.held or now - self.held[0][1] <= self.timeout_s:
+            return None, []
+        self.timed_out += 1
+        stamp = self.held[0][0]
+        return stamp, self.release(stamp)

@@ -251,6 +251,11 @@ def read_file_camera(path: str | os.PathLike) -> float | None:
     return _camera_of(_read_file_metadata(path))
 
 
+# The camera that weights files recording none were trained with (the 120 deg camera of the recipe that
+# came before the shipped one): they fly behind it.
+UNRECORDED_HFOV_DEG = 120.0
+
+
 def camera_for(path: str | os.PathLike | None, default: float) -> float:
     """The field of view to fly weights with: the file's trained camera, else `default`."""
     hfov = read_file_camera(path) if path else None
@@ -284,11 +289,87 @@ def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
     return dataclasses.replace(cfg, **{name: getattr(made, name) for name in SIZE_FIELDS})
 
 
-def load_files(paths: list, model: str, rule: str = "mean") -> torch.nn.Module:
-    """The network of one weights file, or several files of one architecture as one QEnsemble acting
-    on `rule` (WeightsError for a bad file, ValueError when the architectures differ)."""
+def load_files(paths: list, model: str) -> torch.nn.Module:
+    """The network of one weights file, or several files of one architecture as one QEnsemble acting on
+    their mean Q-values (WeightsError for a bad file, ValueError when the architectures differ)."""
     nets = [load_file(p, config_for(model, p)) for p in paths]
-    return nets[0] if len(nets) == 1 else QEnsemble(nets, rule)
+    return nets[0] if len(nets) == 1 else QEnsemble(nets)
+
+
+def policy_network(paths: list[str], cfg: NetConfig, seed: int, warn=print):
+    """What policy_node flies: open_files(paths), or without paths the packaged files, or when those are
+    missing or unusable (`warn` says why) a seeded random initialisation. (network, source, camera or None)."""
+    if paths:
+        return open_files(paths, cfg)
+    packaged = packaged_weights(cfg.model)
+    if packaged:
+        try:
+            net, source, camera = open_files([str(p) for p in packaged], cfg)
+            return net, f"packaged pretrained weights: {source}", camera
+        except ValueError as e:
+            warn(f"packaged weights unusable ({e}); using a random initialisation")
+    net = build_network(cfg, seed=seed)
+    return net, f"no weights given or packaged: seeded random initialisation (seed {seed})", None
+
+
+def camera_mismatch(trained: float | None, camera: float | None) -> tuple[float, float] | None:
+    """(trained, camera) field of view, rounded, when both are known and differ by more than 0.5 deg."""
+    if trained is None or camera is None or abs(trained - camera) <= 0.5:
+        return None
+    return round(trained, 1), round(camera, 1)
+
+
+def parse_files(value: str) -> list[str]:
+    """The 'weights' parameter as a list of files: [] (the packaged weights), one file, or several separated
+    by commas (flown as one policy); ValueError for an empty name in the list."""
+    files = [f.strip() for f in value.split(",")] if value.strip() else []
+    if not all(files):
+        raise ValueError(f"'weights': an empty file name in the list {value!r}")
+    return files
+
+
+def open_files(paths: list[str], cfg: NetConfig) -> tuple[torch.nn.Module, str, float | None]:
+    """What policy_node flies for its 'weights' files: (one network, or several of one architecture as a
+    QEnsemble on their mean Q-values; where it came from, in words; the camera they were trained behind,
+    or None). Layer sizes come from the files; everything else must match `cfg` (the node's parameters).
+    WeightsError (a ValueError) says which file is wrong and, for another input size or frame stack,
+    which parameters to set."""
+    nets = []
+    for path in paths:
+        try:
+            nets.append(load_file(path, cfg, sizes_from_blob=True))
+        except WeightsError as e:
+            raise WeightsError(f"{e}{_size_hint(path, cfg)}") from None
+    net = nets[0] if len(nets) == 1 else QEnsemble(nets)
+    cameras = {read_file_camera(p) for p in paths}
+    if len(cameras) != 1:
+        known = sorted(c for c in cameras if c is not None)
+        shown = ", ".join(["none recorded"] * (None in cameras) + [f"{c:g} deg" for c in known])
+        raise WeightsError(f"the files were trained with different cameras ({shown})")
+    if len(nets) == 1:
+        return net, f"weights from {paths[0]}", cameras.pop()
+    folders = {str(Path(f).parent) for f in paths}
+    named = ", ".join(paths)
+    if len(folders) == 1:  # one run's snapshots, or the packaged files: the folder once
+        named = ", ".join(Path(f).name for f in paths) + f" in {folders.pop()}"
+    return net, f"an ensemble of {len(paths)} weights files acting on their mean Q-values: {named}", cameras.pop()
+
+
+def _size_hint(path: str, cfg: NetConfig) -> str:
+    """What to set when a weights file was made for another input size or frame stack ('' otherwise)."""
+    try:
+        made = read_file_config(path)
+    except WeightsError:
+        return ""
+    hint = ""
+    if (made.height, made.width) != (cfg.height, cfg.width):
+        hint += (
+            f"; the file takes {made.width}x{made.height} frames: set input_height:={made.height} "
+            f"input_width:={made.width} (and sim_node's image_width/image_height to match)"
+        )
+    if made.frames != cfg.frames:
+        hint += f"; the file stacks {made.frames} frames: set frame_stack:={made.frames}"
+    return hint
 
 
 def packaged_weights(model: str) -> list[Path]:

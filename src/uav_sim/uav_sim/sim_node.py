@@ -7,10 +7,11 @@ Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, /clock
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -20,160 +21,65 @@ from std_srvs.srv import Trigger
 
 from uav_common import contract
 from uav_common.node_runner import run
-from uav_common.ros_params import ParameterError, declare
+from uav_common.ros_params import ParameterError
+from uav_common.settings import declare_settings, setting
 
 from .reward import window_fov_rad
 from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
-from .vehicle import HOVER, BodyTwist, TwistLimits, twist_error
-from .world import EACH_EPISODE, PARTITIONS, WorldError, load_world, training_layouts
+from .vehicle import HOVER, BodyTwist, twist_error
+from .world import WorldChoice, WorldError
 
-# sim_node's camera and reward window by default: those of the packaged weights (docs/RESULTS.md,
-# round 35), so that sim_node and policy_node fly them out of the box as they were measured.
-# SimConfig keeps the 120 deg camera and the paper's window that the in-process tools default to.
-NODE_HFOV_DEG = 150.0
-NODE_REWARD_WINDOW_FRACTION = 0.078  # 5 x 5 px at 64 px: at 150 deg the paper's 0.2 would see the floor
+# Parameters retired, and why: a node given one stops at start-up and says so.
+REMOVED = {
+    "max_rate_hz": "lockstep training waits for learning, so no step-rate cap is needed; use mode:=realtime to watch",
+    "random_start_fraction": "random start places did not help (docs/RESULTS.md); start_yaw_jitter_deg varies the heading",
+    "random_start_clearance_m": "random start places did not help (docs/RESULTS.md)",
+    "redraw_start_heading": "a new heading per layout trained worse (docs/RESULTS.md)",
+    "layout_partitions": "training on partition layouts did not help (docs/RESULTS.md); random_partitions:SEED worlds remain",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SimNodeSettings:
+    """sim_node's parameters: the simulator's, the world's and the node's own."""
+
+    sim: SimConfig = SimConfig()
+    worlds: WorldChoice = WorldChoice()
+    mode: str = setting(
+        "lockstep", "lockstep: one step per cmd_vel; realtime: fixed rate with watchdog", choices=("lockstep", "realtime")
+    )
+    watchdog_timeout_s: float = setting(1.0, "realtime: hover when no cmd_vel came for this long (s)", 0.05, 60.0)
+    lockstep_republish_s: float = setting(
+        1.0, "lockstep: publish the current frame again when no command came for this long (s)", 0.05, 60.0
+    )
+    wait_for_subscribers: int = setting(
+        0,
+        "lockstep: hold the first frame until depth and outcome each have this many subscribers (train sets 2, policy "
+        "and trainer, so that the trainer learns from the first step); 0 = at once",
+        0,
+        100,
+    )
+    camera_frame_id: str = setting("camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
+    odom_frame_id: str = setting("odom", "Odometry header frame (REP 105)")
+    base_frame_id: str = setting("base_link", "Odometry child frame (REP 105)")
 
 
 class SimNode(Node):
     def __init__(self):
         super().__init__("sim_node")
-        d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-        world_name = d(
-            "world",
-            "basic",
-            f"World: basic, complex, turbulent, random[:SEED], a path to a world .yaml file, or {EACH_EPISODE} "
-            "(training: a new seeded procedural layout every episode, random:1000+100000*seed onward)",
-        )
-        self.mode = d(
-            "mode",
-            "lockstep",
-            "lockstep: one step per cmd_vel; realtime: fixed rate with watchdog",
-            choices=("lockstep", "realtime"),
-        )
-        seed = d("seed", 0, "Seed for weather, start jitter and 'random' worlds", 0, 2**31 - 1)
-        cfg = SimConfig(
-            image_width=d("image_width", 64, "Depth image width (px)", 8, 1024),
-            image_height=d("image_height", 64, "Depth image height (px)", 8, 1024),
-            hfov_deg=d(
-                "hfov_deg",
-                NODE_HFOV_DEG,
-                "Horizontal field of view (deg); the packaged weights were trained at 150, the paper's camera is 90",
-                10.0,
-                170.0,
-            ),
-            min_range_m=d("min_range_m", 0.1, "Closest measurable depth (m); also the near clip plane", 0.01, 10.0),
-            max_range_m=d("max_range_m", 10.0, "Farthest measurable depth (m); beyond it pixels are +Inf", 0.5, 100.0),
-            step_duration_s=d("step_duration_s", 0.5, "Sim time one step (one command) lasts (s)", 0.01, 5.0),
-            physics_rate_hz=d("physics_rate_hz", 40.0, "Sub-step rate for motion and collision checks (Hz)", 1.0, 1000.0),
-            collision_penetration_m=d(
-                "collision_penetration_m",
-                0.03,
-                "Contacts deeper than this are collisions; shallower ones are brushes (m)",
-                0.0,
-                0.2,
-            ),
-            start_yaw_jitter_deg=d("start_yaw_jitter_deg", 0.0, "Uniform random yaw added to the start pose (deg)", 0.0, 180.0),
-            max_episode_steps=d(
-                "max_episode_steps",
-                0,
-                "Training: an episode that survives this many steps ends (a time limit, not a crash; step_outcome "
-                "NaN) and the next starts; 0 = episodes end only in collisions",
-                0,
-                10**9,
-            ),
-            random_start_fraction=d(
-                "random_start_fraction",
-                0.0,
-                "Training: the share of episodes that start at a random free place and heading instead of the "
-                "world's start pose; 0 = always the start pose (as the paper and evaluation)",
-                0.0,
-                1.0,
-            ),
-            random_start_clearance_m=d(
-                "random_start_clearance_m",
-                SimConfig.random_start_clearance_m,
-                "Training: a random start keeps at least this distance from walls and obstacles (m)",
-                0.25,
-                5.0,
-            ),
-            reward_window_fraction=d(
-                "reward_window_fraction",
-                NODE_REWARD_WINDOW_FRACTION,
-                "The reward's central window (beta: its nearest depth), as a share of each image side: 0.078 (5 x 5 "
-                "px, the packaged weights'); the paper's is 0.2; wider than 120 deg the floor enters it unless "
-                "smaller (a warning says so)",
-                0.01,
-                1.0,
-            ),
-            limits=TwistLimits(
-                max_speed_mps=d("max_speed_mps", 3.0, "Largest |linear.x| and |linear.y| accepted (m/s)", 0.1, 20.0),
-                max_climb_mps=d("max_climb_mps", 1.0, "Largest |linear.z| accepted (m/s)", 0.0, 5.0),
-                max_yaw_rate_radps=d("max_yaw_rate_radps", 2.0, "Largest |angular.z| accepted (rad/s)", 0.1, 10.0),
-            ),
-            seed=seed,
-        )
-        self.watchdog_s = d("watchdog_timeout_s", 1.0, "realtime: hover when no cmd_vel came for this long (s)", 0.05, 60.0)
-        self.republish_s = d(
-            "lockstep_republish_s",
-            1.0,
-            "lockstep: publish the current frame again when no command came for this long (s)",
-            0.05,
-            60.0,
-        )
-        self.max_rate_hz = d(
-            "max_rate_hz",
-            0.0,
-            "lockstep: at most this many steps per wall-clock second (0 = as fast as commands come)",
-            0.0,
-            100000.0,
-        )
-        self.wait_for_subscribers = d(
-            "wait_for_subscribers",
-            0,
-            "lockstep: hold the first frame until depth and outcome each have this many subscribers (the train "
-            "launcher sets 2, policy and trainer, so that the trainer learns from the first step); 0 = at once",
-            0,
-            100,
-        )
-        self.frame_id = d("camera_frame_id", "camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
-        self.odom_frame = d("odom_frame_id", "odom", "Odometry header frame (REP 105)")
-        self.base_frame = d("base_frame_id", "base_link", "Odometry child frame (REP 105)")
-        redraw_heading = d(
-            "redraw_start_heading",
-            False,
-            f"world:={EACH_EPISODE} only: draw a new start_yaw_jitter_deg heading for every layout (default: every "
-            "layout starts at the run's first draw, as the shipped weights were trained; redrawing trained worse)",
-        )
-        mix_name = d("mix_world", "basic", f"world:={EACH_EPISODE} with mix_world_every: the world flown between the layouts")
-        mix_every = d(
-            "mix_world_every",
-            0,
-            f"world:={EACH_EPISODE} only: every K-th episode (K >= 2) flies mix_world instead of a new layout "
-            "(an extension; 0 = layouts only)",
-            0,
-            10**6,
-        )
-        partitions = d(
-            "layout_partitions",
-            False,
-            f"world:={EACH_EPISODE} only: layouts with 2-3 m partitions among the boxes ({PARTITIONS}:SEED, an "
-            "extension; default: plain layouts, as the shipped weights were trained)",
-        )
-        if partitions and world_name != EACH_EPISODE:
-            raise ParameterError(f"parameter 'layout_partitions' (true): needs world:={EACH_EPISODE}")
-        if mix_every and (mix_every < 2 or world_name != EACH_EPISODE):
-            raise ParameterError(f"parameter 'mix_world_every' ({mix_every}): must be 0, or >= 2 with world:={EACH_EPISODE}")
+        st = declare_settings(self, SimNodeSettings, REMOVED)
+        cfg = st.sim
+        self.mode = st.mode
+        self.watchdog_s = st.watchdog_timeout_s
+        self.republish_s = st.lockstep_republish_s
+        self.wait_for_subscribers = st.wait_for_subscribers
+        self.frame_id, self.odom_frame, self.base_frame = st.camera_frame_id, st.odom_frame_id, st.base_frame_id
         try:
-            mix = load_world(mix_name, seed=seed) if mix_every else None
+            world, layouts = st.worlds.load(cfg.seed)
         except WorldError as e:
-            raise ParameterError(f"parameter 'mix_world': {e}") from None
-        layouts = training_layouts(seed, mix, mix_every, partitions) if world_name == EACH_EPISODE else None
+            raise ParameterError(f"parameter {e}") from None
         try:
-            world = next(layouts) if layouts else load_world(world_name, seed=seed)
-        except WorldError as e:
-            raise ParameterError(f"parameter 'world': {e}") from None
-        try:
-            self.sim = Simulator(world, cfg, next_worlds=layouts, redraw_heading=redraw_heading)
+            self.sim = Simulator(world, cfg, next_worlds=layouts)
         except ValueError as e:
             raise ParameterError(str(e)) from None
         self.cfg = cfg
@@ -198,7 +104,6 @@ class SimNode(Node):
         self.last_cmd_wall = -math.inf
         self.watchdog_active = False
         self.last_publish_wall = time.monotonic()
-        self.next_step_wall = time.monotonic()
         self.steps_at_diag = 0
         self.diag_wall = time.monotonic()
         self.current: StepResult = self.sim.observe()
@@ -215,7 +120,8 @@ class SimNode(Node):
         else:
             self.create_timer(min(self.republish_s, 0.25), self.on_lockstep_idle)
         self.create_timer(1.0, self.publish_diagnostics)
-        mixed = f" ('{mix.name}' every {mix_every} episodes)" if mix else ""
+        w = st.worlds
+        mixed = f" ('{w.mix_world}' every {w.mix_world_every} episodes)" if w.mix_world_every else ""
         self.get_logger().info(
             (f"a new layout every episode{mixed}, first " if layouts else "")
             + f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
@@ -239,12 +145,6 @@ class SimNode(Node):
             return
         self.last_cmd_wall = time.monotonic()
         if self.mode == "lockstep":
-            if self.max_rate_hz > 0:
-                # Rate cap: lets a learner on a small machine keep its replay ratio.
-                wait = self.next_step_wall - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-                self.next_step_wall = max(self.next_step_wall, time.monotonic() - 1.0) + 1.0 / self.max_rate_hz
             self.advance(cmd)
         else:
             self.cmd = cmd
@@ -350,10 +250,6 @@ class SimNode(Node):
         now = time.monotonic()
         rate = (self.sim.total_steps - self.steps_at_diag) / max(now - self.diag_wall, 1e-6)
         self.steps_at_diag, self.diag_wall = self.sim.total_steps, now
-        st = DiagnosticStatus(level=DiagnosticStatus.OK, name="uav_sim", hardware_id=self.get_fully_qualified_name())
-        st.message = "watchdog: hovering" if self.watchdog_active else "running"
-        if self.watchdog_active:
-            st.level = DiagnosticStatus.WARN
         vals = {
             "world": self.sim.world.name,
             "episodes": self.sim.episode,
@@ -363,10 +259,8 @@ class SimNode(Node):
             "rejected_commands": self.rejected,
             "steps_per_s": f"{rate:.1f}",
         }
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in vals.items()]
-        msg = DiagnosticArray(status=[st])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.pub_diag.publish(msg)
+        level, message = ("WARN", "watchdog: hovering") if self.watchdog_active else ("OK", "running")
+        self.pub_diag.publish(contract.diagnostics(self, "uav_sim", level, message, vals))
 
     def close(self) -> None:
         self.sim.close()

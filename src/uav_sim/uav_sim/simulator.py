@@ -20,8 +20,10 @@ from collections.abc import Iterator
 import numpy as np
 import pybullet as p
 
+from uav_common.settings import setting
+
 from .camera import CameraIntrinsics, DepthCamera
-from .reward import CENTER_WINDOW_FRACTION, DELTA_M, center_window_min_depth, floor_beta_m, step_reward
+from .reward import DELTA_M, center_window_min_depth, floor_beta_m, step_reward
 from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from .weather import Particles
 from .world import Obstacle, World
@@ -29,33 +31,39 @@ from .world import Obstacle, World
 
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
-    image_width: int = 64
-    image_height: int = 64
-    # 120, not the paper's (AirSim's) 90: both models crash less with it (docs/RESULTS.md), and the
-    # in-process tools default to it. sim_node defaults to the packaged weights' 150 (with a 5 x 5 px
-    # reward window); the paper-protocol runs set 90.
-    hfov_deg: float = 120.0
-    min_range_m: float = 0.1
-    max_range_m: float = 10.0
-    step_duration_s: float = 0.5
-    physics_rate_hz: float = 40.0
-    collision_penetration_m: float = 0.03
+    """The simulator's settings (sim_node's parameters; the in-process tools take them from a recipe)."""
+
+    image_width: int = setting(64, "Depth image width (px)", 8, 1024)
+    image_height: int = setting(64, "Depth image height (px)", 8, 1024)
+    hfov_deg: float = setting(
+        150.0, "Horizontal field of view (deg); the packaged weights were trained at 150, the paper's camera is 90", 10.0, 170.0
+    )
+    min_range_m: float = setting(0.1, "Closest measurable depth (m); also the near clip plane", 0.01, 10.0)
+    max_range_m: float = setting(10.0, "Farthest measurable depth (m); beyond it pixels are +Inf", 0.5, 100.0)
+    step_duration_s: float = setting(0.5, "Sim time one step (one command) lasts (s)", 0.01, 5.0)
+    physics_rate_hz: float = setting(40.0, "Sub-step rate for motion and collision checks (Hz)", 1.0, 1000.0)
+    collision_penetration_m: float = setting(
+        0.03, "Contacts deeper than this are collisions; shallower ones are brushes (m)", 0.0, 0.2
+    )
+    start_yaw_jitter_deg: float = setting(0.0, "Uniform random yaw added to the start pose (deg)", 0.0, 180.0)
+    max_episode_steps: int = setting(
+        0,
+        "Training: an episode that survives this many steps ends (a time limit, not a crash; step_outcome NaN) and the "
+        "next starts; 0 = episodes end only in collisions",
+        0,
+        10**9,
+    )
+    reward_window_fraction: float = setting(
+        0.078,
+        "The reward's central window (beta: its nearest depth), as a share of each image side: 0.078 (5 x 5 px, the "
+        "packaged weights'); the paper's is 0.2; wider than 120 deg the floor enters it unless smaller (a warning says so)",
+        0.01,
+        1.0,
+    )
+    seed: int = setting(0, "Seed for weather, start jitter and 'random' worlds", 0, 2**31 - 1)
+    limits: TwistLimits = TwistLimits()
     body_half_extents_m: tuple[float, float, float] = (0.2, 0.2, 0.06)
     camera_forward_offset_m: float = 0.22
-    start_yaw_jitter_deg: float = 0.0
-    # > 0: an episode that reaches this many steps without a collision ends (a time limit, not a
-    # crash: StepResult.truncated) and the next starts, for training; 0 = episodes end only in crashes.
-    max_episode_steps: int = 0
-    # Training: the share of episodes that start at a random free place in the room (at least
-    # random_start_clearance_m from walls and obstacles) facing a uniformly random heading, instead
-    # of the world's start pose; 0 = always the world's start (evaluation always uses 0).
-    random_start_fraction: float = 0.0
-    random_start_clearance_m: float = 0.7
-    # The reward's central window (beta), as a share of each image side: the paper's 20 %. A camera
-    # wider than 120 degrees needs a smaller one, or the floor enters it (reward_floor_problem).
-    reward_window_fraction: float = CENTER_WINDOW_FRACTION
-    limits: TwistLimits = TwistLimits()
-    seed: int = 0
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that cannot be used."""
@@ -70,8 +78,6 @@ class SimConfig:
             ("collision_penetration_m", 0.0 <= self.collision_penetration_m <= 0.2, "in [0, 0.2] m"),
             ("start_yaw_jitter_deg", 0.0 <= self.start_yaw_jitter_deg <= 180.0, "in [0, 180] degrees"),
             ("max_episode_steps", self.max_episode_steps >= 0, "an integer >= 0 (0 = no time limit)"),
-            ("random_start_fraction", 0.0 <= self.random_start_fraction <= 1.0, "in [0, 1]"),
-            ("random_start_clearance_m", 0.25 <= self.random_start_clearance_m <= 5.0, "in [0.25, 5] m"),
             ("reward_window_fraction", 0.0 < self.reward_window_fraction <= 1.0, "in (0, 1]"),
         ]
         for name, ok, valid in checks:
@@ -113,7 +119,7 @@ class RewardWindowError(ValueError):
 def reward_floor_problem(config: SimConfig, camera_height_m: float) -> str | None:
     """Why the paper's reward cannot work with this camera, or None: a wide square image puts the
     floor inside the reward's central window nearer than delta, so every step is punished even in
-    an empty room and training learns to end episodes by crashing (docs/RESULTS.md, round 24)."""
+    an empty room and training learns to end episodes by crashing (docs/WORLDS.md)."""
     b = floor_beta_m(camera_height_m, config.image_height, config.image_width, config.hfov_deg, config.reward_window_fraction)
     if b > DELTA_M:
         return None
@@ -133,19 +139,14 @@ class Simulator:
         world: World,
         config: SimConfig = SimConfig(),
         next_worlds: Iterator[World] | None = None,
-        redraw_heading: bool = False,
     ):
         """With `next_worlds`, every new episode (after a collision or reset) flies the next world
-        from it, starting at the run's first heading draw unless `redraw_heading` (see change_world)."""
+        from it, starting at the run's first heading draw (see change_world)."""
         config.validate()
         self.world = world
         self.config = config
-        self.next_worlds, self.redraw_heading = next_worlds, redraw_heading
+        self.next_worlds = next_worlds
         self.rng = np.random.default_rng(config.seed)
-        # Random start places draw from their own sequence, which no world change restarts, so that
-        # with random_start_fraction = 0 the heading draws are exactly as before.
-        self.start_rng = np.random.default_rng([config.seed, 7])
-        self.random_starts = 0
         self.client = p.connect(p.DIRECT)
         self.camera = DepthCamera(
             self.client,
@@ -198,31 +199,12 @@ class Simulator:
                 vis = p.createVisualShape(p.GEOM_CYLINDER, radius=o.radius_m, length=o.height_m, physicsClientId=c)
                 p.createMultiBody(0, col, vis, (o.x_m, o.y_m, o.height_m / 2), physicsClientId=c)
 
-    def _start_pose(self, may_be_random: bool = True) -> Pose:
-        fraction = self.config.random_start_fraction if may_be_random else 0.0
-        if fraction > 0 and self.start_rng.random() < fraction:
-            pose = self._random_free_pose()
-            if pose is not None:
-                self.random_starts += 1
-                return pose
+    def _start_pose(self) -> Pose:
         x, y, z = self.world.start_xyz_m
         yaw = math.radians(self.world.start_yaw_deg)
         if self.config.start_yaw_jitter_deg > 0:
             yaw += math.radians(self.rng.uniform(-1, 1) * self.config.start_yaw_jitter_deg)
         return Pose(x, y, z, yaw)
-
-    def _random_free_pose(self, tries: int = 200) -> Pose | None:
-        """A uniformly random place at least random_start_clearance_m from every wall and obstacle,
-        at the start height and a uniformly random heading; None when `tries` draws find none."""
-        w, c, rng = self.world, self.config.random_start_clearance_m, self.start_rng
-        hx, hy = w.length_m / 2 - c, w.width_m / 2 - c
-        if hx <= 0 or hy <= 0:
-            return None
-        for _ in range(tries):
-            x, y = float(rng.uniform(-hx, hx)), float(rng.uniform(-hy, hy))
-            if all(obstacle_distance_m(o, x, y) >= c for o in w.obstacles):
-                return Pose(x, y, w.start_xyz_m[2], float(rng.uniform(-math.pi, math.pi)))
-        return None
 
     def _place(self) -> None:
         orn = p.getQuaternionFromEuler((0, 0, self.pose.yaw_rad))
@@ -273,8 +255,8 @@ class Simulator:
         self.episode += 1
         self.step_in_episode = 0
         # With next_worlds, _enter draws the pose for the new world (this draw only keeps the
-        # heading sequence as it always was); a random start is decided there, once.
-        self.pose = self._start_pose(may_be_random=self.next_worlds is None)
+        # heading sequence as it always was).
+        self.pose = self._start_pose()
         self._place()
         self._next_world()
 
@@ -288,7 +270,7 @@ class Simulator:
 
     def _next_world(self) -> None:
         if self.next_worlds is not None:
-            self._enter(next(self.next_worlds), self.redraw_heading)
+            self._enter(next(self.next_worlds), redraw_heading=False)
 
     def _enter(self, world: World, redraw_heading: bool) -> None:
         if not redraw_heading:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from uav_common.settings import setting
+
 
 @dataclasses.dataclass(frozen=True)
 class BodyTwist:
@@ -27,9 +29,9 @@ HOVER = BodyTwist()
 
 @dataclasses.dataclass(frozen=True)
 class TwistLimits:
-    max_speed_mps: float = 3.0
-    max_climb_mps: float = 1.0
-    max_yaw_rate_radps: float = 2.0
+    max_speed_mps: float = setting(3.0, "Largest |linear.x| and |linear.y| accepted (m/s)", 0.1, 20.0)
+    max_climb_mps: float = setting(1.0, "Largest |linear.z| accepted (m/s)", 0.0, 5.0)
+    max_yaw_rate_radps: float = setting(2.0, "Largest |angular.z| accepted (rad/s)", 0.1, 10.0)
 
 
 def twist_error(t: BodyTwist, limits: TwistLimits) -> str | None:

@@ -14,7 +14,7 @@ Format (`format: uav_sim_world/1`), all lengths in metres, angles in degrees:
 
 Built-in worlds live in the package's `worlds/` folder (installed to share/uav_sim/worlds);
 `random` (or `random:SEED`) makes a seeded procedural layout for held-out testing;
-`random_partitions[:SEED]` the same with long partitions among the boxes (for training);
+`random_partitions[:SEED]` the same with long partitions among the boxes (held-out evaluation);
 `random_each_episode` (sim_node) flies a new one every episode, for training.
 """
 
@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+
+from uav_common.settings import setting
 
 FORMAT = "uav_sim_world/1"
 BUILTIN_WORLDS = ("basic", "complex", "turbulent")
@@ -219,7 +221,7 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
 def procedural_world(seed: int, n_obstacles: int | None = None, partitions: bool = False) -> World:
     """A seeded random room with boxes and cylinders, keeping the start area clear.
 
-    With `partitions` (world `random_partitions:SEED`, an extension for training), half of the boxes
+    With `partitions` (world `random_partitions:SEED`, a held-out layout family), half of the boxes
     are partitions instead: 2-3 m long and 0.3-0.8 m thick, as the long boxes of Basic and Complex,
     which plain layouts (boxes up to 1.5 m) lack. Plain layouts are unchanged by the option."""
     rng = np.random.default_rng(seed)
@@ -261,17 +263,51 @@ def procedural_world(seed: int, n_obstacles: int | None = None, partitions: bool
     return World(name, length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
 
 
-def training_layouts(seed: int, world: World | None = None, world_every: int = 0, partitions: bool = False) -> Iterator[World]:
+def training_layouts(seed: int, world: World | None = None, world_every: int = 0) -> Iterator[World]:
     """The procedural layouts a run with this seed trains on, one per episode:
     random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear.
 
     With `world` and `world_every` = K >= 2, every K-th episode flies `world` instead (an extension:
-    e.g. the paper's training room Basic between the layouts); the layouts keep their order.
-    With `partitions`, the layouts are random_partitions:SEED (the same seeds; see procedural_world)."""
+    e.g. the paper's training room Basic between the layouts); the layouts keep their order."""
     start = TRAINING_LAYOUTS_FROM + 100_000 * seed
-    layouts = (procedural_world(s, partitions=partitions) for s in itertools.count(start))
+    layouts = (procedural_world(s) for s in itertools.count(start))
     if not world_every:
         return layouts
     if world is None or world_every < 2:
         raise ValueError(f"world_every must be 0 (layouts only) or >= 2 with a world, got {world_every}")
     return (world if i % world_every == 0 else next(layouts) for i in itertools.count(1))
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldChoice:
+    """Which world a run flies: sim_node's parameters, and the in-process tools' from a recipe."""
+
+    world: str = setting(
+        "basic",
+        f"World: basic, complex, turbulent, random[:SEED], random_partitions[:SEED], a path to a world .yaml file, or "
+        f"{EACH_EPISODE} (training: a new seeded procedural layout every episode, random:1000+100000*seed onward)",
+    )
+    mix_world: str = setting("basic", f"world:={EACH_EPISODE} with mix_world_every: the world flown between the layouts")
+    mix_world_every: int = setting(
+        0,
+        f"world:={EACH_EPISODE} only: every K-th episode (K >= 2) flies mix_world instead of a new layout; 0 = layouts only",
+        0,
+        10**6,
+    )
+
+    def load(self, seed: int) -> tuple[World, Iterator[World] | None]:
+        """(the first world, the worlds of the episodes after it or None for one fixed world). Raises
+        WorldError naming the setting that cannot be used."""
+        if self.mix_world_every and (self.mix_world_every < 2 or self.world != EACH_EPISODE):
+            raise WorldError(f"'mix_world_every' ({self.mix_world_every}): must be 0, or >= 2 with world:={EACH_EPISODE}")
+        if self.world != EACH_EPISODE:
+            try:
+                return load_world(self.world, seed=seed), None
+            except WorldError as e:
+                raise WorldError(f"'world': {e}") from None
+        try:
+            mix = load_world(self.mix_world, seed=seed) if self.mix_world_every else None
+        except WorldError as e:
+            raise WorldError(f"'mix_world': {e}") from None
+        layouts = training_layouts(seed, mix, self.mix_world_every)
+        return next(layouts), layouts

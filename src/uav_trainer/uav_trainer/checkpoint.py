@@ -19,9 +19,7 @@ import numpy as np
 import safetensors.numpy
 import torch
 from safetensors.torch import load_file, save_file
-from safetensors.torch import save as st_save
 
-from uav_policy import weights as wio
 from uav_policy.networks import NetConfig
 from uav_policy.weights import write_atomic
 
@@ -62,12 +60,9 @@ def save(
     tmp.mkdir()
     tensors = {f"online.{k}": v.detach().cpu().contiguous() for k, v in learner.online.state_dict().items()}
     tensors.update({f"target.{k}": v.detach().cpu().contiguous() for k, v in learner.target.state_dict().items()})
-    if learner.ema is not None:
-        tensors.update({f"ema.{k}": v.detach().cpu().contiguous() for k, v in learner.ema.state_dict().items()})
     opt_tensors, groups = _optimizer_tensors(learner.optimizer)
     tensors.update(opt_tensors)
     tensors["rng.torch"] = torch.random.get_rng_state()
-    tensors["rng.shift"] = learner.shift_rng.get_state()
     save_file(tensors, str(tmp / "state.safetensors"))
     meta = {
         "format": "uav_trainer_checkpoint/1",
@@ -126,9 +121,6 @@ def load(path: Path, learner: Learner) -> dict:
     tensors = load_file(str(path / "state.safetensors"))
     learner.online.load_state_dict({k[7:]: v for k, v in tensors.items() if k.startswith("online.")})
     learner.target.load_state_dict({k[7:]: v for k, v in tensors.items() if k.startswith("target.")})
-    if learner.ema is not None:  # a checkpoint without an average (ema_decay was 0) starts it from online
-        ema = {k[4:]: v for k, v in tensors.items() if k.startswith("ema.")}
-        learner.ema.load_state_dict(ema or learner.online.state_dict())
     state = {}
     for k, v in tensors.items():
         if k.startswith("optimizer.state."):
@@ -141,46 +133,7 @@ def load(path: Path, learner: Learner) -> dict:
     learner.optimizer.load_state_dict({"state": state, "param_groups": groups})
     learner.updates = int(meta["updates"])
     torch.random.set_rng_state(tensors["rng.torch"])
-    if "rng.shift" in tensors:  # checkpoints from before the augmentation keep the seeded stream
-        learner.shift_rng.set_state(tensors["rng.shift"])
     return meta
-
-
-NETS = ("online", "target", "ema")
-
-
-def export_weights(
-    path: Path,
-    out: str | os.PathLike,
-    net: str = "online",
-    camera_hfov_deg: float | None = None,
-    reward_window_fraction: float | None = None,
-) -> NetConfig:
-    """Write one network of checkpoint `path` (`online`, `target`, or `ema` when the run kept an
-    average) as a policy weights file `out` (atomically), recording the camera and reward window when
-    given. Returns its config. Raises ValueError for a directory that is not a checkpoint or lacks
-    that network; the tensors are checked as any weights file is (uav_policy.weights)."""
-    if net not in NETS:
-        raise ValueError(f"net must be one of {', '.join(NETS)}, got {net!r}")
-    path = Path(path)
-    try:
-        _, cfg = read_meta(path)
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
-    try:
-        tensors = load_file(str(path / "state.safetensors"))
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
-    except Exception as e:  # safetensors raises its own error on a corrupt file
-        raise ValueError(f"{path}: state.safetensors is corrupt ({e})") from None
-    prefix = f"{net}."
-    state = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
-    if not state:
-        raise ValueError(f"{path}: the checkpoint holds no '{net}' network")
-    blob = st_save(state, metadata={"format": wio.FORMAT, "config": cfg.to_json()})
-    model = wio.load_bytes(blob, cfg)  # names, shapes, dtypes and finiteness checked like any weights file
-    wio.save_file(model, cfg, out, camera_hfov_deg, reward_window_fraction)
-    return cfg
 
 
 def load_replay(path: Path) -> dict[str, np.ndarray] | None:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from uav_common import contract
-from uav_sim.reward import step_reward
+from uav_sim.reward import CENTER_WINDOW_FRACTION, step_reward
 
 from .launching import Processes, params_args
 
@@ -201,18 +201,16 @@ def flown_hfov_deg(model: str, weights: str) -> float:
     """The camera field of view weights fly with when no hfov_deg is given: the one the weights file (or,
     without one, the packaged files policy_node loads) was trained with, else SimConfig's default."""
     from uav_policy import weights as wio
-    from uav_sim.simulator import SimConfig
 
-    return wio.camera_for(next(iter(weights_or_packaged(model, weights)), None), SimConfig.hfov_deg)
+    return wio.camera_for(next(iter(weights_or_packaged(model, weights)), None), wio.UNRECORDED_HFOV_DEG)
 
 
 def flown_window(model: str, weights: str) -> float:
     """The reward window weights are measured with when none is given: the one the weights file (or the
     packaged files) records, else the paper's (SimConfig's default, which sim_node's need not be)."""
     from uav_policy import weights as wio
-    from uav_sim.simulator import SimConfig
 
-    return wio.window_for(next(iter(weights_or_packaged(model, weights)), None), SimConfig.reward_window_fraction)
+    return wio.window_for(next(iter(weights_or_packaged(model, weights)), None), CENTER_WINDOW_FRACTION)
 
 
 def sim_arg_number(sim_args, wanted: str) -> float | None:
@@ -256,15 +254,13 @@ def evaluate_once(
     sim_args: tuple[str, ...] = (),
     log_dir: Path | None = None,
     progress=None,
-    ensemble_rule: str = "mean",
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
     reward_window_fraction the reward window they record (else the paper's), and without image_width/image_height
     it renders at their input size. `weights` may be an ensemble's files joined by ENSEMBLE_SEP (which
-    must share architecture, camera and reward window: load_policy checks): policy_node gets the list
-    and `ensemble_rule`."""
+    must share architecture, camera and reward window: load_policy checks): policy_node gets the list."""
     files = weights.split(ENSEMBLE_SEP) if weights else []
     first = files[0] if files else ""
     if sim_arg_hfov_deg(sim_args) is None:
@@ -308,7 +304,6 @@ def evaluate_once(
             if time.monotonic() > ready_by:
                 raise TimeoutError("no first frame from sim_node within 60 s")
         wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
-        wargs += [f"ensemble_rule:={ensemble_rule}"] if len(files) > 1 else []
         procs.start(
             "policy",
             "uav_policy",
@@ -371,12 +366,11 @@ def evaluate_inprocess(
     camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
     `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default)."""
     from uav_policy import weights as wio
-    from uav_policy.actions import PAPER_ACTIONS
     from uav_policy.agent import Agent
-    from uav_policy.frame_stack import FrameStack
     from uav_sim.simulator import SimConfig, Simulator
-    from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
+
+    from .rollout import Flight
 
     if net is None:
         files = weights_or_packaged(model, weights)
@@ -385,9 +379,9 @@ def evaluate_inprocess(
         net, net_cfg, hfov_deg, reward_window_fraction = load_policy(model, files, hfov_deg, reward_window_fraction)
     cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
     if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
-        hfov_deg = wio.camera_for(weights, SimConfig.hfov_deg)
+        hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
     if reward_window_fraction is None:
-        reward_window_fraction = wio.window_for(weights, SimConfig.reward_window_fraction)
+        reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
     agent = Agent(net, cfg, seed=seed)
     sim_cfg = SimConfig(
         seed=seed,
@@ -398,22 +392,20 @@ def evaluate_inprocess(
         reward_window_fraction=reward_window_fraction,
     )
     sim = Simulator(load_world(world), sim_cfg)
-    stack = FrameStack(cfg.frames)
-    r = sim.observe()
-    state = stack.reset(r.depth_m)
+    flight = Flight(sim, agent, cfg.frames)
+    r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
-    before, start_yaw = r.pose, r.pose.yaw_rad  # the pose a step begins at; the episode's start heading
+    start_yaw = r.pose.yaw_rad  # the episode's start heading
     try:
         for step in range(1, steps + 1):
-            a = PAPER_ACTIONS[agent.act(state, 0.0)[0]]
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
-            r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(sim.config.step_duration_s)))
+            s = flight.step(0.0)
+            before, r = s.before.pose, s.after
             reward += r.reward
             if r.collided:
                 crashes += 1
                 sites.add(crash_site((before.x_m, before.y_m)))
-                state = stack.reset(r.depth_m)
                 if crash_log is not None:
                     crash_log.append(
                         dict(
@@ -427,15 +419,13 @@ def evaluate_inprocess(
                             y_m=round(before.y_m, 3),
                             yaw_deg=round(math.degrees(before.yaw_rad), 1),
                             start_yaw_deg=round(math.degrees(start_yaw), 1),
-                            action=a.name,
+                            action=flight.actions[s.action].name,
                         )
                     )
                 start_yaw = r.pose.yaw_rad
             else:
                 dist += math.hypot(r.pose.x_m - before.x_m, r.pose.y_m - before.y_m)
-                state = stack.push(r.depth_m)
             behaviour.step(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad, r.collided)
-            before = r.pose
     finally:
         sim.close()
     return EvalResult(
@@ -443,22 +433,21 @@ def evaluate_inprocess(
     )
 
 
-def load_policy(model: str, files: list[str], hfov_deg: float | None, window: float | None = None, rule: str = "mean"):
-    """(the network, or for several files a QEnsemble joining Q-values by `rule`; its NetConfig; the
+def load_policy(model: str, files: list[str], hfov_deg: float | None, window: float | None = None):
+    """(the network, or for several files a QEnsemble on their mean Q-values; its NetConfig; the
     camera to fly with; the reward window) for weights files of one architecture. Without hfov_deg
     the members' trained camera and without `window` their reward window, each of which must then
     be the same for all (ValueError if not)."""
     from uav_policy import weights as wio
-    from uav_sim.simulator import SimConfig
 
-    net = wio.load_files(files, model, rule)
+    net = wio.load_files(files, model)
     if hfov_deg is None:
-        cameras = {wio.camera_for(f, SimConfig.hfov_deg) for f in files}
+        cameras = {wio.camera_for(f, wio.UNRECORDED_HFOV_DEG) for f in files}
         if len(cameras) != 1:
             raise ValueError(f"members were trained with different cameras {sorted(cameras)}: give --sim-arg hfov_deg:=X")
         hfov_deg = cameras.pop()
     if window is None:
-        windows = {wio.window_for(f, SimConfig.reward_window_fraction) for f in files}
+        windows = {wio.window_for(f, CENTER_WINDOW_FRACTION) for f in files}
         if len(windows) != 1:
             raise ValueError(
                 f"members were trained with different reward windows {sorted(windows)}: give --sim-arg reward_window_fraction:=F"
@@ -732,7 +721,7 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
 
 
 def main(argv=None) -> int:
-    from uav_policy.networks import ENSEMBLE_RULES
+    from uav_policy.weights import UNRECORDED_HFOV_DEG
 
     ap = argparse.ArgumentParser(prog="evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", choices=("sam", "cnn"), help="repeatable; default: sam")
@@ -770,13 +759,6 @@ def main(argv=None) -> int:
         "extension; policy_node gets the K files as its weights, comma-separated; one results row per group, its weights column "
         "the files joined by '+')",
     )
-    ap.add_argument(
-        "--ensemble-rule",
-        choices=ENSEMBLE_RULES,
-        default="mean",
-        help="with --ensemble K > 1: how the K networks act as one: mean (the mean of their Q-values) or min (each "
-        "action's lowest Q-value over them, pessimistic; an extension; policy_node's ensemble_rule)",
-    )
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
     ap.add_argument(
@@ -805,8 +787,6 @@ def main(argv=None) -> int:
         ap.error("--repeats and --steps must be >= 1")
     if a.ensemble < 1:
         ap.error("--ensemble must be >= 1")
-    if a.ensemble_rule != "mean" and a.ensemble == 1:
-        ap.error(f"--ensemble-rule {a.ensemble_rule} needs --ensemble K > 1 (one network has no members to join)")
     try:
         hfov_deg = sim_arg_hfov_deg(a.sim_arg)
         window = sim_arg_number(a.sim_arg, "reward_window_fraction")
@@ -837,21 +817,16 @@ def main(argv=None) -> int:
     if a.sim_arg:
         protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
     if hfov_deg is None:
-        from uav_sim.simulator import SimConfig
-
         protocol += (
             " Camera: each weights file flies with the field of view it was trained with (its header;"
-            f" {SimConfig.hfov_deg:g}° when it has none)."
+            f" {UNRECORDED_HFOV_DEG:g}° when it has none)."
         )
     if a.inprocess:
         protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     if a.ensemble > 1:
         protocol += (
-            f" Each policy is {a.ensemble} weights files flown as one, acting on "
-            + ("the mean of their Q-values" if a.ensemble_rule == "mean" else "each action's lowest Q-value over them")
-            + f" (--ensemble {a.ensemble}"
-            + (f" --ensemble-rule {a.ensemble_rule}" if a.ensemble_rule != "mean" else "")
-            + "); means and intervals are over these policies."
+            f" Each policy is {a.ensemble} weights files flown as one, acting on the mean of their Q-values"
+            f" (--ensemble {a.ensemble}); means and intervals are over these policies."
         )
     if a.from_csv:
         try:
@@ -902,7 +877,7 @@ def main(argv=None) -> int:
         members = files or packaged[model]  # the packaged weights may be an ensemble too
         if len(members) > 1:
             try:
-                ensembles[model, ENSEMBLE_SEP.join(files)] = load_policy(model, members, hfov_deg, window, a.ensemble_rule)
+                ensembles[model, ENSEMBLE_SEP.join(files)] = load_policy(model, members, hfov_deg, window)
             except ValueError as e:
                 ap.error(f"--ensemble {a.ensemble}, {model}: {e}" if files else f"the packaged {model} weights: {e}")
 
@@ -925,7 +900,6 @@ def main(argv=None) -> int:
                     start_yaw_jitter_deg=jitter,
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
-                    ensemble_rule=a.ensemble_rule,
                 )
             net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
             r = evaluate_inprocess(

@@ -1,6 +1,6 @@
 """attention_figures: pictures of what the agent attends to, made with the node's own overlay code.
 
-    ros2 run uav_trainer attention_figures --model sam --weights W --worlds basic turbulent --out docs/figures
+    ros2 run uav_trainer attention_figures --model sam --weights W --worlds basic turbulent --out runs/figures
 
 Writes attention_<world>.png (depth frames and their attention overlays at representative
 steps, like the paper's attention figure) and flight_<world>.gif (an exploit-only flight).
@@ -17,15 +17,15 @@ from uav_policy import weights as wio
 from uav_policy.actions import PAPER_ACTIONS
 from uav_policy.agent import Agent
 from uav_policy.attention import attention_map, colourise_depth, overlay
-from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import build_network
+
+from .rollout import Flight
 
 
 def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     """Frames of an exploit-only flight of `files` (several: one policy on their mean Q-values; none: a
     seeded random initialisation): (depth, attention map or None, action index, collided)."""
     from uav_sim.simulator import SimConfig, Simulator
-    from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
     net = wio.load_files(files, model) if files else build_network(wio.config_for(model, None), seed=seed)
@@ -33,21 +33,16 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     agent = Agent(net, cfg, seed=seed)
     # The camera the weights were trained with (their header), else the simulator's default; the
     # image at the network's input size.
-    camera = wio.camera_for(files[0] if files else None, SimConfig.hfov_deg)
+    camera = wio.camera_for(files[0] if files else None, wio.UNRECORDED_HFOV_DEG)
     sim_cfg = SimConfig(seed=seed, hfov_deg=camera, image_width=cfg.width, image_height=cfg.height)
     sim = Simulator(load_world(world), sim_cfg)
-    stack = FrameStack(cfg.frames)
-    r = sim.observe()
-    state = stack.reset(r.depth_m)
+    flight = Flight(sim, agent, cfg.frames)
     out = []
     try:
         for _ in range(steps):
-            action, q, w, _ = agent.act(state, 0.0)
-            amap = attention_map(w, net.grid_hw, r.depth_m.shape) if w is not None else None
-            out.append((r.depth_m, amap, action, r.collided))
-            a = PAPER_ACTIONS[action]
-            r = sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(sim.config.step_duration_s)))
-            state = stack.reset(r.depth_m) if r.collided else stack.push(r.depth_m)
+            s = flight.step(0.0)
+            amap = attention_map(s.attention, net.grid_hw, s.before.depth_m.shape) if s.attention is not None else None
+            out.append((s.before.depth_m, amap, s.action, s.before.collided))
     finally:
         sim.close()
     return out
@@ -112,7 +107,7 @@ def main(argv=None) -> int:
     ap.add_argument("--worlds", nargs="+", default=["basic", "turbulent"])
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--panels", type=int, default=6)
-    ap.add_argument("--out", default="docs/figures")
+    ap.add_argument("--out", default="runs/figures", help="output folder (default: runs/figures)")
     a = ap.parse_args(argv)
     if a.weights:
         files = [f for f in a.weights.split(",") if f]

@@ -1,6 +1,6 @@
 """plot_curves: training curves of several runs (models x seeds) in one figure, like the paper's Figs. 3-4.
 
-    ros2 run uav_trainer plot_curves runs/paper_*_seed* --out docs/figures/training_curves.png
+    ros2 run uav_trainer plot_curves runs/paper_*_seed* --out runs/training_curves.png
 
 Each run's episodes.csv is binned by environment steps; the line is the mean over seeds of a
 model and the band spans the seeds' minimum to maximum.
@@ -33,7 +33,7 @@ def binned(run: Path, bin_steps: int, total: int) -> tuple[np.ndarray, np.ndarra
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="plot_curves", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run directories (their name must contain sam or cnn)")
-    ap.add_argument("--out", default="docs/figures/training_curves.png")
+    ap.add_argument("--out", default="runs/training_curves.png", help="output image (default: runs/training_curves.png)")
     ap.add_argument("--bin-steps", type=int, default=2500)
     a = ap.parse_args(argv)
     import matplotlib

@@ -6,20 +6,6 @@ for slot i is frames i-N+1..i, where every frame before the latest episode start
 window is replaced by that start frame - exactly what the policy's FrameStack does at reset.
 The next state of transition i is the stack at slot i+1; `done` masks it after a collision.
 
-With n-step returns (`sample(..., n_step=n)`, an extension: the paper learns from one step) the
-return of transition i sums the discounted rewards of slots i..i+m-1 and bootstraps from the stack
-at slot i+m, where m is n or less: the chain stops early at a collision (done: nothing to
-bootstrap), at a time limit (the episode's last frame has no stored transition) and at the newest
-frame. Returns are computed when sampled, so a transition near the write head gets its full n
-steps once they are stored.
-
-With prioritized sampling (`sample(..., priority_alpha=a)` with a > 0, an extension: Schaul et al.
-2016, proportional variant; the paper samples uniformly) transition i is drawn with probability
-p_i^a / sum_k p_k^a, where p_i is its last absolute TD error plus a small floor (new transitions get
-the largest priority seen so far), and the batch carries importance weights
-(N P(i))^-beta / max_k (N P(k))^-beta that undo the bias. `update_priorities` writes the learner's TD
-errors back; a slot rewritten since it was sampled keeps its new priority.
-
 `state()` and `load_state()` carry the memory across a stop and resume (trainer checkpoints keep it
 in replay.safetensors); only the filled slots are written.
 """
@@ -27,9 +13,6 @@ in replay.safetensors); only the filled slots are written.
 from __future__ import annotations
 
 import numpy as np
-
-# Added to every absolute TD error so that no transition's sampling probability falls to zero.
-PRIORITY_FLOOR = 1e-3
 
 
 class ReplayMemory:
@@ -43,15 +26,13 @@ class ReplayMemory:
         self.reward = np.zeros(capacity, dtype=np.float32)
         self.done = np.zeros(capacity, dtype=bool)
         self.has_transition = np.zeros(capacity, dtype=bool)
-        self.priority = np.zeros(capacity, dtype=np.float64)  # prioritized sampling only
-        self.max_priority = 1.0
-        self.writes = np.zeros(capacity, dtype=np.int64)  # times each slot was written
         self.cursor = 0  # next slot to write
         self.count = 0  # frames stored (<= capacity)
         self.transitions_added = 0
         self.rng = np.random.default_rng(seed)
 
-    # Arrays saved per slot, with their dtypes; `state()` adds `header` and `max_priority`.
+    # Arrays saved per slot, with their dtypes; `state()` adds `header`. (Memories saved with the
+    # prioritized replay that was retired also hold `priority`, `writes` and `max_priority`: ignored.)
     SLOT_ARRAYS = {
         "frame": np.float16,
         "start": np.bool_,
@@ -59,8 +40,6 @@ class ReplayMemory:
         "reward": np.float32,
         "done": np.bool_,
         "has_transition": np.bool_,
-        "priority": np.float64,
-        "writes": np.int64,
     }
 
     def state(self) -> dict[str, np.ndarray]:
@@ -70,7 +49,6 @@ class ReplayMemory:
         out["header"] = np.array(
             [self.capacity, self.frames, *self.frame.shape[1:], self.cursor, self.count, self.transitions_added], dtype=np.int64
         )
-        out["max_priority"] = np.array([self.max_priority], dtype=np.float64)
         return out
 
     def load_state(self, state: dict[str, np.ndarray], n_actions: int) -> None:
@@ -98,19 +76,13 @@ class ReplayMemory:
             raise ValueError("replay state has NaN or negative depths")
         if ((arrays["action"] < 0) | (arrays["action"] >= n_actions)).any():
             raise ValueError(f"replay state has actions outside [0, {n_actions})")
-        if not np.isfinite(arrays["reward"]).all() or not np.isfinite(arrays["priority"]).all():
-            raise ValueError("replay state has non-finite rewards or priorities")
-        if (arrays["priority"] < 0).any() or (arrays["writes"] < 0).any():
-            raise ValueError("replay state has negative priorities or write counts")
-        max_priority = state.get("max_priority")
-        if max_priority is None or max_priority.shape != (1,) or not np.isfinite(max_priority).all() or max_priority[0] <= 0:
-            raise ValueError("replay state has no valid max_priority")
+        if not np.isfinite(arrays["reward"]).all():
+            raise ValueError("replay state has non-finite rewards")
         for name, a in arrays.items():
             target = getattr(self, name)
             target[:count] = a
             target[count:] = 0
         self.cursor, self.count, self.transitions_added = cursor, count, added
-        self.max_priority = float(max_priority[0])
 
     def __len__(self) -> int:
         """Number of sampleable transitions."""
@@ -122,7 +94,6 @@ class ReplayMemory:
             self.frame[i] = np.nan_to_num(depth, nan=np.inf).astype(np.float16)
         self.start[i] = start
         self.has_transition[i] = False
-        self.writes[i] += 1
         self.cursor = (i + 1) % self.capacity
         self.count = min(self.count + 1, self.capacity)
 
@@ -140,7 +111,6 @@ class ReplayMemory:
         i = (self.cursor - 1) % self.capacity
         self.action[i], self.reward[i], self.done[i] = action, reward, done
         self.has_transition[i] = True
-        self.priority[i] = self.max_priority
         self._write_frame(next_depth, start=done)
         self.transitions_added += 1
 
@@ -178,71 +148,17 @@ class ReplayMemory:
         idx = np.where(older, idx[np.arange(len(slots)), latest][:, None], idx)
         return self.frame[idx].astype(np.float32)
 
-    def n_step_return(self, i: int, n_step: int, gamma: float) -> tuple[float, bool, float, int]:
-        """(discounted reward sum, done, discount of the bootstrap, bootstrap slot) of transition i."""
-        total, discount, j = 0.0, 1.0, i
-        for _ in range(n_step):
-            total += discount * float(self.reward[j])
-            discount *= gamma
-            if self.done[j]:
-                return total, True, discount, (j + 1) % self.capacity
-            j = (j + 1) % self.capacity
-            if not self.has_transition[j]:  # the chain ends here: bootstrap from this frame
-                break
-        return total, False, discount, j
-
-    def sample(
-        self, batch: int, n_step: int = 1, gamma: float = 0.99, priority_alpha: float = 0.0, priority_beta: float = 1.0
-    ) -> dict[str, np.ndarray]:
-        """A batch of transitions. n_step > 1 adds `discount` (gamma^m per transition) and sums
-        rewards over up to n_step steps; priority_alpha > 0 samples by priority and adds `weight`
-        (importance weights with exponent priority_beta) and `writes` (for `update_priorities`); see
-        the module docstring. n_step = 1 with priority_alpha = 0 is the paper's uniform one-step
-        Q-learning."""
-        if n_step < 1:
-            raise ValueError(f"n_step must be at least 1, got {n_step}")
-        if not 0.0 <= priority_alpha <= 1.0 or not 0.0 <= priority_beta <= 1.0:
-            raise ValueError(f"priority_alpha and priority_beta must lie in [0, 1], got {priority_alpha}, {priority_beta}")
+    def sample(self, batch: int) -> dict[str, np.ndarray]:
+        """A batch of transitions drawn uniformly (the paper's one-step Q-learning)."""
         valid = np.flatnonzero(self._valid())
         if valid.size == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
-        if priority_alpha > 0.0:
-            p = self.priority[valid] ** priority_alpha
-            prob = p / p.sum()
-            k = self.rng.choice(valid.size, size=batch, p=prob)
-            picks = valid[k]
-            # Importance weights (N P(i))^-beta over the largest any stored transition could get (N cancels).
-            weight = (prob.min() / prob[k]) ** priority_beta
-            extra = {"weight": weight.astype(np.float32), "writes": self.writes[picks].copy()}
-        else:
-            picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
-            extra = {}
-        out = {"state": self.stacks(picks), "action": self.action[picks], "index": picks, **extra}
-        if n_step == 1:
-            out.update(
-                reward=self.reward[picks],
-                done=self.done[picks].astype(np.float32),
-                next_state=self.stacks((picks + 1) % self.capacity),
-            )
-            return out
-        returns = [self.n_step_return(int(i), n_step, gamma) for i in picks]
-        out.update(
-            reward=np.array([r[0] for r in returns], dtype=np.float32),
-            done=np.array([r[1] for r in returns], dtype=np.float32),
-            discount=np.array([r[2] for r in returns], dtype=np.float32),
-            next_state=self.stacks(np.array([r[3] for r in returns])),
-        )
-        return out
-
-    def update_priorities(self, slots: np.ndarray, writes: np.ndarray, td_abs: np.ndarray) -> None:
-        """Priorities |TD error| + PRIORITY_FLOOR for sampled slots; `writes` (from `sample`) skips any
-        slot rewritten since, so a new transition keeps the top priority it was stored with."""
-        td_abs = np.asarray(td_abs, dtype=np.float64)
-        if not np.all(np.isfinite(td_abs)):
-            raise ValueError("TD errors must be finite")
-        slots = np.asarray(slots, dtype=np.int64)
-        same = self.writes[slots] == np.asarray(writes)
-        pr = td_abs[same] + PRIORITY_FLOOR
-        self.priority[slots[same]] = pr  # a slot drawn twice keeps its last error
-        if pr.size:
-            self.max_priority = max(self.max_priority, float(pr.max()))
+        picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
+        return {
+            "state": self.stacks(picks),
+            "action": self.action[picks],
+            "index": picks,
+            "reward": self.reward[picks],
+            "done": self.done[picks].astype(np.float32),
+            "next_state": self.stacks((picks + 1) % self.capacity),
+        }

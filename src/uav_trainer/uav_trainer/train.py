@@ -1,25 +1,19 @@
 """train: the main job. Brings up sim_node, policy_node and trainer_node and trains an agent.
 
-    ros2 run uav_trainer train --model sam --steps 20000 --seed 0
+    ros2 run uav_trainer train --model sam --steps 30000 --seed 0
 
-Recipes (`--recipe`): `ensemble` (default) is how the packaged weights were trained, the recipe
-with the fewest crashes measured (docs/RESULTS.md, round 35): a 150 deg camera with a 5 x 5 px
-reward window, new layouts with Basic as every fourth episode, a 300-step episode limit, turn
-penalty 1.0, two updates per four steps, and the online network saved at nine steps of the
-budget's last 30 %, to be flown with the final weights as one policy of ten; `single` is the
-earlier packaged weights' recipe (round 4): a 120 deg camera, a new procedural layout every
-episode and a turn penalty of 1.0, one network; `paper` is the paper's setting: a 90 deg camera in
-the Basic world with the paper's reward.
-
-Learning (`--learning`): `lockstep` (default) has trainer_node learn after each step and release the
-next frame to policy_node with the new weights and epsilon, so a run is, bit for bit, the in-process
-run of its seed (docs/RESULTS.md, round 44); `concurrent` runs a learner thread beside acting, with
-the step rate capped so that it keeps up (rounds 38-43).
+The recipe (`--recipe NAME` for params/recipes/NAME.yaml, or `--recipe FILE` for your own) sets the
+nodes' parameters on top of params/*.yaml; `--world`, `--sim-arg` and `--trainer-arg` still win.
+`shipped` (the default) is how the packaged weights were trained; `paper` is the paper's setting.
+trainer_node learns in lockstep with acting: after each step it stores the transition, runs the
+updates replay_ratio allows and only then releases the next frame to policy_node with the new
+weights and epsilon, so a run is, bit for bit, `python -m uav_trainer.inprocess` with the same
+recipe and seed.
 
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
-policy_<model>.safetensors). Ctrl-C stops the trainer first, which saves a final checkpoint with
-the replay memory, then the policy and the simulator. Running it again with the same run
-directory resumes where it stopped.
+policy_<model>.safetensors and the recipe's snapshots). Ctrl-C stops the trainer first, which saves
+a final checkpoint with the replay memory, then the policy and the simulator. Running it again with
+the same run directory resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -31,88 +25,35 @@ import sys
 import time
 from pathlib import Path
 
+from uav_common.settings import refuse_retired_flags
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 
 from .launching import Processes, params_args
+from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
 from .training import snapshot_file, snapshot_steps
 
-# What each recipe sets on top of params/*.yaml; --world, --sim-arg and --trainer-arg still win.
-# `snapshots`: that many weight snapshots, one every thirtieth of the budget, ending one before it
-# (30 000 steps: 21 000 ... 29 000); `max_rate_hz`: the step-rate cap of --learning concurrent unless
-# --max-rate-hz says.
-RECIPES = {
-    "ensemble": {
-        "world": "random_each_episode",
-        "sim": [
-            "hfov_deg:=150.0",
-            "reward_window_fraction:=0.078",
-            "mix_world:=basic",
-            "mix_world_every:=4",
-            "max_episode_steps:=300",
-        ],
-        "trainer": ["turn_penalty:=1.0", "replay_ratio:=0.5"],
-        "snapshots": 9,
-        "max_rate_hz": 30.0,
-    },
-    "single": {
-        "world": "random_each_episode",
-        "sim": ["hfov_deg:=120.0", "reward_window_fraction:=0.2"],
-        "trainer": ["turn_penalty:=1.0"],
-    },
-    "paper": {"world": "basic", "sim": ["hfov_deg:=90.0", "reward_window_fraction:=0.2"], "trainer": ["turn_penalty:=0.0"]},
+RETIRED_FLAGS = {
+    "--learning": "train always learns in lockstep with acting (concurrent learning trained weaker policies)",
+    "--max-rate-hz": "lockstep learning needs no step-rate cap",
 }
-DEFAULT_MAX_RATE_HZ = 60.0
-
-
-def snapshot_plan(snapshots: int, steps: int) -> tuple[list[str], list[int]]:
-    """(trainer_node parameters, env steps) for `snapshots` weight snapshots, one every thirtieth of
-    `steps`, the last one thirtieth before the end; nothing when `snapshots` is 0."""
-    if not snapshots:
-        return [], []
-    every = max(1, steps // 30)
-    first = max(every, steps - snapshots * every)
-    args = [f"save_weights_every_steps:={every}", f"save_weights_from_step:={first}"]
-    return args, snapshot_steps(every, first, steps)
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog="train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    refuse_retired_flags(ap, argv, RETIRED_FLAGS)
     ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
     ap.add_argument(
         "--recipe",
-        choices=tuple(RECIPES),
-        default="ensemble",
-        help="ensemble: how the packaged weights were trained, round 35's recipe (150 deg camera, new layouts with "
-        "Basic every fourth episode, 300-step episodes, ten snapshots flown as one policy; docs/RESULTS.md); single: "
-        "120 deg camera, new layout every episode, turn penalty 1.0, one network (round 4); paper: 90 deg camera, "
-        "Basic world, the paper's reward (default: ensemble)",
+        default=DEFAULT_RECIPE,
+        help="a recipe in PARAMS_DIR/recipes (shipped: how the packaged weights were trained; paper: the paper's "
+        f"setting) or a path to your own recipe file (default: {DEFAULT_RECIPE})",
     )
-    ap.add_argument(
-        "--world",
-        default=None,
-        help="training world, e.g. basic or random_each_episode (default: the recipe's)",
-    )
+    ap.add_argument("--world", default=None, help="training world, e.g. basic or random_each_episode (default: the recipe's)")
     ap.add_argument("--steps", type=int, default=30000, help="environment steps budget (default: 30000)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument(
-        "--max-rate-hz",
-        type=float,
-        default=None,
-        help="with --learning concurrent: lockstep sim step-rate cap so the learner keeps its replay ratio on 2 CPU "
-        "cores; 0 = uncapped (--learning lockstep needs none: uncapped unless given) "
-        f"(default: {DEFAULT_MAX_RATE_HZ:g}, recipe ensemble {RECIPES['ensemble']['max_rate_hz']:g}: twice the updates)",
-    )
-    ap.add_argument(
-        "--learning",
-        choices=("lockstep", "concurrent"),
-        default="lockstep",
-        help="lockstep: trainer_node learns after each step and releases the next frame to policy_node with the new "
-        "weights and epsilon, as inprocess does (for a seed, inprocess's episodes and weights); concurrent: a learner "
-        "thread beside acting, weights pushed every push_interval_updates, steps capped by --max-rate-hz (rounds 38-43) "
-        "(default: lockstep)",
-    )
     ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
-    ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml")
+    ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml and recipes/")
     ap.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in the run directory")
     ap.add_argument(
         "--trainer-arg",
@@ -126,7 +67,7 @@ def main(argv=None) -> int:
         "--sam-readout",
         choices=SAM_READOUTS,
         default="max",
-        help="SAM readout for policy_node and trainer_node: max (the paper) or flatten (an extension)",
+        help="SAM readout for policy_node and trainer_node: max (the paper) or flatten",
     )
     ap.add_argument(
         "--input-size",
@@ -149,48 +90,43 @@ def main(argv=None) -> int:
         ap.error(f"--input-size must lie in [8, 512] px, got {a.input_size}")
     if a.frames is not None and not 1 <= a.frames <= MAX_FRAMES:
         ap.error(f"--frames must lie in [1, {MAX_FRAMES}], got {a.frames}")
+    try:
+        recipe = load_recipe(a.recipe, a.params_dir)
+        sim_values = {**recipe.node("sim_node"), **parse_assignments(a.sim_arg)}
+        trainer_values = {**recipe.node("trainer_node"), **parse_assignments(a.trainer_arg)}
+    except RecipeError as e:
+        ap.error(str(e))
+    try:
+        snapshot_at = snapshot_steps(int(trainer_values.get("snapshots", 0)), a.steps)
+    except ValueError as e:
+        ap.error(f"--steps {a.steps} with recipe {recipe.path}: {e}")
     frames = [] if a.frames is None else [f"frame_stack:={a.frames}"]
     size = [] if a.input_size is None else [a.input_size]
-    if a.max_rate_hz is not None and a.max_rate_hz < 0:
-        ap.error(f"--max-rate-hz must be >= 0, got {a.max_rate_hz:g}")
-    recipe = RECIPES[a.recipe]
-    world = a.world or recipe["world"]
-    lockstep = a.learning == "lockstep"
-    if a.max_rate_hz is not None:
-        max_rate_hz = a.max_rate_hz
-    else:  # lockstep: acting waits for learning, no cap needed
-        max_rate_hz = 0.0 if lockstep else recipe.get("max_rate_hz", DEFAULT_MAX_RATE_HZ)
-    snapshots, snapshot_at = snapshot_plan(recipe.get("snapshots", 0), a.steps)
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     logs = run_dir / "logs"
     procs = Processes(log_dir=logs)
-    p = lambda name, items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
-    # A random start heading: drawn anew each episode in a fixed world; with random_each_episode one
-    # draw per run, where every layout starts (as the packaged weights were trained).
+    p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
+    node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731
+    world = [f"world:={a.world}"] if a.world else []
     # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
-    sim_extra = ["start_yaw_jitter_deg:=180.0", f"max_rate_hz:={float(max_rate_hz)}", "wait_for_subscribers:=2"]
-    sim_extra += recipe["sim"]
+    sim_extra = [*world, f"seed:={a.seed}", "wait_for_subscribers:=2"]
     sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
-    procs.start(
-        "sim", "uav_sim", "sim_node", params_args(params, "sim") + p("", [f"world:={world}", f"seed:={a.seed}", *sim_extra])
-    )
+    procs.start("sim", "uav_sim", "sim_node", node_args("sim") + p(sim_extra))
     procs.start(
         "policy",
         "uav_policy",
         "policy_node",
-        params_args(params, "policy")
-        + p("", [f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0"])
-        + p("", [f"wait_for_trainer:={'true' if lockstep else 'false'}"])
-        + p("", [f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
+        node_args("policy")
+        + p([f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
+        + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
     )
     trainer = procs.start(
         "trainer",
         "uav_trainer",
         "trainer_node",
-        params_args(params, "trainer")
+        node_args("trainer")
         + p(
-            "",
             [
                 f"model:={a.model}",
                 f"sam_readout:={a.sam_readout}",
@@ -198,18 +134,16 @@ def main(argv=None) -> int:
                 f"total_steps:={a.steps}",
                 f"run_dir:={run_dir}",
                 f"resume:={'false' if a.no_resume else 'true'}",
-                f"lockstep_learning:={'true' if lockstep else 'false'}",
-                *recipe["trainer"],
-                *snapshots,
                 *[f"input_size_px:={px}" for px in size],
                 *frames,
                 *a.trainer_arg,
-            ],
+            ]
         ),
     )
     print(
-        f"training D3QN-{a.model.upper()} (recipe {a.recipe}: {' '.join(recipe['sim'] + recipe['trainer'] + snapshots)}) "
-        f"in '{world}' for {a.steps} steps, learning {a.learning} -> {run_dir} (node logs in {logs})"
+        f"training D3QN-{a.model.upper()} with recipe {recipe.path} ({recipe.summary()}) for {a.steps} steps -> {run_dir} "
+        f"(node logs in {logs})",
+        flush=True,
     )
     interrupted = False
 
@@ -230,8 +164,8 @@ def main(argv=None) -> int:
     if weights.exists():
         # The snapshots this budget planned that were written (a stop before the end writes fewer), then the final weights.
         files = [p for n in snapshot_at if (p := snapshot_file(run_dir, a.model, n)).exists()] + [weights]
-        camera = [kv for kv in sim_extra if kv.startswith("hfov_deg:=")][-1:]
-        fly_sim = f"ros2 run uav_sim sim_node --ros-args -p {camera[0]} & " if camera else ""
+        camera = sim_values.get("hfov_deg")
+        fly_sim = f"ros2 run uav_sim sim_node --ros-args -p hfov_deg:={float(camera)} & " if camera is not None else ""
         print(
             f"weights: {', '.join(map(str, files))}\nfly them: {fly_sim}ros2 run uav_policy policy_node --ros-args "
             f"-p model:={a.model} -p weights:={','.join(map(str, files))}"

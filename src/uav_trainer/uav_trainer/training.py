@@ -5,7 +5,6 @@ metrics.csv, episodes.csv, TensorBoard events (tb/), curves.png, checkpoints/, t
 policy weights (policy_<model>.safetensors, loadable by policy_node's `weights`) and machine.jsonl
 (one line per start: the processor, torch and the CPU kernels it picked; a seeded run is
 bit-reproducible on one machine, but another processor may round differently).
-Thread-safe: one thread adds transitions while another calls `learn_once`.
 """
 
 from __future__ import annotations
@@ -15,103 +14,119 @@ import dataclasses
 import json
 import math
 import platform
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from uav_common.settings import setting
 from uav_policy import weights as wio
-from uav_policy.networks import NetConfig
-from uav_sim.reward import band_min_depth, clearance_penalty, step_reward
+from uav_policy.agent import resolve_device
+from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig
+from uav_sim.reward import step_reward
 
 from . import checkpoint
 from .episodes import EpisodeStats
 from .learner import Learner, LearnerConfig, NonFiniteLoss, linear_epsilon
 from .replay import ReplayMemory
 
+DEVICES = ("auto", "cpu", "cuda")
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainerConfig:
-    model: str = "sam"  # sam | cnn
-    seed: int = 0
-    device: str = "cpu"
-    replay_capacity: int = 50000  # frames kept (each once)
-    learning_starts: int = 1000  # transitions collected before the first update
-    replay_ratio: float = 0.25  # at most this many updates per environment step
-    push_interval_updates: int = 50  # weights go to the policy every N updates
-    checkpoint_interval_updates: int = 1000
-    epsilon_start: float = 1.0
-    epsilon_end: float = 0.05
-    epsilon_decay_steps: int = 10000  # environment steps of linear decay
-    total_steps: int = 0  # environment steps budget; 0 = unlimited
-    # A stop before the budget writes the replay memory with the final checkpoint, and a resume
-    # restores it, so learning carries on at once instead of refilling from an empty memory.
-    save_replay: bool = True
-    clearance_m: float = 0.0  # > 0 adds clearance_penalty (not in the paper's reward); 0 = the paper's reward
-    clearance_weight: float = 4.0
-    # > 0 subtracts this from the reward of every step that turns (not in the paper's reward): under
-    # the paper's reward a policy can circle on the spot, crash rarely and cover nothing.
-    turn_penalty: float = 0.0
-    turning_actions: tuple[int, ...] = (1, 2)  # action indices that yaw (the paper's a1, a2)
-    # > 1: learn from n-step returns (an extension; the paper learns from one step): a crash's
-    # penalty reaches the states n steps before it in one update instead of n.
-    n_step: int = 1
-    # > 0: prioritized replay (an extension; the paper samples uniformly): transitions are drawn with
-    # probability ~ |TD error|^priority_alpha, and the importance-weight exponent rises linearly from
-    # priority_beta to 1 over priority_beta_steps environment steps. Crashes are rare in the replay
-    # memory; this replays the ones the network still gets wrong more often.
-    priority_alpha: float = 0.0
-    priority_beta: float = 0.4
-    priority_beta_steps: int = 30000
-    sam_readout: str = "max"  # SAM readout (networks.SAM_READOUTS); flatten is an extension
-    # Square network input (px); the paper does not give one. 64 (the default) gives SAM 8 x 8 nodes,
-    # 84 (an experiment: Atari's size) 10 x 10. The camera must render at the same size.
-    input_size_px: int = 64
-    # Depth frames stacked into the state (the paper: 5; more is an experiment). policy_node's
-    # frame_stack must match.
-    frames: int = NetConfig.frames
-    # The conv trunk's output channels, one stride-2 layer each (an experiment; both models share the
-    # trunk): the default three layers give SAM 8 x 8 nodes from 64 px, (16, 32) gives 16 x 16.
-    conv_channels: tuple[int, ...] = NetConfig.conv_channels
-    # SAM's relational module (an experiment; the defaults are the shipped networks'): node feature
-    # size, attention heads, relational blocks and the blocks' MLP width.
-    d_model: int = NetConfig.d_model
-    heads: int = NetConfig.heads
-    relational_blocks: int = NetConfig.relational_blocks
-    mlp_hidden: int = NetConfig.mlp_hidden
+    """Everything a training run learns with (trainer_node's parameters, the in-process trainer's flags)."""
+
+    model: str = setting("sam", "Q-network: sam or cnn (must match policy_node's model)", choices=("sam", "cnn"))
+    seed: int = setting(0, "Seed for initialisation, replay sampling and exploration", 0, 2**31 - 1)
+    device: str = setting("auto", "Learner device: auto (cuda when present, else cpu), cpu or cuda", choices=DEVICES)
+    total_steps: int = setting(0, "Environment steps budget; 0 = until stopped", 0, 10**10)
+    replay_capacity: int = setting(50000, "Frames kept in the replay memory (each stored once; 64x64: 8 KiB)", 100, 10**7)
+    learning_starts: int = setting(1000, "Transitions collected before the first update", 1, 10**8)
+    replay_ratio: float = setting(
+        0.25, "Updates per environment step (0.25: one per four steps, DQN's train_freq 4)", 0.001, 64.0
+    )
+    checkpoint_interval_updates: int = setting(1000, "Write a checkpoint every N updates", 1, 10**8)
+    epsilon_start: float = setting(1.0, "Initial exploration rate", 0.0, 1.0)
+    epsilon_end: float = setting(0.05, "Final exploration rate (the paper keeps 0.05)", 0.0, 1.0)
+    epsilon_decay_steps: int = setting(10000, "Environment steps of linear exploration decay", 0, 10**9)
+    save_replay: bool = setting(
+        True, "A stop before the budget also writes the replay memory with the final checkpoint; a resume restores it"
+    )
+    turn_penalty: float = setting(
+        0.0,
+        "Subtracted from the reward of every turning step (not in the paper's reward: under it a policy can circle on "
+        "the spot, crash rarely and cover nothing); 0 = the paper's reward",
+        0.0,
+        100.0,
+    )
+    snapshots: int = setting(
+        0,
+        "Weight snapshots policy_<model>_step<N>.safetensors, one every thirtieth of total_steps, the last one a "
+        "thirtieth before the end (9: a run's last ten files, flown as one policy with the final weights); 0 = none",
+        0,
+        29,
+    )
+    sam_readout: str = setting(
+        "max", "SAM readout: max pools the nodes (the paper) or flatten keeps their places; policy_node's", choices=SAM_READOUTS
+    )
+    input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
+    frames: int = setting(
+        NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
+    )
+    conv_channels: tuple[int, ...] = setting(
+        NetConfig.conv_channels,
+        "Conv trunk output channels, one stride-2 layer each (both models; [16, 32] gives SAM 16 x 16 nodes from 64 px)",
+    )
+    d_model: int = setting(NetConfig.d_model, "SAM: node feature size, split over the heads", 1, SIZE_LIMITS["d_model"])
+    heads: int = setting(NetConfig.heads, "SAM: attention heads", 1, SIZE_LIMITS["heads"])
+    relational_blocks: int = setting(NetConfig.relational_blocks, "SAM: relational blocks", 1, SIZE_LIMITS["relational_blocks"])
+    mlp_hidden: int = setting(NetConfig.mlp_hidden, "SAM: width of each relational block's MLP", 1, SIZE_LIMITS["mlp_hidden"])
     learner: LearnerConfig = LearnerConfig()
+    turning_actions: tuple[int, ...] = (1, 2)  # the action indices that yaw (from the action table; not a setting)
+
+    def validate(self) -> None:
+        """ValueError naming the settings that cannot go together."""
+        px = self.input_size_px
+        try:
+            NetConfig(conv_channels=tuple(self.conv_channels), height=px, width=px).validate()
+        except ValueError as e:
+            raise ValueError(f"'conv_channels'={list(self.conv_channels)}: {e}") from None
+        if self.d_model % self.heads:
+            raise ValueError(f"'d_model' ({self.d_model}) must be divisible by 'heads' ({self.heads})")
+        changed = [k for k in SAM_SIZES if getattr(self, k) != getattr(TrainerConfig, k)]
+        if self.model == "cnn" and changed:
+            raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
+        snapshot_steps(self.snapshots, self.total_steps)
 
 
-# The longest n-step return accepted (trainer_node's and inprocess's bound): beyond it the bootstrap's
-# gamma^n and the off-policy bias of the stored actions dominate.
-MAX_N_STEP = 20
+# trainer_node parameters retired, and what replaces them: a node given one stops and says so.
+RETIRED = {
+    "lockstep_learning": "trainer_node always learns in lockstep with acting (concurrent learning trained weaker policies)",
+    "push_interval_updates": "every frame release carries the newest weights (lockstep learning)",
+    "save_weights_every_steps": "use 'snapshots' (how many, one every thirtieth of total_steps)",
+    "save_weights_from_step": "use 'snapshots' (how many, one every thirtieth of total_steps)",
+    **{
+        name: "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
+        for name in ("n_step", "priority_alpha", "priority_beta", "priority_beta_steps", "clearance_m", "clearance_weight")
+        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "augment_shift_px")
+    },
+}
 
 # TrainerConfig's fields that size SAM's relational module (the NetConfig fields of the same names).
 SAM_SIZES = ("d_model", "heads", "relational_blocks", "mlp_hidden")
 
 
-MAX_SNAPSHOTS = 1000  # weight snapshots one run may write (each a full weights file)
-
-
-def snapshot_steps(every: int, first: int, total_steps: int) -> list[int]:
-    """The env steps of trainer_node's weight snapshots: every `every` steps from `first` (0: from `every`)
-    to below `total_steps`, whose end the final weights file already holds. Raises ValueError, naming the
-    parameters, when snapshots are asked for without a budget, or none or over MAX_SNAPSHOTS fall inside it."""
-    if every == 0:
-        if first:
-            raise ValueError("parameter 'save_weights_from_step' needs save_weights_every_steps > 0")
+def snapshot_steps(snapshots: int, total_steps: int) -> list[int]:
+    """The env steps of a run's weight snapshots: `snapshots` of them one every thirtieth of the budget, the
+    last a thirtieth before its end (30 000 steps, 9: 21 000 ... 29 000); ValueError without a budget."""
+    if not snapshots:
         return []
-    if total_steps == 0:
-        raise ValueError("parameter 'save_weights_every_steps' needs a step budget (total_steps > 0)")
-    steps = range(first or every, total_steps, every)
-    if not 1 <= len(steps) <= MAX_SNAPSHOTS:
-        raise ValueError(
-            f"parameters 'save_weights_every_steps'={every} and 'save_weights_from_step'={first}: {len(steps)} "
-            f"snapshots fall below total_steps={total_steps}; between 1 and {MAX_SNAPSHOTS} can be written"
-        )
-    return list(steps)
+    if total_steps < 30:
+        raise ValueError(f"'snapshots'={snapshots} needs a step budget of at least 30 (total_steps={total_steps})")
+    every = total_steps // 30
+    return list(range(total_steps - snapshots * every, total_steps, every))
 
 
 def snapshot_file(run_dir, model: str, step: int) -> Path:
@@ -119,33 +134,9 @@ def snapshot_file(run_dir, model: str, step: int) -> Path:
     return Path(run_dir) / f"policy_{model}_step{step}.safetensors"
 
 
-def priority_beta(cfg: TrainerConfig, env_steps: int) -> float:
-    """The importance-weight exponent at env_steps: priority_beta rising linearly to 1."""
-    if cfg.priority_beta_steps <= 0 or env_steps >= cfg.priority_beta_steps:
-        return 1.0
-    return cfg.priority_beta + (1.0 - cfg.priority_beta) * env_steps / cfg.priority_beta_steps
-
-
-def replay_description(cfg: TrainerConfig) -> str:
-    """How the learner samples and bootstraps, for logs."""
-    sampling = "uniform replay"
-    if cfg.priority_alpha > 0.0:
-        sampling = (
-            f"prioritized replay (alpha {cfg.priority_alpha:g}, beta {cfg.priority_beta:g} -> 1 "
-            f"over {cfg.priority_beta_steps} steps)"
-        )
-    shift = f", states shifted by up to {cfg.learner.augment_shift_px} px" if cfg.learner.augment_shift_px else ""
-    return f"{sampling}, {cfg.n_step}-step returns{shift}"
-
-
 def reward_description(cfg: TrainerConfig) -> str:
-    """The training reward in words, for logs: the paper's, and any extension switched on."""
-    parts = ["the paper's"]
-    if cfg.turn_penalty > 0.0:
-        parts.append(f"- {cfg.turn_penalty:g} per turning step")
-    if cfg.clearance_m > 0.0:
-        parts.append(f"- clearance penalty (up to {cfg.clearance_weight:g} within {cfg.clearance_m:g} m)")
-    return " ".join(parts)
+    """The training reward in words, for logs."""
+    return "the paper's" + (f" - {cfg.turn_penalty:g} per turning step" if cfg.turn_penalty > 0.0 else "")
 
 
 def machine_info() -> dict:
@@ -167,14 +158,11 @@ def machine_info() -> dict:
 
 
 class Training:
+    """One training run: add transitions as they come, then `learn_due()` after each step. Single-threaded:
+    the in-process loop and trainer_node (which learns in lockstep with acting) call it the same way."""
+
     def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
-        if not 1 <= cfg.n_step <= MAX_N_STEP:
-            raise ValueError(f"n_step must lie in [1, {MAX_N_STEP}], got {cfg.n_step}")
-        if not 0.0 <= cfg.priority_alpha <= 1.0 or not 0.0 <= cfg.priority_beta <= 1.0 or cfg.priority_beta_steps < 0:
-            raise ValueError(
-                "priority_alpha and priority_beta must lie in [0, 1] and priority_beta_steps be >= 0, got "
-                f"{cfg.priority_alpha}, {cfg.priority_beta}, {cfg.priority_beta_steps}"
-            )
+        cfg.validate()
         self.cfg = cfg
         self.log = log
         self.dir = Path(run_dir)
@@ -195,27 +183,25 @@ class Training:
         # the window is sim_node's and trainer_node reads it back from step_outcome's field of view).
         self.reward_window_fraction: float | None = None
         torch.manual_seed(cfg.seed)
-        self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), cfg.device)
+        self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device))
         self.replay = ReplayMemory(
             cfg.replay_capacity, (self.net_cfg.height, self.net_cfg.width), self.net_cfg.frames, seed=cfg.seed
         )
         self.stats = EpisodeStats()
-        self.lock = threading.Lock()
         self.env_steps = 0
         self.collisions = 0
         self.reward_sum = 0.0
         self.last_loss = float("nan")
         self.last_q = float("nan")
         self.failed: str | None = None
-        self._pending_push: bytes | None = None
-        self._snapshots_due: list[int] = []  # plan_snapshots: env steps whose weights are still to be written
         self.t_start = time.monotonic()
         self.resumed_from = None
         self._updates_at_start, self._steps_at_start = 0, 0
         if resume:
             self._resume()
+        # The snapshots still to be written (a resumed run keeps those it wrote before).
+        self._snapshots_due = [n for n in snapshot_steps(cfg.snapshots, cfg.total_steps) if n > self.env_steps]
         self._record_machine()
-        self._pending_push = self.weights_blob()  # the policy acts with the learner's weights from the start
         self._open_logs()
 
     # -- run directory ------------------------------------------------------------------
@@ -226,10 +212,6 @@ class Training:
     @property
     def policy_weights_path(self) -> Path:
         return self.dir / f"policy_{self.cfg.model}.safetensors"
-
-    @property
-    def ema_weights_path(self) -> Path:
-        return self.dir / f"policy_{self.cfg.model}_ema.safetensors"
 
     def _record_machine(self) -> None:
         info = machine_info()
@@ -321,39 +303,32 @@ class Training:
         return linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps)
 
     def add_first(self, frame: np.ndarray) -> None:
-        with self.lock:
-            self.replay.add_first(frame)
+        self.replay.add_first(frame)
 
     def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
         """One transition; the reward comes from the simulator package's reward function. Steps after the
         budget is spent are not recorded (not learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
-        if self.cfg.clearance_m > 0.0 and not collided:  # after a collision next_frame is the next episode's
-            reward += clearance_penalty(band_min_depth(next_frame), self.cfg.clearance_m, self.cfg.clearance_weight)
         if self.cfg.turn_penalty > 0.0 and not collided and action in self.cfg.turning_actions:
             reward -= self.cfg.turn_penalty
-        with self.lock:
-            if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
-                return reward
-            self.replay.add_transition(action, reward, collided, next_frame)
-            self.env_steps += 1
-            self.reward_sum += reward
-            self.collisions += int(collided)
-            ended = self.stats.step(reward, collided, self.env_steps)
-        self._log_episode(ended, "crash")
+        if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
+            return reward
+        self.replay.add_transition(action, reward, collided, next_frame)
+        self.env_steps += 1
+        self.reward_sum += reward
+        self.collisions += int(collided)
+        self._log_episode(self.stats.step(reward, collided, self.env_steps), "crash")
         return reward
 
     def add_truncated(self, first_frame: np.ndarray) -> None:
         """A step that ended its episode without a collision (the simulator's time limit): nothing is
         learnt from it, because its next frame is already the new episode's first (`first_frame`),
         which starts a new chain. Counted as an environment step with reward 0 in the episode stats."""
-        with self.lock:
-            if self.budget_done:
-                return
-            self.replay.add_first(first_frame)
-            self.env_steps += 1
-            ended = self.stats.step(0.0, True, self.env_steps)
-        self._log_episode(ended, "time_limit")
+        if self.budget_done:
+            return
+        self.replay.add_first(first_frame)
+        self.env_steps += 1
+        self._log_episode(self.stats.step(0.0, True, self.env_steps), "time_limit")
 
     def _log_episode(self, ended: tuple[int, float] | None, end: str) -> None:
         if not ended:
@@ -370,38 +345,20 @@ class Training:
         return self.cfg.total_steps > 0 and self.env_steps >= self.cfg.total_steps
 
     # -- learning side ------------------------------------------------------------------
-    def _updates_due(self) -> tuple[bool, float]:
-        """(enough transitions since start-up, the updates replay_ratio x env steps allows so far)."""
-        with self.lock:
-            ready = len(self.replay) >= min(self.cfg.learning_starts, self.cfg.replay_capacity - 10)
-            fresh_steps = self.env_steps - self._steps_at_start - self.cfg.learning_starts
-        return ready, self._updates_at_start + fresh_steps * self.cfg.replay_ratio
-
     def can_learn(self) -> bool:
         """Enough transitions since start-up, and updates below replay_ratio x env steps."""
         if self.failed:
             return False
-        ready, allowed = self._updates_due()
+        c = self.cfg
+        ready = len(self.replay) >= min(c.learning_starts, c.replay_capacity - 10)
+        allowed = self._updates_at_start + (self.env_steps - self._steps_at_start - c.learning_starts) * c.replay_ratio
         return ready and self.learner.updates < allowed
 
-    def learning_lag(self) -> tuple[int, int]:
-        """(updates the learner is short of replay_ratio x env steps, updates due since learning began).
-        In process acting waits for learning, so this stays 0; over ROS acting runs on and the learner
-        can fall behind on a busy machine."""
-        ready, allowed = self._updates_due()
-        due = int(allowed) - self._updates_at_start
-        if not ready or due <= 0:
-            return 0, 0
-        return max(0, int(allowed) - self.learner.updates), due
-
     def learn_once(self) -> bool:
-        """One update if allowed now; handles push and checkpoint cadence. False if nothing done."""
+        """One update if allowed now, with the checkpoint cadence. False if nothing was done."""
         if not self.can_learn():
             return False
-        c = self.cfg
-        with self.lock:
-            beta = priority_beta(c, self.env_steps)
-            batch = self.replay.sample(c.learner.batch_size, c.n_step, c.learner.gamma, c.priority_alpha, beta)
+        batch = self.replay.sample(self.cfg.learner.batch_size)
         try:
             out = self.learner.update(batch)
         except NonFiniteLoss as e:
@@ -411,23 +368,26 @@ class Training:
             )
             self.log(self.failed)
             return False
-        if c.priority_alpha > 0.0:
-            with self.lock:
-                self.replay.update_priorities(batch["index"], batch["writes"], out["td_abs"])
         self.last_loss, self.last_q = out["loss"], out["q_mean"]
         u = self.learner.updates
         if self.tb and u % 10 == 0:
             self.tb.add_scalar("train/loss", out["loss"], u)
             self.tb.add_scalar("train/q_mean", out["q_mean"], u)
-        if u % self.cfg.push_interval_updates == 0:
-            self._pending_push = self.weights_blob()
         if u % self.cfg.checkpoint_interval_updates == 0:
             self.save_checkpoint()
         return True
 
-    def take_push(self) -> bytes | None:
-        blob, self._pending_push = self._pending_push, None
-        return blob
+    def learn_due(self) -> list[Path]:
+        """After each stored step: the updates replay_ratio allows, then the snapshots due; their paths.
+        The per-step learning of both the in-process loop and trainer_node."""
+        while self.learn_once():
+            pass
+        written = []
+        while self._snapshots_due and self._snapshots_due[0] <= self.env_steps and not self.failed:
+            path = self.snapshot_path(self._snapshots_due.pop(0))
+            self.save_weights(path)
+            written.append(path)
+        return written
 
     def weights_blob(self) -> bytes:
         return wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg, self.reward_window_fraction)
@@ -447,38 +407,18 @@ class Training:
         if self.failed:
             return None
         with_replay = final and self.cfg.save_replay and not self.budget_done
-        with self.lock:
-            counters = self.counters()
-            rng = {"replay": checkpoint.rng_state(self.replay.rng)}
-            replay = self.replay.state() if with_replay else None
-        path = checkpoint.save(self.checkpoint_dir, self.learner, counters, rng, replay)
+        rng = {"replay": checkpoint.rng_state(self.replay.rng)}
+        replay = self.replay.state() if with_replay else None
+        path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, replay)
         if replay is not None:
             mib = sum(a.nbytes for a in replay.values()) / 2**20
             self.log(f"replay memory saved with the checkpoint: {len(self.replay)} transitions, {mib:.0f} MiB")
         self.save_weights(self.policy_weights_path)
-        if self.learner.ema is not None:
-            self.save_weights(self.ema_weights_path, self.learner.ema)
         self.plot()
         return path
 
     def snapshot_path(self, step: int) -> Path:
         return snapshot_file(self.dir, self.cfg.model, step)
-
-    def plan_snapshots(self, steps) -> None:
-        """Write the online network as snapshot_path(N) once the run reaches env step N, for each N in
-        `steps` it has not passed yet (a resumed run keeps the snapshots it wrote before)."""
-        self._snapshots_due = sorted({int(n) for n in steps if int(n) > self.env_steps})
-
-    def save_due_snapshots(self) -> list[Path]:
-        """Write the planned snapshots whose env step has been reached; returns their paths. In process
-        this is called right after the step's updates; over ROS from the learner thread between updates,
-        so a snapshot holds the updates done when the learner saw its step."""
-        written = []
-        while self._snapshots_due and self._snapshots_due[0] <= self.env_steps and not self.failed:
-            path = self.snapshot_path(self._snapshots_due.pop(0))
-            self.save_weights(path)
-            written.append(path)
-        return written
 
     def save_weights(self, path, net=None) -> None:
         """Write `net` (default: the online network) as a policy weights file, atomically, with this run's

@@ -1,0 +1,55 @@
+"""policy_node's parameters, declared once (uav_common.settings): the ROS declarations, params/policy.yaml
+and docs/PARAMETERS.md come from here."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from uav_common.settings import setting
+
+from .actions import ActionSettings
+from .networks import MAX_FRAMES, SAM_READOUTS, NetConfig
+
+# Parameters retired, and why: a node given one stops at start-up and says so.
+RETIRED = {"ensemble_rule": "several weights files always act on their mean Q-values (the min rule did not help)"}
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicySettings:
+    """policy_node's parameters."""
+
+    model: str = setting("sam", "Q-network: sam (D3QN-SAM, attention) or cnn (D3QN-CNN)", choices=("sam", "cnn"))
+    weights: str = setting(
+        "",
+        "safetensors weights file, or several separated by commas, flown as one policy on the mean of their Q-values "
+        "(e.g. a run's snapshots and final weights, as train prints them); empty: the packaged weights",
+    )
+    epsilon: float = setting(0.0, "Probability of a random action (exploration); the trainer sets it", 0.0, 1.0, read_only=False)
+    seed: int = setting(0, "Seed for the random initialisation and for exploration", 0, 2**31 - 1)
+    device: str = setting(
+        "auto", "Torch device: auto (cuda when present, else cpu), cpu or cuda", choices=("auto", "cpu", "cuda")
+    )
+    step_duration_s: float = setting(0.5, "Duration of one sim step (s); must equal sim_node's", 0.01, 5.0)
+    actions: ActionSettings = ActionSettings()
+    frame_stack: int = setting(NetConfig.frames, "Depth frames in the state", 1, MAX_FRAMES)
+    input_height: int = setting(64, "Network input height (px); frames of another size are resized", 8, 512)
+    input_width: int = setting(64, "Network input width (px)", 8, 512)
+    max_range_m: float = setting(10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
+    sam_readout: str = setting(
+        "max",
+        "SAM readout: max pools the nodes (the paper's design); flatten keeps each node's place; must match the weights",
+        choices=SAM_READOUTS,
+    )
+    publish_overlay: bool = setting(True, "Publish attention/overlay (rgb8)")
+    wait_for_trainer: bool = setting(
+        False,
+        "Lockstep learning (train sets true): answer a frame only once trainer_node releases it over ~/push_weights "
+        "(after its updates from the step that produced the frame, with their weights and epsilon)",
+    )
+    wait_for_trainer_timeout_s: float = setting(
+        10.0,
+        "wait_for_trainer: a frame held this long is answered anyway, with a warning (the run is then no longer in lockstep)",
+        0.1,
+        3600.0,
+    )
+    torch_threads: int = setting(1, "Torch intra-op threads (batch-1 inference gains nothing from more)", 1, 256)
