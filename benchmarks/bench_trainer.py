@@ -26,7 +26,7 @@ from uav_common.settings import build
 from uav_policy.networks import NetConfig
 from uav_sim.simulator import SimConfig
 from uav_trainer.episodes import steady_metrics_rows
-from uav_trainer.evaluate import evaluate_inprocess
+from uav_trainer.flights import evaluate_inprocess
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.inprocess import sim_settings
 from uav_trainer.learner import Learner, LearnerConfig

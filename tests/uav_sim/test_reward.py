@@ -4,10 +4,8 @@ import numpy as np
 import pytest
 
 from uav_sim.reward import (
-    band_min_depth,
     center_window_min_depth,
     center_window_slices,
-    clearance_penalty,
     step_reward,
     window_fov_rad,
     window_fraction_for_fov,
@@ -64,30 +62,3 @@ def test_center_window_min_depth_reads_only_the_window_and_rep117():
     d[32, 32] = -np.inf  # too close to measure: 0
     assert center_window_min_depth(d, 10.0) == 0.0
     assert math.isfinite(step_reward(center_window_min_depth(d, 10.0), False))
-
-
-def test_band_min_depth_sees_the_sides_but_not_floor_or_ceiling():
-    d = np.full((64, 64), 8.0, dtype=np.float32)
-    d[63, :] = 0.9  # floor in the bottom row: outside the band
-    d[0, :] = 0.9  # ceiling: outside the band
-    assert band_min_depth(d) == pytest.approx(8.0)
-    d[30, 0] = 1.2  # a beam at the left edge of the image, at eye height: inside the band
-    assert band_min_depth(d) == pytest.approx(1.2)
-    assert center_window_min_depth(d, 10.0) == pytest.approx(8.0)  # beta does not see it
-    d[30, 0] = np.nan
-    assert band_min_depth(d) == pytest.approx(8.0)
-    d[:] = np.inf
-    assert band_min_depth(d) == math.inf
-    d[31, 5] = -np.inf
-    assert band_min_depth(d) == 0.0
-
-
-def test_clearance_penalty_is_linear_inside_the_margin_and_off_at_zero():
-    assert clearance_penalty(2.0, 1.0, 4.0) == 0.0
-    assert clearance_penalty(1.0, 1.0, 4.0) == 0.0
-    assert clearance_penalty(0.5, 1.0, 4.0) == pytest.approx(-2.0)
-    assert clearance_penalty(0.0, 1.0, 4.0) == pytest.approx(-4.0)
-    assert clearance_penalty(math.inf, 1.0, 4.0) == 0.0
-    assert clearance_penalty(0.1, 0.0, 4.0) == 0.0  # clearance 0: the paper's reward
-    with pytest.raises(ValueError):
-        clearance_penalty(0.5, -1.0, 4.0)

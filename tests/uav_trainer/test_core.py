@@ -185,7 +185,7 @@ def test_only_complete_checkpoints_are_resumed(tmp_path):
 
 
 def test_confidence_interval_matches_a_hand_computed_t_interval():
-    from uav_trainer.evaluate import mean_ci95
+    from uav_trainer.tables import mean_ci95
 
     mean, hw = mean_ci95([0.0, 1.0, 2.0])  # s = 1, n = 3: 4.303 * 1 / sqrt(3)
     assert mean == 1.0 and hw == pytest.approx(4.303 / 3**0.5)

@@ -12,7 +12,7 @@ import torch
 from conftest import ROOT, executable, script_module
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_trainer.evaluate import Behaviour, evaluate_once
+from uav_trainer.flights import Behaviour, evaluate_once
 
 
 def run_tool(pkg, exe, *args, domain="75", timeout=300):

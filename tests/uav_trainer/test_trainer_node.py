@@ -12,7 +12,7 @@ from conftest import ROOT, deep_qos, executable, run_to_exit
 from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_trainer.evaluate import ENSEMBLE_SEP, evaluate_once
+from uav_trainer.flights import ENSEMBLE_SEP, evaluate_once
 from uav_trainer.training import snapshot_steps
 
 SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
@@ -322,7 +322,7 @@ def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov
     random start heading, extra sim parameters, the weights' SAM readout, input size, layer sizes and frame stack
     and, without an hfov_deg argument, the camera recorded in the weights and the reward window it records reach the nodes)."""
     from uav_sim.simulator import SimConfig
-    from uav_trainer.evaluate import evaluate_inprocess
+    from uav_trainer.flights import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
     cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)

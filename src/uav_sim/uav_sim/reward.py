@@ -97,26 +97,3 @@ def step_reward(beta_m: float, collided: bool, delta_m: float = DELTA_M) -> floa
     if beta_m > delta_m:
         return 3.0 + beta_m / 5.0
     return -delta_m / (beta_m + 0.5)
-
-
-def band_min_depth(depth_m: np.ndarray, fraction: float = CENTER_WINDOW_FRACTION) -> float:
-    """The nearest return (m) in the horizontal band of central rows across the full width.
-
-    Unlike beta's central window it sees obstacles beside the flight path; the band keeps
-    the floor and ceiling out of the near returns. +Inf when nothing is within range.
-    """
-    rows, _ = center_window_slices(*_image_shape(depth_m), fraction)
-    return _nearest(depth_m[rows, :])
-
-
-def clearance_penalty(band_min_m: float, clearance_m: float, weight: float) -> float:
-    """Extra reward (<= 0) for flying closer than `clearance_m` to anything in the band.
-
-    Linear: 0 at the clearance distance, -weight at contact. `clearance_m` 0 switches it
-    off (the paper's reward). This is the safety margin the paper proposes as future work.
-    """
-    if clearance_m < 0.0 or weight < 0.0:
-        raise ValueError(f"clearance_m and weight must be >= 0, got {clearance_m} and {weight}")
-    if clearance_m == 0.0 or math.isnan(band_min_m) or band_min_m >= clearance_m:
-        return 0.0
-    return -weight * (clearance_m - max(band_min_m, 0.0)) / clearance_m

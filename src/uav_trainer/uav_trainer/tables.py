@@ -1,0 +1,285 @@
+"""Result tables: runs pooled per policy, means with 95 % t-intervals over policies beside the paper's
+numbers (results.md), the rows as results.csv, and those rows read back (`--from-csv`)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .flights import TURN_DEG, EvalResult
+
+PAPER = {  # Table 1 crashes / Table 2 mean reward, per 1000 test steps
+    ("sam", "basic"): (0, 2.406),
+    ("sam", "complex"): (1, 2.16),
+    ("sam", "turbulent"): (1, -7.809),
+    ("cnn", "basic"): (8, 2.459),
+    ("cnn", "complex"): (5, 2.319),
+    ("cnn", "turbulent"): (10, -7.83),
+}
+
+
+def pool(runs: list[EvalResult]) -> EvalResult:
+    """Several evaluations of one weight file in one world as one (steps, crashes and distance summed)."""
+    first = runs[0]
+    steps = sum(r.steps for r in runs)
+    reward = sum(r.mean_reward * r.steps for r in runs) / steps
+    return EvalResult(
+        first.model,
+        first.world,
+        first.weights,
+        steps,
+        sum(r.crashes for r in runs),
+        reward,
+        sum(r.distance_m for r in runs),
+        *(
+            sum(getattr(r, k) for r in runs) if all(getattr(r, k) >= 0 for r in runs) else -1
+            for k in ("crash_sites", "turn_steps", "cells")
+        ),
+    )
+
+
+# Two-sided 95% Student t quantiles by sample size n (n - 1 degrees of freedom); normal beyond 30.
+T975 = {
+    2: 12.706,
+    3: 4.303,
+    4: 3.182,
+    5: 2.776,
+    6: 2.571,
+    7: 2.447,
+    8: 2.365,
+    9: 2.306,
+    10: 2.262,
+    11: 2.228,
+    12: 2.201,
+    13: 2.179,
+    14: 2.160,
+    15: 2.145,
+    16: 2.131,
+    17: 2.120,
+    18: 2.110,
+    19: 2.101,
+    20: 2.093,
+    21: 2.086,
+    22: 2.080,
+    23: 2.074,
+    24: 2.069,
+    25: 2.064,
+    26: 2.060,
+    27: 2.056,
+    28: 2.052,
+    29: 2.048,
+    30: 2.045,
+}
+
+
+def mean_ci95(values) -> tuple[float, float]:
+    """Mean and half-width of a 95% t confidence interval (nan for n < 2)."""
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return math.nan, math.nan
+    if v.size < 2:
+        return float(v.mean()), math.nan
+    t = T975.get(v.size, 1.96)
+    return float(v.mean()), float(t * v.std(ddof=1) / math.sqrt(v.size))
+
+
+def fmt(mean: float, hw: float, digits: int = 2) -> str:
+    if math.isinf(mean):
+        return "no crash"
+    return f"{mean:.{digits}f}" + ("" if math.isnan(hw) else f" ± {hw:.{digits}f}")
+
+
+def distance_cell(runs: list[EvalResult]) -> str:
+    dist, crashes = sum(r.distance_m for r in runs), sum(r.crashes for r in runs)
+    free = sum(1 for r in runs if r.crashes == 0)
+    head = f"{dist / crashes:.0f}" if crashes else f"no crash in {dist:.0f} m"
+    return f"{head} ({free}/{len(runs)} runs crash-free)"
+
+
+def pooled_table(results, models, worlds, title: str, column: str, cell, intro: str = "") -> list[str]:
+    """A Markdown table with one cell per (world, model) computed from all runs of that pair."""
+    lines = [f"### {title}", "", *([intro, ""] if intro else [])]
+    lines += ["| world | " + " | ".join(f"D3QN-{m.upper()}{column}" for m in models) + " |", "|" + "---|" * (1 + len(models))]
+    for world in worlds:
+        cells = []
+        for m in models:
+            runs = [r for r in results if r.model == m and r.world == world]
+            cells.append(cell(runs) if runs else "-")
+        lines.append(f"| {world} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol: str = "") -> tuple[Path, Path]:
+    """results.csv (one row per run) and results.md (Tables 1-2 and distance, mean ± 95% CI over seeds)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = out_dir / "results.csv"
+    with open(csv_path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(
+            [
+                "model",
+                "world",
+                "weights",
+                "steps",
+                "crashes",
+                "crashes_per_1000",
+                "mean_reward",
+                "distance_m",
+                "distance_between_crashes_m",
+                "crash_sites",
+                "turn_steps",
+                "cells_visited",
+            ]
+        )
+        for r in results:
+            w.writerow(
+                [
+                    r.model,
+                    r.world,
+                    r.weights,
+                    r.steps,
+                    r.crashes,
+                    f"{1000 * r.crashes / r.steps:.2f}",
+                    f"{r.mean_reward:.4f}",
+                    f"{r.distance_m:.2f}",
+                    f"{r.distance_between_crashes_m:.2f}",
+                    r.crash_sites,
+                    r.turn_steps,
+                    r.cells,
+                ]
+            )
+    models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
+    worlds = list(dict.fromkeys(r.world for r in results))
+    lines = [
+        f"Exploit-only (epsilon 0) evaluation, {steps} lockstep steps per run; mean ± 95% CI over the "
+        "weight files (training seeds); n = runs per cell." + (f" {protocol}" if protocol else ""),
+        "",
+    ]
+    for title, key, digits, idx in (  # idx: the column of PAPER
+        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2, 0),
+        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3, 1),
+    ):
+        lines += [f"### {title}", ""]
+        lines += [
+            "| world | " + " | ".join(f"D3QN-{m.upper()} | paper" for m in models) + " |",
+            "|" + "---|" * (1 + 2 * len(models)),
+        ]
+        for world in worlds:
+            cells = []
+            for m in models:
+                vals = [key(r) for r in results if r.model == m and r.world == world]
+                cells.append(f"{fmt(*mean_ci95(vals), digits)} (n={len(vals)})" if vals else "-")
+                paper = PAPER.get((m, world))
+                cells.append(str(paper[idx]) if paper else "-")
+            lines.append(f"| {world} | " + " | ".join(cells) + " |")
+        lines.append("")
+    # Distance between crashes pooled over runs: runs without a crash would otherwise be dropped.
+    lines += pooled_table(results, models, worlds, "Distance flown between crashes (m), pooled over runs", "", distance_cell)
+    if results and all(r.crash_sites >= 0 for r in results):
+        intro = (
+            "A site is where a crashing step began (0.1 m grid), counted per run. With a fixed start pose a "
+            "deterministic policy repeats its flight after every crash, so many crashes at few sites are one "
+            "failure counted again."
+        )
+        lines += pooled_table(
+            results,
+            models,
+            worlds,
+            "Crashes and distinct crash sites, summed over runs",
+            " crashes / sites",
+            lambda runs: f"{sum(r.crashes for r in runs)} / {sum(r.crash_sites for r in runs)}",
+            intro,
+        )
+    if results and all(r.turn_steps >= 0 and r.cells >= 0 for r in results):
+        intro = (
+            f"A turning step changes the heading by more than {TURN_DEG:g}°; the area is the number of distinct "
+            "1 m x 1 m cells flown through, per run. A policy that circles on the spot crashes rarely but turns "
+            "on almost every step and covers little. Mean ± 95% CI over the weight files."
+        )
+        lines += pooled_table(
+            results,
+            models,
+            worlds,
+            "Flight behaviour: turning steps (%) / floor area covered (m² per 1000 steps)",
+            "",
+            lambda runs: (
+                fmt(*mean_ci95([100 * r.turn_steps / r.steps for r in runs]), 0)
+                + " / "
+                + fmt(*mean_ci95([1000 * r.cells / r.steps for r in runs]), 0)
+            ),
+            intro,
+        )
+    md_path = out_dir / "results.md"
+    md_path.write_text("\n".join(lines))
+    return md_path, csv_path
+
+
+RESULTS_COLUMNS = ("model", "world", "weights", "steps", "crashes", "mean_reward", "distance_m")
+
+
+def _csv_whole(row: dict, column: str, where: str, default: int | None = None) -> int:
+    text = row.get(column)
+    if text in (None, "") and default is not None:
+        return default
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {column} must be a whole number, got {text!r}") from None
+
+
+def _csv_number(row: dict, column: str, where: str) -> float:
+    try:
+        value = float(row[column])
+    except (TypeError, ValueError):
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: {column} must be a finite number, got {row[column]!r}")
+    return value
+
+
+def read_results_csvs(paths: list[str]) -> list[EvalResult]:
+    """The rows of earlier results.csv files (write_tables' format) as EvalResults, in order. ValueError,
+    naming the file and line, for a missing or unreadable file, a missing column, a model other than sam
+    or cnn, a count that is not a whole number or is impossible (crashes > steps), a number that is not
+    finite, or no rows at all. The optional columns (crash_sites, turn_steps, cells_visited) default to
+    -1 (unknown), as for tables written before they existed."""
+    results = []
+    for path in paths:
+        try:
+            with open(path, newline="") as f:
+                reader = csv.DictReader(f)
+                missing = [c for c in RESULTS_COLUMNS if c not in (reader.fieldnames or [])]
+                if missing:
+                    raise ValueError(f"{path}: no column {', '.join(missing)} (not an evaluate results.csv?)")
+                rows = list(reader)
+        except (OSError, UnicodeDecodeError, csv.Error) as e:
+            raise ValueError(f"{path}: cannot read it ({e})") from None
+        for line, r in enumerate(rows, start=2):
+            where = f"{path} line {line}"
+            if r["model"] not in ("sam", "cnn"):
+                raise ValueError(f"{where}: model must be sam or cnn, got {r['model']!r}")
+            if not r["world"] or not r["weights"]:
+                raise ValueError(f"{where}: world and weights must not be empty (a short row?)")
+            steps, crashes = _csv_whole(r, "steps", where), _csv_whole(r, "crashes", where)
+            if steps < 1 or not 0 <= crashes <= steps:
+                raise ValueError(f"{where}: needs steps >= 1 and 0 <= crashes <= steps, got {steps} and {crashes}")
+            results.append(
+                EvalResult(
+                    r["model"],
+                    r["world"],
+                    r["weights"],
+                    steps,
+                    crashes,
+                    _csv_number(r, "mean_reward", where),
+                    _csv_number(r, "distance_m", where),
+                    _csv_whole(r, "crash_sites", where, -1),
+                    _csv_whole(r, "turn_steps", where, -1),
+                    _csv_whole(r, "cells_visited", where, -1),
+                )
+            )
+    if not results:
+        raise ValueError(f"no rows in {', '.join(paths)}")
+    return results
