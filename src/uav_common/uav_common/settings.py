@@ -87,10 +87,10 @@ def check(spec: Spec, value):
     return value
 
 
-def build(cls, values: dict[str, Any], base=None):
-    """An instance of `cls` (or `base` replaced) with `values` (by setting name) checked; nested configs
-    are rebuilt. Raises SettingError for a value a setting cannot take or a name that is no setting."""
-    base = base if base is not None else cls()
+def build(cls, values: dict[str, Any]):
+    """An instance of `cls` with `values` (by setting name) checked; nested configs are rebuilt. Raises
+    SettingError for a value a setting cannot take or a name that is no setting."""
+    base = cls()
     known = {s.name: s for s in specs(base)}
     unknown = [n for n in values if n not in known]
     if unknown:
@@ -111,12 +111,6 @@ def _replace(obj, path, changes):
     return dataclasses.replace(obj, **nested, **changes.get(path, {}))
 
 
-def value_of(obj, spec: Spec):
-    for part in spec.path:
-        obj = getattr(obj, part)
-    return getattr(obj, spec.field)
-
-
 def unknown_message(name: str, known, removed: dict[str, str] | None = None) -> str:
     """'unknown setting' with a did-you-mean, or why it was removed and what replaces it."""
     if removed and name in removed:
@@ -126,20 +120,19 @@ def unknown_message(name: str, known, removed: dict[str, str] | None = None) -> 
 
 
 # -- ROS parameters -------------------------------------------------------------------------------
-def declare_settings(node, cls, removed: dict[str, str] | None = None, base=None):
+def declare_settings(node, cls, removed: dict[str, str] | None = None):
     """Declare every setting of `cls` on `node` (descriptor with description and range) and return the
     instance the node was given. ParameterError (uav_common.ros_params) names a bad value, and any
     parameter the node was given that nothing declares (`removed` says why for retired ones)."""
     from .ros_params import ParameterError, declare
 
-    base = base if base is not None else cls()
     values = {}
-    for s in specs(base):
+    for s in specs(cls):
         default = list(s.default) if isinstance(s.default, tuple) else s.default
         values[s.name] = declare(node, s.name, default, s.description, s.lo, s.hi, s.choices, s.read_only)
     check_undeclared(node, removed)
     try:
-        return build(cls, values, base)
+        return build(cls, values)
     except SettingError as e:
         raise ParameterError(f"parameter {e}") from None
 
@@ -160,11 +153,11 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def add_flags(parser: argparse.ArgumentParser, cls, names=None, base=None, title: str | None = None) -> None:
-    """Add a flag for each setting of `cls` (or those in `names`), defaulting to None (= not given)."""
+def add_flags(parser: argparse.ArgumentParser, cls, skip=(), title: str | None = None) -> None:
+    """Add a flag for each setting of `cls` but those in `skip`, defaulting to None (= not given)."""
     group = parser.add_argument_group(title) if title else parser
-    for s in specs(base if base is not None else cls):
-        if names is not None and s.name not in names:
+    for s in specs(cls):
+        if s.name in skip:
             continue
         kw: dict[str, Any] = {"default": None, "dest": f"setting_{s.name}", "metavar": s.name.upper()}
         rng = f" [{s.lo}, {s.hi}]" if s.lo is not None else ""
@@ -202,10 +195,10 @@ def fmt(value) -> str:
     return repr(value) if isinstance(value, str) else str(value)
 
 
-def reference_rows(cls, base=None) -> list[str]:
+def reference_rows(cls) -> list[str]:
     """Markdown table rows (name, default, range, description) for the parameter reference."""
     rows = ["| parameter | default | range | description |", "|---|---|---|---|"]
-    for s in specs(base if base is not None else cls):
+    for s in specs(cls):
         rng = f"[{s.lo}, {s.hi}]" if s.lo is not None else ", ".join(s.choices) if s.choices else ""
         rw = "" if s.read_only else " (changeable at run time)"
         rows.append(f"| `{s.name}` | `{fmt(s.default)}` | {rng} | {s.description}{rw} |")

@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--sim-arg", action="append", default=[], metavar="NAME:=VALUE", help="a sim_node parameter over the recipe's"
     )
-    add_flags(ap, TrainerConfig, title="trainer_node's parameters (over the recipe's)")
+    add_flags(ap, TrainerConfig, skip=("total_steps",), title="trainer_node parameters (over the recipe; --steps is the budget)")
     refuse_retired_flags(ap, sys.argv[1:] if argv is None else argv, RETIRED_FLAGS)
     a = ap.parse_args(argv)
     if a.steps <= 0:

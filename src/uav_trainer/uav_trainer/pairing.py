@@ -5,7 +5,7 @@ of frame k. Record k and observation k+1 (frame and outcome k+1) make the transi
 (s_k, a_k, r_k, s_{k+1}, done_k) when their stamps are exactly one step apart; r_k and done_k
 come from outcome k+1 (the outcome of the step that produced frame k+1). The transition is
 stored as soon as observation k+1 is in, before the policy answers frame k+1: a trainer that
-learns in lockstep (trainer_node's lockstep_learning) learns from it before the policy acts on
+learns in lockstep (trainer_node) learns from it before the policy acts on
 frame k+1, as the in-process loop does. Anything else - a gap, an action that matches no known
 action, a malformed frame - starts a new chain and is counted. A NaN outcome (the episode hit
 the simulator's time limit, or was reset) stores no transition: the frame it comes with starts
