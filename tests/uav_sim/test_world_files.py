@@ -109,3 +109,39 @@ def test_partition_layouts_add_long_boxes_and_keep_the_start_clear():
         assert min(obstacle_distance_m(o, x, y) for o in w.obstacles) > 1.4, w.name
     with pytest.raises(WorldError, match="after 'random_partitions:' must be an integer"):
         load_world("random_partitions:x")
+
+
+@pytest.mark.parametrize(
+    "text, said",
+    [
+        (  # a typo that would fly the base world's obstacles
+            "format: uav_sim_world/1\nbase: basic\nobstacle:\n  - {shape: box, x_m: 0, y_m: 2, size_x_m: 1}\n",
+            ":3: unknown key 'obstacle' (did you mean 'obstacles'?); valid keys: format, name, base, room, start, obstacles,",
+        ),
+        (
+            "format: uav_sim_world/1\nbase: basic\nroom: {length_m: 16, widht_m: 12}\n",
+            ":3: unknown key 'widht_m' in 'room' (did you mean 'width_m'?); valid keys: length_m, width_m, wall_height_m",
+        ),
+        ("format: uav_sim_world/1\nbase: basic\nstart:\n  x_m: 0\n  yaw: 90\n", ":5: unknown key 'yaw' in 'start'"),
+        (
+            "format: uav_sim_world/1\nbase: basic\nweather: {rian: 3}\n",
+            ":3: unknown key 'rian' in 'weather' (did you mean 'rain'?)",
+        ),
+        (
+            "format: uav_sim_world/1\nbase: basic\nobstacles:\n  - {shape: cylinder, x_m: 3, y_m: -2, radius_m: 0.3, height_m: 3,"
+            " colour: red}\n",
+            ":4: unknown key 'colour' in obstacle 0 (cylinder); valid keys: shape, x_m, y_m, height_m, radius_m",
+        ),
+        ("format: uav_sim_world/1\nbase: basic\ncolour: red\n", ":3: unknown key 'colour'; valid keys"),
+    ],
+)
+def test_unknown_or_misspelt_keys_stop_the_load_naming_key_line_and_valid_keys(tmp_path, text, said):
+    path = write(tmp_path, text)
+    with pytest.raises(WorldError) as e:
+        load_world(path)
+    assert str(e.value).startswith(path) and said in str(e.value), str(e.value)
+
+
+def test_the_built_in_worlds_use_only_known_keys():
+    for name in ("basic", "complex", "turbulent", "tests/worlds/small.yaml"):
+        assert load_world(name).obstacles

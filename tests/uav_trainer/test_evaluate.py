@@ -43,6 +43,8 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
         str(ROOT / "params"),
     )
     assert r.returncode == 0, r.stderr[-3000:]
+    # Redirected, no bar: a progress line per row, with its place in the whole and an ETA.
+    assert "[1/2, " in r.stdout and "[2/2, " in r.stdout and "ETA" in r.stdout, r.stdout[-2000:]
     md = (tmp_path / "eval" / "results.md").read_text()
     for title in ("Table 1: crashes per 1000 steps", "Table 2: mean reward per step", "Distance flown between crashes"):
         assert title in md
@@ -223,7 +225,7 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
     proto = ["--inprocess", "--worlds", "basic", "--steps", "40", "--start-yaw-jitter-deg", "180"]
     assert main([*proto, "--weights", a, "--out", str(tmp_path / "one")]) == 0
     assert main([*proto, "--ensemble", "2", "--weights", a, a_copy, "--out", str(tmp_path / "ens")]) == 0
-    progress = [line for line in capsys.readouterr().out.splitlines() if line.startswith("sam basic ")]
+    progress = [line.split("] ", 1)[-1] for line in capsys.readouterr().out.splitlines() if "] sam basic " in line]
     assert progress[-1].startswith(f"sam basic      ensemble of 2 ({a} ... {a_copy}): "), progress  # not every file
     one, ens = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("one", "ens"))
     assert ens["weights"] == f"{a}+{a_copy}"

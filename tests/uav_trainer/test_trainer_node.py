@@ -208,6 +208,9 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     assert sorted(run_dir.glob("policy_sam*.safetensors")) == sorted(files)
     assert logs["trainer"].count("weights snapshot") == 9
     assert "sim_node --ros-args -p hfov_deg:=150.0 & " in r.stdout
+    # Redirected output gets progress lines (a bar only on a terminal); the run's last row ends exploration.
+    assert "progress: 60/60 steps (100%)" in r.stdout and "steps/s, ETA" in r.stdout
+    assert float(list(csv.DictReader(open(run_dir / "metrics.csv")))[-1]["epsilon"]) == pytest.approx(0.05)
     assert f"-p model:=sam -p weights:={','.join(map(str, files))}" in r.stdout
     for f in files:
         assert wio.read_file_camera(f) == 150.0 and abs(wio.read_file_window(f) - 0.078) < 1e-3, f
@@ -288,6 +291,24 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
     made = wio.read_file_config(tmp_path / "policy_sam.safetensors")
     assert (made.d_model, made.heads, made.relational_blocks, made.mlp_hidden) == (24, 2, 2, 32)
+
+
+def test_a_failed_run_offers_no_weights_to_fly_least_of_all_an_earlier_runs(tmp_path):
+    """The trainer stops at start-up (a misspelt parameter): train exits with its code and does not point at the
+    weights an earlier run left in the folder."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    old = run_dir / "policy_sam.safetensors"
+    wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), old)
+    os.utime(old, (0, 0))  # long before this run
+    cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params")]
+    cmd += ["--steps", "60", "--trainer-arg", "lerning_rate:=0.1"]
+    env = dict(os.environ, ROS_DOMAIN_ID="81", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stdout[-1000:] + r.stderr[-1000:]
+    assert "fly them" not in r.stdout and str(old) not in r.stdout + r.stderr
+    assert "trainer_node exited with code 2" in r.stderr
+    assert "did you mean 'learning_rate'" in (run_dir / "logs" / "trainer.log").read_text()
 
 
 def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():

@@ -175,7 +175,7 @@ def test_a_new_layout_every_episode_never_the_held_out_ones_all_at_the_runs_firs
     observe, enter = Simulator.observe, Simulator._enter  # the first episode's frame; every later layout
     monkeypatch.setattr(Simulator, "observe", lambda sim: start_yaws.append(sim.pose.yaw_rad) or observe(sim))
     monkeypatch.setattr(Simulator, "_enter", lambda sim, *a, **k: enter(sim, *a, **k) or start_yaws.append(sim.pose.yaw_rad))
-    cfg = TrainerConfig(model="cnn", seed=0, total_steps=120, learning_starts=10**6, epsilon_start=1.0)
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=120, learning_starts=10**6, epsilon_end=1.0)  # random flight
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, world="random_each_episode", hfov_deg=90.0)
     assert wio.read_file_camera(t.policy_weights_path) == 90.0
     assert t.stats.episodes >= 3 and len(made) == t.stats.episodes + 1  # the first layout plus one per crash
@@ -186,7 +186,7 @@ def test_a_new_layout_every_episode_never_the_held_out_ones_all_at_the_runs_firs
 def test_inprocess_time_limit_cuts_long_episodes(tmp_path):
     import csv
 
-    cfg = TrainerConfig(model="cnn", seed=0, total_steps=80, learning_starts=10**6, epsilon_start=1.0)
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=80, learning_starts=10**6, epsilon_end=1.0)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, world="random_each_episode", hfov_deg=90.0, max_episode_steps=4)
     rows = list(csv.DictReader(open(tmp_path / "episodes.csv")))
     cut = [int(r["length"]) for r in rows if r["end"] == "time_limit"]
@@ -196,7 +196,8 @@ def test_inprocess_time_limit_cuts_long_episodes(tmp_path):
 
 
 def test_weight_snapshots_equal_the_shorter_run(tmp_path):
-    cfg = TrainerConfig(model="sam", seed=5, total_steps=300, learning_starts=100, replay_ratio=0.25, snapshots=2)
+    # Given schedules (the defaults follow the budget, so a shorter budget would explore for fewer steps).
+    cfg = TrainerConfig(model="sam", seed=5, total_steps=300, learning_starts=100, epsilon_decay_steps=100, snapshots=2)
     short = run_inprocess(dataclasses.replace(cfg, total_steps=290, snapshots=0), tmp_path / "short", log=lambda s: None)
     logged = []
     long = run_inprocess(cfg, tmp_path / "long", log=logged.append)
@@ -403,7 +404,7 @@ def test_inprocess_mix_world_flies_the_world_between_layouts(tmp_path, monkeypat
     entered = []
     enter = Simulator._enter
     monkeypatch.setattr(Simulator, "_enter", lambda sim, *a, **k: enter(sim, *a, **k) or entered.append(sim.world.name))
-    cfg = TrainerConfig(model="cnn", seed=0, total_steps=60, learning_starts=10**6, epsilon_start=1.0)
+    cfg = TrainerConfig(model="cnn", seed=0, total_steps=60, learning_starts=10**6, epsilon_end=1.0)
     run_inprocess(cfg, tmp_path, log=lambda s: None, world="random_each_episode", mix_world_every=2, max_episode_steps=3)
     # The first episode is a layout; from then on every second episode flies mix_world.
     assert len(entered) >= 10 and entered[0::2] == ["complex"] * len(entered[0::2])
@@ -445,3 +446,36 @@ def test_inprocess_reads_the_recipe_train_reads_and_takes_trainer_flags(tmp_path
             inprocess.main([*bad, "--run-dir", str(tmp_path / "bad")])
         assert e.value.code == 2 and said in capsys.readouterr().err, bad
     assert not (tmp_path / "bad").exists()
+
+
+def test_exploration_and_learning_start_follow_the_budget_unless_given(tmp_path):
+    """A 3000-step run decays epsilon over its first third and starts learning after a thirtieth: it ends at
+    epsilon_end, not at 0.7 as with a fixed 10 000-step decay. Given schedules longer than the budget are warned of."""
+    short = TrainerConfig(total_steps=3000)
+    assert (short.decay_steps, short.first_update_after) == (1000, 100)
+    shipped = TrainerConfig(total_steps=30000)  # the shipped recipe's schedules, as before
+    assert (shipped.decay_steps, shipped.first_update_after) == (10000, 1000)
+    assert (TrainerConfig().decay_steps, TrainerConfig().first_update_after) == (10000, 1000)  # no budget
+    logs = []
+    t = Training(dataclasses.replace(small_cfg(learning_starts=0), total_steps=3000), tmp_path / "a", log=logs.append)
+    t.env_steps = 3000
+    assert t.epsilon() == pytest.approx(0.05) and not any("warning" in line for line in logs)
+    t.close()
+    explicit = small_cfg(total_steps=3000, epsilon_decay_steps=10000, learning_starts=5000)
+    t = Training(explicit, tmp_path / "b", log=logs.append)
+    t.close()
+    said = " ".join(logs)
+    assert "warning: epsilon_decay_steps=10000 is longer than total_steps=3000: epsilon ends at 0.715" in said
+    assert "warning: learning_starts=5000 is not below total_steps=3000: the run makes no update" in said
+
+
+def test_no_snapshot_is_written_before_the_first_update(tmp_path):
+    logs = []
+    t = Training(small_cfg(model="sam", total_steps=300, snapshots=2, learning_starts=1000), tmp_path, log=logs.append)
+    try:
+        feed(t, 295)
+        assert t.learn_due() == [] and t.learner.updates == 0
+        assert not list(tmp_path.glob("policy_sam_step*"))
+        assert any("step 280: no update yet (learning starts after 1000), no snapshot" in line for line in logs), logs
+    finally:
+        t.close()

@@ -21,6 +21,7 @@ Built-in worlds live in the package's `worlds/` folder (installed to share/uav_s
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import itertools
 import math
 import os
@@ -143,6 +144,49 @@ def _obstacle(o, where: str) -> Obstacle:
     raise WorldError(f"{where}: obstacle shape must be 'box' or 'cylinder', got {shape!r}")
 
 
+# The keys a world file may hold, per level; anything else (a typo, a key of another format) is refused.
+TOP_KEYS = ("format", "name", "base", "room", "start", "obstacles", "weather")
+SECTION_KEYS = {
+    "room": ("length_m", "width_m", "wall_height_m"),
+    "start": ("x_m", "y_m", "z_m", "yaw_deg"),
+    "weather": ("rain", "snow", "leaves"),
+}
+OBSTACLE_KEYS = {
+    "box": ("shape", "x_m", "y_m", "height_m", "size_x_m", "size_y_m", "yaw_deg"),
+    "cylinder": ("shape", "x_m", "y_m", "height_m", "radius_m"),
+}
+
+
+def _check_keys(node: yaml.Node, source: str) -> None:
+    """WorldError for the first key the format does not know, at any level, with its line, a did-you-mean
+    and the valid keys: a typo such as 'obstacle:' must not silently fly the base world's obstacles."""
+
+    def check(mapping: yaml.Node, valid, where: str) -> dict:
+        if not isinstance(mapping, yaml.MappingNode):
+            return {}
+        keys = {}
+        for k, v in mapping.value:
+            key = k.value if isinstance(k, yaml.ScalarNode) else str(k.value)
+            if key not in valid:
+                close = difflib.get_close_matches(key, valid, n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise WorldError(
+                    f"{source}:{k.start_mark.line + 1}: unknown key '{key}'{where}{hint}; valid keys: {', '.join(valid)}"
+                )
+            keys[key] = v
+        return keys
+
+    top = check(node, TOP_KEYS, "")
+    for section, valid in SECTION_KEYS.items():
+        if section in top:
+            check(top[section], valid, f" in '{section}'")
+    if isinstance(top.get("obstacles"), yaml.SequenceNode):
+        for i, o in enumerate(top["obstacles"].value):
+            shape = next((v.value for k, v in getattr(o, "value", []) if getattr(k, "value", None) == "shape"), None)
+            valid = OBSTACLE_KEYS.get(shape, tuple(dict.fromkeys(OBSTACLE_KEYS["box"] + OBSTACLE_KEYS["cylinder"])))
+            check(o, valid, f" in obstacle {i}" + (f" ({shape})" if shape in OBSTACLE_KEYS else ""))
+
+
 def _parse(doc, source: str, depth: int = 0) -> World:
     if not isinstance(doc, dict):
         raise WorldError(f"{source}: a world file must be a YAML mapping")
@@ -213,8 +257,11 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
         raise WorldError(f"cannot read world file '{path}': {e.strerror}") from None
     try:
         doc = yaml.safe_load(text)
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as e:
         raise WorldError(f"world file '{path}' is not valid YAML: {e}") from None
+    if node is not None:
+        _check_keys(node, str(path))
     return _parse(doc, str(path), _depth)
 
 

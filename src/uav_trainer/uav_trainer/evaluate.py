@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import time
 from pathlib import Path
 
 from .flights import (
@@ -238,15 +239,19 @@ def main(argv=None) -> int:
             bar.update(a.steps)
             return r
 
+        rows, t0 = len(runs) * len(a.worlds), time.monotonic()
         for model, files in runs:
             weights = ENSEMBLE_SEP.join(files)  # the weights column: "" for the packaged weights
             for world in a.worlds:
                 bar.set_description(f"{model} {world} {Path(files[0]).name if files else 'packaged'}")
                 r = pool([measure(model, weights, world, a.seed + i) for i in range(a.repeats)])
                 results.append(r)
+                # One line per row, on a terminal and in a log alike: with its place in the whole and an ETA.
+                elapsed = time.monotonic() - t0
+                eta = elapsed / len(results) * (rows - len(results))
                 bar.write(
-                    f"{model:3s} {world:10s} {weights_label(files)}: {r.crashes} crashes at {r.crash_sites} sites, "
-                    f"mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
+                    f"[{len(results)}/{rows}, {elapsed:.0f} s, ETA {eta:.0f} s] {model:3s} {world:10s} {weights_label(files)}: "
+                    f"{r.crashes} crashes at {r.crash_sites} sites, mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                 )
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())

@@ -105,6 +105,7 @@ def main(argv=None) -> int:
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     logs = run_dir / "logs"
+    started = time.time() - 1.0  # files written from here on are this run's (1 s for coarse file-system clocks)
     procs = Processes(log_dir=logs)
     p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731
@@ -160,10 +161,16 @@ def main(argv=None) -> int:
         procs.stop("trainer", timeout_s=120)
         procs.stop_all(["policy", "sim"])
     trainer_code = trainer.returncode
-    weights = run_dir / f"policy_{a.model}.safetensors"
-    if weights.exists():
-        # The snapshots this budget planned that were written (a stop before the end writes fewer), then the final weights.
-        files = [p for n in snapshot_at if (p := snapshot_file(run_dir, a.model, n)).exists()] + [weights]
+    failed = trainer_code not in (0, None, -signal.SIGINT)
+    # Only files this run wrote: an earlier run's (or a crashed run's) files are not this run's result.
+    planned = [snapshot_file(run_dir, a.model, n) for n in snapshot_at] + [run_dir / f"policy_{a.model}.safetensors"]
+    files = [p for p in planned if p.exists() and p.stat().st_mtime >= started]
+    if failed:
+        print(f"trainer_node exited with code {trainer_code}; see {logs / 'trainer.log'}", file=sys.stderr)
+        if files:
+            print(f"written before it stopped: {', '.join(map(str, files))}", file=sys.stderr)
+        return trainer_code
+    if files:
         camera = sim_values.get("hfov_deg")
         fly_sim = f"ros2 run uav_sim sim_node --ros-args -p hfov_deg:={float(camera)} & " if camera is not None else ""
         print(
@@ -171,25 +178,30 @@ def main(argv=None) -> int:
             f"-p model:={a.model} -p weights:={','.join(map(str, files))}"
             + (f" -p sam_readout:={a.sam_readout}" if a.sam_readout != "max" else "")
         )
-    if trainer_code not in (0, None, -signal.SIGINT):
-        print(f"trainer_node exited with code {trainer_code}; see {logs / 'trainer.log'}", file=sys.stderr)
-        return trainer_code
+    else:
+        print(f"this run wrote no weights in {run_dir}", file=sys.stderr)
     return code if not interrupted else 130
 
 
+PROGRESS_EVERY_S = 30.0  # a progress line this often when stdout is no terminal (a log file, CI, nohup)
+
+
 def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes) -> int:
-    """Show a progress bar from metrics.csv until the trainer exits or Ctrl-C."""
+    """Progress from metrics.csv until the trainer exits or Ctrl-C: a bar on a terminal, else a line every
+    PROGRESS_EVERY_S seconds and one at the end (steps, rate, ETA)."""
     from tqdm import tqdm
 
     metrics = run_dir / "metrics.csv"
     bar = tqdm(total=total, unit="step", dynamic_ncols=True, disable=None)
-    done = 0
+    lines = bar.disable  # tqdm disables itself when stdout is not a terminal
+    t0, done, printed = time.monotonic(), 0, time.monotonic()
+    code = 0
     while trainer.poll() is None and not interrupted():
-        for name in ("sim", "policy"):
-            if procs.procs[name].poll() is not None:
-                print(f"\n{name}_node exited early (code {procs.procs[name].returncode}); stopping", file=sys.stderr)
-                bar.close()
-                return 1
+        dead = [name for name in ("sim", "policy") if procs.procs[name].poll() is not None]
+        if dead:
+            print(f"\n{dead[0]}_node exited early (code {procs.procs[dead[0]].returncode}); stopping", file=sys.stderr)
+            code = 1
+            break
         time.sleep(1.0)
         steps, info = read_progress(metrics)
         if steps > done:
@@ -197,8 +209,24 @@ def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes) ->
             done = min(steps, total)
         if info:
             bar.set_postfix_str(info, refresh=True)
+        if lines and time.monotonic() - printed >= PROGRESS_EVERY_S:
+            print(progress_line(done, total, time.monotonic() - t0, info), flush=True)
+            printed = time.monotonic()
     bar.close()
-    return 0
+    if lines:
+        steps, info = read_progress(metrics)
+        print(progress_line(min(max(steps, done), total), total, time.monotonic() - t0, info), flush=True)
+    return code
+
+
+def progress_line(steps: int, total: int, elapsed_s: float, info: str) -> str:
+    """'progress: 1200/30000 steps (4%), 24.1 steps/s, ETA 19:54 | <metrics>' for logs."""
+    rate = steps / elapsed_s if elapsed_s > 0 else 0.0
+    left = (total - steps) / rate if rate > 0 else float("inf")
+    eta = "--:--" if left == float("inf") else f"{int(left // 60)}:{int(left % 60):02d}"
+    return f"progress: {steps}/{total} steps ({100.0 * steps / total:.0f}%), {rate:.1f} steps/s, ETA {eta}" + (
+        f" | {info}" if info else ""
+    )
 
 
 def read_progress(metrics: Path) -> tuple[int, str]:

@@ -43,14 +43,22 @@ class TrainerConfig:
     device: str = setting("auto", "Learner device: auto (cuda when present, else cpu), cpu or cuda", choices=DEVICES)
     total_steps: int = setting(0, "Environment steps budget; 0 = until stopped", 0, 10**10)
     replay_capacity: int = setting(50000, "Frames kept in the replay memory (each stored once; 64x64: 8 KiB)", 100, 10**7)
-    learning_starts: int = setting(1000, "Transitions collected before the first update", 1, 10**8)
+    learning_starts: int = setting(
+        0, "Transitions collected before the first update; 0 = a thirtieth of total_steps (1000 without a budget)", 0, 10**8
+    )
     replay_ratio: float = setting(
         0.25, "Updates per environment step (0.25: one per four steps, DQN's train_freq 4)", 0.001, 64.0
     )
     checkpoint_interval_updates: int = setting(1000, "Write a checkpoint every N updates", 1, 10**8)
     epsilon_start: float = setting(1.0, "Initial exploration rate", 0.0, 1.0)
     epsilon_end: float = setting(0.05, "Final exploration rate (the paper keeps 0.05)", 0.0, 1.0)
-    epsilon_decay_steps: int = setting(10000, "Environment steps of linear exploration decay", 0, 10**9)
+    epsilon_decay_steps: int = setting(
+        0,
+        "Environment steps of the linear decay from epsilon_start to epsilon_end; 0 = a third of total_steps (10000 "
+        "without a budget)",
+        0,
+        10**9,
+    )
     save_replay: bool = setting(
         True, "A stop before the budget also writes the replay memory with the final checkpoint; a resume restores it"
     )
@@ -86,6 +94,32 @@ class TrainerConfig:
     learner: LearnerConfig = LearnerConfig()
     turning_actions: tuple[int, ...] = (1, 2)  # the action indices that yaw (from the action table; not a setting)
 
+    @property
+    def first_update_after(self) -> int:
+        """Transitions before the first update: learning_starts, or a thirtieth of the budget."""
+        return self.learning_starts or max(1, (self.total_steps or NOMINAL_BUDGET) // 30)
+
+    @property
+    def decay_steps(self) -> int:
+        """Environment steps of the epsilon decay: epsilon_decay_steps, or a third of the budget."""
+        return self.epsilon_decay_steps or max(1, (self.total_steps or NOMINAL_BUDGET) // 3)
+
+    def budget_warnings(self) -> list[str]:
+        """What a budget too short for explicitly given schedules would silently do."""
+        out = []
+        if self.total_steps and self.epsilon_decay_steps > self.total_steps:
+            end = linear_epsilon(self.total_steps, self.epsilon_start, self.epsilon_end, self.epsilon_decay_steps)
+            out.append(
+                f"epsilon_decay_steps={self.epsilon_decay_steps} is longer than total_steps={self.total_steps}: epsilon "
+                f"ends at {end:.3f}, not {self.epsilon_end:g} (0, the default, decays over a third of the budget)"
+            )
+        if self.total_steps and self.learning_starts >= self.total_steps:
+            out.append(
+                f"learning_starts={self.learning_starts} is not below total_steps={self.total_steps}: the run makes no "
+                "update (0, the default, starts after a thirtieth of the budget)"
+            )
+        return out
+
     def validate(self) -> None:
         """ValueError naming the settings that cannot go together."""
         px = self.input_size_px
@@ -100,6 +134,9 @@ class TrainerConfig:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
         snapshot_steps(self.snapshots, self.total_steps)
 
+
+# Without a step budget the schedules are those of a run of this many steps (the shipped recipe's).
+NOMINAL_BUDGET = 30000
 
 # trainer_node parameters retired, and what replaces them: a node given one stops and says so.
 RETIRED = {
@@ -201,6 +238,8 @@ class Training:
             self._resume()
         # The snapshots still to be written (a resumed run keeps those it wrote before).
         self._snapshots_due = [n for n in snapshot_steps(cfg.snapshots, cfg.total_steps) if n > self.env_steps]
+        for warning in cfg.budget_warnings():
+            self.log(f"warning: {warning}")
         self._record_machine()
         self._open_logs()
 
@@ -300,7 +339,7 @@ class Training:
     # -- acting side --------------------------------------------------------------------
     def epsilon(self) -> float:
         c = self.cfg
-        return linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps)
+        return linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.decay_steps)
 
     def add_first(self, frame: np.ndarray) -> None:
         self.replay.add_first(frame)
@@ -350,8 +389,9 @@ class Training:
         if self.failed:
             return False
         c = self.cfg
-        ready = len(self.replay) >= min(c.learning_starts, c.replay_capacity - 10)
-        allowed = self._updates_at_start + (self.env_steps - self._steps_at_start - c.learning_starts) * c.replay_ratio
+        start = c.first_update_after
+        ready = len(self.replay) >= min(start, c.replay_capacity - 10)
+        allowed = self._updates_at_start + (self.env_steps - self._steps_at_start - start) * c.replay_ratio
         return ready and self.learner.updates < allowed
 
     def learn_once(self) -> bool:
@@ -384,7 +424,11 @@ class Training:
             pass
         written = []
         while self._snapshots_due and self._snapshots_due[0] <= self.env_steps and not self.failed:
-            path = self.snapshot_path(self._snapshots_due.pop(0))
+            step = self._snapshots_due.pop(0)
+            if self.learner.updates == 0:  # an untrained network is no snapshot of anything
+                self.log(f"step {step}: no update yet (learning starts after {self.cfg.first_update_after}), no snapshot")
+                continue
+            path = self.snapshot_path(step)
             self.save_weights(path)
             written.append(path)
         return written
@@ -484,6 +528,7 @@ class Training:
         return out
 
     def close(self) -> None:
+        self.metrics_row()  # the run's last row: progress readers see where it ended
         for f in (self._metrics, self._episodes):
             f.close()
         if self.tb:
