@@ -49,7 +49,7 @@ ENSEMBLE_SEP = "+"  # evaluate.ENSEMBLE_SEP: an ensemble's weights column is its
 def run_name(weights: str) -> str:
     """runs/turn_sam_seed3/policy_sam.safetensors -> turn_sam; .../policy_sam_step40000.safetensors -> turn_sam_step40000;
     an ensemble of three (evaluate --ensemble 3: files joined by '+') -> turn_sam_ens3, or turn_sam_snap3
-    when all three are files of one run (snapshots of one training, scripts/export_checkpoint.py), or
+    when all three are files of one run (its snapshots), or
     turn_sam_snap10_ens2 for ten snapshots of each of two runs"""
     if ENSEMBLE_SEP in weights:
         files = weights.split(ENSEMBLE_SEP)

@@ -253,7 +253,7 @@ def test_policy_start_up_errors(tmp_path):
     r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
     assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "ensemble_rule:=median")
-    assert r.returncode == 2 and "parameter 'ensemble_rule'" in r.stderr
+    assert r.returncode == 2 and "parameter 'ensemble_rule' was removed" in r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")
     assert r.returncode == 2 and "epsilon" in r.stderr
 
