@@ -4,6 +4,8 @@ the simulator installs no torch."""
 import subprocess
 import sys
 
+import pytest
+
 from conftest import ROOT
 
 PATHS = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
@@ -24,8 +26,9 @@ def test_the_policy_node_imports_no_simulator():
     assert not {"pybullet", "uav_sim", "uav_trainer"} & loaded
 
 
-def test_the_simulator_node_imports_no_torch():
-    loaded = imported_after("uav_sim.sim_node")
+@pytest.mark.parametrize("module", ["uav_sim.sim_node", "uav_sim.gym"])
+def test_the_simulator_imports_no_torch(module):
+    loaded = imported_after(module)
     assert "pybullet" in loaded
     assert not {"torch", "uav_policy", "uav_trainer"} & loaded
 

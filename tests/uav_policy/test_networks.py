@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from uav_policy.actions import PAPER_ACTIONS, match_action
+from uav_common.actions import PAPER_ACTIONS, match_action
+from uav_common.frame_stack import FrameStack
 from uav_policy.agent import Agent
 from uav_policy.attention import attention_map, overlay
-from uav_policy.frame_stack import FrameStack
 from uav_policy.networks import NetConfig, QEnsemble, build_network, normalise_depth, parameter_count
 
 

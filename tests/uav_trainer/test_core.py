@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from uav_policy.frame_stack import FrameStack
+from uav_common.frame_stack import FrameStack
 from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
 from uav_trainer.learner import Learner, LearnerConfig, double_dqn_target, linear_epsilon

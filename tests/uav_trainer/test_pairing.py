@@ -4,7 +4,7 @@ import numpy as np
 from geometry_msgs.msg import TwistStamped
 
 from uav_common import contract
-from uav_policy.actions import PAPER_ACTIONS
+from uav_common.actions import PAPER_ACTIONS
 from uav_sim.reward import step_reward
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.vehicle import BodyTwist

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 
+from uav_common.actions import ActionSettings
 from uav_common.settings import setting
 
-from .actions import ActionSettings
 from .networks import MAX_FRAMES, SAM_READOUTS, NetConfig
 
 # Parameters retired, and why: a node given one stops at start-up and says so.

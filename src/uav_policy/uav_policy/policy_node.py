@@ -23,6 +23,7 @@ from sensor_msgs.msg import CameraInfo, Image, Range
 from std_msgs.msg import Float32MultiArray
 
 from uav_common import contract
+from uav_common.frame_stack import FrameStack, fit_to_network
 from uav_common.node_runner import in_thread, run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
@@ -31,7 +32,6 @@ from . import weights as wio
 from .agent import Agent, resolve_device
 from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
-from .frame_stack import FrameStack, fit_to_network
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
 from .push import ReleaseGate, read_push
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from uav_common.actions import PAPER_ACTIONS
 from uav_policy import weights as wio
-from uav_policy.actions import PAPER_ACTIONS
 from uav_policy.agent import Agent
 from uav_policy.attention import attention_map, colourise_depth, overlay
 from uav_policy.networks import build_network

@@ -16,8 +16,8 @@ import time
 
 import torch
 
+from uav_common.actions import PAPER_ACTIONS, turning_indices
 from uav_common.settings import SettingError, add_flags, build, given_flags, refuse_retired_flags, specs
-from uav_policy.actions import PAPER_ACTIONS, turning_indices
 from uav_policy.agent import Agent
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem

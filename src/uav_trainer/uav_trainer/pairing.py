@@ -21,8 +21,8 @@ from __future__ import annotations
 import dataclasses
 
 from uav_common import contract
-from uav_policy.actions import match_action
-from uav_policy.frame_stack import fit_to_network
+from uav_common.actions import match_action
+from uav_common.frame_stack import fit_to_network
 
 
 @dataclasses.dataclass

@@ -28,10 +28,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
 from uav_common import contract
+from uav_common.actions import ActionSettings, turning_indices
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings, setting
-from uav_policy.actions import ActionSettings, turning_indices
 from uav_policy.agent import resolve_device
 from uav_policy.networks import parameter_count
 from uav_policy.push import push_request
