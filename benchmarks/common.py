@@ -6,7 +6,7 @@ import os
 import time
 from pathlib import Path
 
-from uav_trainer.launching import Processes
+from uav_common.launching import Processes
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL = ROOT / "install"
-sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
+sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
 
 # A private domain per test: tests never hear each other or anything else on the machine.
 _domains = itertools.count(1 + (os.getpid() * 7) % 60)
@@ -35,6 +35,18 @@ def deep_qos():
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10000)
+
+
+def read_bag(path):
+    """{topic: (msgtype, [deserialized messages])} of a recorded bag, through rosbags' reader."""
+    from rosbags.highlevel import AnyReader
+
+    out = {}
+    with AnyReader([Path(path)]) as reader:
+        for conn, _t, raw in reader.messages():
+            entry = out.setdefault(conn.topic, (conn.msgtype, []))
+            entry[1].append(reader.deserialize(raw, conn.msgtype))
+    return out
 
 
 def executable(pkg: str, exe: str) -> Path:
@@ -67,9 +79,9 @@ class RosHarness:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def start(self, pkg: str, exe: str, *ros_args: str, name: str | None = None) -> subprocess.Popen:
+    def start(self, pkg: str, exe: str, *ros_args: str, name: str | None = None, args=()) -> subprocess.Popen:
         log = self.tmp / f"{name or exe}.log"
-        cmd = [str(executable(pkg, exe))]
+        cmd = [str(executable(pkg, exe)), *args]
         if ros_args:
             cmd += ["--ros-args", *ros_args]
         proc = subprocess.Popen(cmd, env=self.env, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)

@@ -8,7 +8,7 @@ import pytest
 
 from conftest import ROOT
 
-PATHS = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
+PATHS = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
 
 
 def imported_after(module: str) -> set[str]:
@@ -39,3 +39,11 @@ def test_package_manifests_declare_what_the_code_imports():
     sim = (ROOT / "src/uav_sim/package.xml").read_text()
     assert "<exec_depend>uav_common</exec_depend>" in policy and "uav_sim" not in policy
     assert "<exec_depend>uav_common</exec_depend>" in sim and "uav_policy" not in sim
+
+
+@pytest.mark.parametrize("module", ["uav_bringup.record", "uav_bringup.live_view", "uav_bringup.fly"])
+def test_recording_and_watching_import_no_network_and_no_simulator(module):
+    """A drone's companion computer records and serves its flight without torch or pybullet."""
+    loaded = imported_after(module)
+    assert "uav_common" in loaded
+    assert not {"torch", "pybullet", "uav_sim", "uav_policy", "uav_trainer"} & loaded

@@ -284,3 +284,49 @@ def test_mix_world_every_flies_the_mixed_world_between_layouts(ros):
 def test_bad_mix_world_parameters_fail_at_start_up(args, message):
     p = run_to_exit("uav_sim", "sim_node", *[x for a in args for x in ("-p", a)])
     assert p.returncode == 2 and message in p.stderr, p.stderr
+
+
+def test_world_markers_match_the_world_file_and_frames_carry_the_namespace(ros):
+    """Markers (latched: a late subscriber gets them) of every obstacle at its size and yaw, in the
+    namespaced odom frame; the trajectory follows the flight."""
+    from nav_msgs.msg import Path
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    from uav_sim.world import load_world
+
+    world = load_world("complex")
+    cmd = ros.node.create_publisher(Twist, "/uav1/cmd_vel", deep_qos())
+    odoms, paths, markers = [], [], []
+    ros.node.create_subscription(Odometry, "/uav1/odom", odoms.append, deep_qos())
+    ros.node.create_subscription(Path, "/uav1/trajectory", paths.append, 10)
+    ros.start("uav_sim", "sim_node", "-r", "__ns:=/uav1", "-p", "world:=complex")
+    assert ros.spin_until(lambda: odoms and cmd.get_subscription_count() > 0, 30)
+    # Subscribed after the world went out: transient local delivers it all the same.
+    ros.node.create_subscription(MarkerArray, "/uav1/world/markers", markers.append, contract.LATCHED_QOS)
+    assert ros.spin_until(lambda: markers, 10), "no world markers for a late subscriber"
+    ms = markers[-1].markers
+    assert ms[0].action == Marker.DELETEALL
+    obstacles = [m for m in ms if m.ns == "obstacles"]
+    assert len(obstacles) == len(world.obstacles) == 9
+    assert len([m for m in ms if m.ns == "walls"]) == 4
+    for m, o in zip(obstacles, world.obstacles, strict=True):
+        assert m.header.frame_id == "uav1/odom"
+        assert (m.pose.position.x, m.pose.position.y, m.pose.position.z) == pytest.approx((o.x_m, o.y_m, o.height_m / 2))
+        if o.shape == "box":
+            assert m.type == Marker.CUBE
+            assert (m.scale.x, m.scale.y, m.scale.z) == pytest.approx((o.size_x_m, o.size_y_m, o.height_m))
+        else:
+            assert m.type == Marker.CYLINDER
+            assert (m.scale.x, m.scale.y, m.scale.z) == pytest.approx((2 * o.radius_m, 2 * o.radius_m, o.height_m))
+        yaw = 2 * math.atan2(m.pose.orientation.z, m.pose.orientation.w)
+        assert math.degrees(yaw) == pytest.approx(o.yaw_deg, abs=1e-6)
+    walls = [m for m in ms if m.ns == "walls"]
+    assert max(m.scale.x for m in walls) == pytest.approx(world.length_m + 0.2)  # the walls enclose the room
+    assert (odoms[-1].header.frame_id, odoms[-1].child_frame_id) == ("uav1/odom", "uav1/base_link")
+    for k in range(6):
+        cmd.publish(twist(vx=1.0))
+        assert ros.spin_until(lambda k=k: len({contract.stamp_ns(o.header.stamp) for o in odoms}) >= k + 2, 10)
+        ros.spin_for(0.25)  # the trajectory goes out at most every 0.2 s
+    assert paths and paths[-1].header.frame_id == "uav1/odom"
+    xs = [p.pose.position.x for p in paths[-1].poses]
+    assert len(xs) >= 5 and xs == sorted(xs) and xs[-1] > xs[0], "the path follows the forward flight"

@@ -9,7 +9,7 @@ import sys
 import pytest
 import torch
 
-from conftest import ROOT, executable, script_module
+from conftest import ROOT, executable, read_bag, script_module
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_trainer.flights import Behaviour, evaluate_once
@@ -41,6 +41,8 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
         str(tmp_path / "eval"),
         "--params-dir",
         str(ROOT / "params"),
+        "--record",
+        str(tmp_path / "bags"),
     )
     assert r.returncode == 0, r.stderr[-3000:]
     # Redirected, no bar: a progress line per row, with its place in the whole and an ETA.
@@ -56,6 +58,13 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
         assert int(r["steps"]) == 50 and 0 <= int(r["crashes"]) <= 50
         assert min(1, int(r["crashes"])) <= int(r["crash_sites"]) <= int(r["crashes"])
         assert float(r["crashes_per_1000"]) == pytest.approx(1000 * int(r["crashes"]) / 50)
+    # --record kept each flight, from its first frame: the bag's outcomes give the row's crashes.
+    for group, row in enumerate(rows):
+        got = read_bag(tmp_path / "bags" / f"sam_basic_w{group}_seed0")
+        outcomes = {(m.header.stamp.sec, m.header.stamp.nanosec): m.range for m in got["/step_outcome"][1]}
+        steps = [outcomes[s] for s in sorted(outcomes)][1:51]  # the first frame is no step
+        assert len(steps) == 50 and sum(x == float("-inf") for x in steps) == int(row["crashes"])
+        assert len(got["/action"][1]) >= 50 and "/attention" in got
 
 
 def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):

@@ -18,7 +18,7 @@ from collections import OrderedDict
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Range
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
@@ -32,6 +32,8 @@ Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
 ATTENTION_OVERLAY_TOPIC = "attention/overlay"
 ATTENTION_WEIGHTS_TOPIC = "attention/weights"
+WORLD_MARKERS_TOPIC = "world/markers"
+TRAJECTORY_TOPIC = "trajectory"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
 WEIGHTS_PARAMETER = "weights"
@@ -41,6 +43,20 @@ STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryP
 # For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
 # history holds the backlog (64x64 frames: ~16 KiB each).
 DEEP_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=5000)
+# State that a late subscriber must still get (the world's markers): the last message is kept for it.
+LATCHED_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+
+def vehicle_frame(namespace: str, name: str) -> str:
+    """A frame of this vehicle: `name` prefixed with the node's namespace (`/uav1`: `uav1/odom`), so that
+    two vehicles never share one `odom`; in the root namespace, or when `name` holds a '/', as given."""
+    ns = namespace.strip("/")
+    return f"{ns}/{name}" if ns and "/" not in name else name
 
 
 def stamp_from_seconds(t_s: float) -> Time:

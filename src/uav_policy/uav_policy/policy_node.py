@@ -77,6 +77,7 @@ class PolicyNode(Node):
 
         q = contract.STREAM_QOS
         self.pub_cmd = self.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
+        self.base_frame = contract.vehicle_frame(self.get_namespace(), "base_link")  # what action commands move
         self.pub_action = self.create_publisher(TwistStamped, contract.ACTION_TOPIC, q)
         self.pub_q = self.create_publisher(Float32MultiArray, contract.Q_VALUES_TOPIC, 10)
         self.pub_att = self.create_publisher(Image, contract.ATTENTION_TOPIC, 10)
@@ -188,7 +189,7 @@ class PolicyNode(Node):
         cmd.angular.z = a.yaw_rate_radps(self.step_duration_s)
         stamped = TwistStamped(twist=cmd)
         stamped.header.stamp = img.header.stamp
-        stamped.header.frame_id = "base_link"
+        stamped.header.frame_id = self.base_frame
         # The record goes out before the command: whatever the simulator acts on is on record.
         self.pub_action.publish(stamped)
         self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0

@@ -1,33 +1,41 @@
 """sim_node: the pybullet quadrotor simulator on ROS 2.
 
-Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, /clock and
-/diagnostics; consumes cmd_vel. In `lockstep` mode one cmd_vel advances one step; in
-`realtime` mode the simulator steps at a fixed rate with the latest command and a watchdog.
+Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, world/markers (the
+room and obstacles, latched), trajectory (this episode's path), /clock and /diagnostics; consumes
+cmd_vel. Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
+`lockstep` mode one cmd_vel advances one step; in `realtime` mode the simulator steps at a fixed
+rate with the latest command and a watchdog.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Range
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 from uav_common import contract
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings, setting
 
+from .markers import path_msg, path_pose, world_markers
 from .reward import window_fov_rad
 from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
 from .vehicle import HOVER, BodyTwist, twist_error
 from .world import WorldChoice, WorldError
+
+TRAJECTORY_POSES = 2000  # the longest path kept for the trajectory topic
+TRAJECTORY_PERIOD_S = 0.2  # the trajectory goes out at most this often (wall time), and at episode ends
 
 # Parameters retired, and why: a node given one stops at start-up and says so.
 REMOVED = {
@@ -59,9 +67,13 @@ class SimNodeSettings:
         0,
         100,
     )
-    camera_frame_id: str = setting("camera_depth_optical_frame", "frame_id of depth and camera_info (REP 118)")
-    odom_frame_id: str = setting("odom", "Odometry header frame (REP 105)")
-    base_frame_id: str = setting("base_link", "Odometry child frame (REP 105)")
+    camera_frame_id: str = setting(
+        "camera_depth_optical_frame", "frame of depth and camera_info (REP 118); prefixed with the namespace"
+    )
+    odom_frame_id: str = setting(
+        "odom", "the world frame: Odometry header, markers and trajectory (REP 105); prefixed with the namespace"
+    )
+    base_frame_id: str = setting("base_link", "Odometry child frame (REP 105); prefixed with the namespace")
 
 
 class SimNode(Node):
@@ -73,7 +85,10 @@ class SimNode(Node):
         self.watchdog_s = st.watchdog_timeout_s
         self.republish_s = st.lockstep_republish_s
         self.wait_for_subscribers = st.wait_for_subscribers
-        self.frame_id, self.odom_frame, self.base_frame = st.camera_frame_id, st.odom_frame_id, st.base_frame_id
+        ns = self.get_namespace()
+        self.frame_id, self.odom_frame, self.base_frame = (
+            contract.vehicle_frame(ns, f) for f in (st.camera_frame_id, st.odom_frame_id, st.base_frame_id)
+        )
         try:
             world, layouts = st.worlds.load(cfg.seed)
         except WorldError as e:
@@ -94,6 +109,11 @@ class SimNode(Node):
         self.pub_outcome = self.create_publisher(Range, contract.OUTCOME_TOPIC, q)
         self.pub_clock = self.create_publisher(Clock, "/clock", q)
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
+        self.pub_markers = self.create_publisher(MarkerArray, contract.WORLD_MARKERS_TOPIC, contract.LATCHED_QOS)
+        self.pub_path = self.create_publisher(Path, contract.TRAJECTORY_TOPIC, 10)
+        self.marked_world = None
+        self.path = collections.deque(maxlen=TRAJECTORY_POSES)
+        self.path_wall = -math.inf
         self.create_subscription(Twist, contract.CMD_VEL_TOPIC, self.on_cmd_vel, q)
         self.create_service(Trigger, "~/reset", self.on_reset)
 
@@ -204,6 +224,10 @@ class SimNode(Node):
     def publish(self, r: StepResult) -> None:
         stamp = contract.stamp_from_seconds(r.sim_time_s)
         self.pub_clock.publish(Clock(clock=stamp))
+        if self.sim.world is not self.marked_world:  # the first frame, or a new layout this episode
+            self.marked_world = self.sim.world
+            self.pub_markers.publish(world_markers(self.sim.world, self.odom_frame, stamp))
+        self.publish_path(r, stamp)
         cfg = self.cfg
         self.pub_outcome.publish(
             contract.make_outcome(
@@ -231,6 +255,20 @@ class SimNode(Node):
         self.pub_info.publish(info)
         self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id))
         self.last_publish_wall = time.monotonic()
+
+    def publish_path(self, r: StepResult, stamp) -> None:
+        """The path flown in this episode; sent only to listeners, at most every TRAJECTORY_PERIOD_S and
+        with the complete path at each episode's end."""
+        new_episode = r.collided or r.truncated
+        listening = self.pub_path.get_subscription_count() > 0
+        now = time.monotonic()
+        if listening and (new_episode or now - self.path_wall >= TRAJECTORY_PERIOD_S) and self.path:
+            self.pub_path.publish(path_msg(self.odom_frame, stamp, self.path))
+            self.path_wall = now
+        if new_episode:
+            self.path.clear()
+        p = r.pose
+        self.path.append(path_pose(self.odom_frame, stamp, p.x_m, p.y_m, p.z_m, p.yaw_rad))
 
     def odometry(self, r: StepResult, stamp) -> Odometry:
         msg = Odometry()

@@ -30,6 +30,7 @@ from .flights import (
     ENSEMBLE_SEP,
     INPROCESS_SIM_ARGS,
     EvalResult,
+    bag_name,
     evaluate_inprocess,
     evaluate_once,
     load_policy,
@@ -101,7 +102,17 @@ def main(argv=None) -> int:
         help="with --inprocess: also write crashes.csv, one row per crash (pose and heading before it, steps since "
         "the episode began, the start heading, the action)",
     )
+    ap.add_argument(
+        "--record",
+        default="",
+        metavar="DIR",
+        help="keep each flight as a bag (MCAP) in DIR/<model>_<world>_w<weights group>_seed<seed> (needs the ROS nodes)",
+    )
     a = ap.parse_args(argv)
+    if a.record and a.inprocess:
+        ap.error("--record needs the ROS nodes: it records their topics (leave out --inprocess)")
+    if a.record and Path(a.record).is_dir() and any(Path(a.record).iterdir()):
+        ap.error(f"--record {a.record}: not empty (bags are never overwritten; choose a new folder)")
     if a.crash_log and not a.inprocess:
         ap.error("--crash-log needs --inprocess")
     if a.repeats < 1 or a.steps < 1:
@@ -207,9 +218,10 @@ def main(argv=None) -> int:
     total = len(runs) * len(a.worlds) * a.steps * a.repeats
     with tqdm(total=total, unit="step", dynamic_ncols=True, disable=None) as bar:
 
-        def measure(model: str, weights: str, world: str, seed: int) -> EvalResult:
+        def measure(model: str, weights: str, world: str, seed: int, group: int) -> EvalResult:
             jitter = a.start_yaw_jitter_deg
             if not a.inprocess:
+                bag = Path(a.record) / bag_name(model, world, group, seed) if a.record else None
                 return evaluate_once(
                     model,
                     weights,
@@ -221,6 +233,7 @@ def main(argv=None) -> int:
                     start_yaw_jitter_deg=jitter,
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
+                    record_to=bag,
                 )
             net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
             r = evaluate_inprocess(
@@ -240,11 +253,11 @@ def main(argv=None) -> int:
             return r
 
         rows, t0 = len(runs) * len(a.worlds), time.monotonic()
-        for model, files in runs:
+        for group, (model, files) in enumerate(runs):
             weights = ENSEMBLE_SEP.join(files)  # the weights column: "" for the packaged weights
             for world in a.worlds:
                 bar.set_description(f"{model} {world} {Path(files[0]).name if files else 'packaged'}")
-                r = pool([measure(model, weights, world, a.seed + i) for i in range(a.repeats)])
+                r = pool([measure(model, weights, world, a.seed + i, group) for i in range(a.repeats)])
                 results.append(r)
                 # One line per row, on a terminal and in a log alike: with its place in the whole and an ETA.
                 elapsed = time.monotonic() - t0

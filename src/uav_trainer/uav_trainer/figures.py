@@ -1,14 +1,19 @@
 """attention_figures: pictures of what the agent attends to, made with the node's own overlay code.
 
     ros2 run uav_trainer attention_figures --model sam --weights W --worlds basic turbulent --out runs/figures
+    ros2 run uav_trainer attention_figures --bag runs/bags/flight1        # what was flown and recorded
 
 Writes attention_<world>.png (depth frames and their attention overlays at representative
-steps, like the paper's attention figure) and flight_<world>.gif (an exploit-only flight).
+steps, like the paper's attention figure) and flight_<world>.gif (an exploit-only flight). With
+--bag, the same two pictures (attention_<bag>.png, flight_<bag>.gif) of a flight recorded with
+`record` (or `fly --record`, `evaluate --record`): its depth frames, attention maps, actions and
+collisions, joined by stamp.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +53,49 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     return out
 
 
+def frames_from_bag(path: Path, namespace: str = ""):
+    """The frames of a recorded flight as `fly` gives them: (depth, attention map or None, action index or
+    None, collided), joined by header stamp over NAMESPACE/depth/image_raw, attention, action and
+    step_outcome. ValueError names what the bag lacks."""
+    from rosbags.highlevel import AnyReader
+
+    from uav_common import contract
+    from uav_common.actions import match_action
+
+    folder = path.parent if path.is_file() else path
+    ns = namespace.rstrip("/")
+    names = {f"{ns}/{t}": t for t in ("depth/image_raw", "attention", "action", "step_outcome")}
+    by_stamp: dict[int, dict] = {}
+    with AnyReader([folder]) as reader:
+        conns = [c for c in reader.connections if c.topic in names]
+        if not any(names[c.topic] == "depth/image_raw" for c in conns):
+            found = sorted({c.topic for c in reader.connections})
+            raise ValueError(f"{folder} has no {ns}/depth/image_raw (topics: {' '.join(found)}); --namespace?")
+        for conn, _t, raw in reader.messages(connections=conns):
+            # Converted as read: only the arrays the pictures need are kept.
+            msg, topic = reader.deserialize(raw, conn.msgtype), names[conn.topic]
+            if topic in ("depth/image_raw", "attention"):
+                value = contract.image_to_depth(msg)
+            elif topic == "action":
+                value = (float(msg.twist.linear.x), float(msg.twist.angular.z))
+            else:
+                value = contract.outcome_collided(msg)
+            by_stamp.setdefault(contract.stamp_ns(msg.header.stamp), {})[topic] = value
+    stamps = sorted(s for s, got in by_stamp.items() if "depth/image_raw" in got)
+    step_s = float(np.median(np.diff(stamps))) / 1e9 if len(stamps) > 1 else 0.5
+    frames = []
+    for s in stamps:
+        got = by_stamp[s]
+        act = got.get("action")
+        action = match_action(PAPER_ACTIONS, act[0], act[1], step_s) if act else None
+        frames.append((got["depth/image_raw"], got.get("attention"), action, got.get("step_outcome", False)))
+    return frames
+
+
+def action_label(action: int | None) -> str:
+    return PAPER_ACTIONS[action].name.split("_", 1)[0] if action is not None else "-"
+
+
 def representative(frames, k: int) -> list[int]:
     """k steps spread over the flight, preferring frames with something near in view."""
     nearest = np.array([np.nanmin(np.where(np.isfinite(f[0]), f[0], 10.0)) for f in frames])
@@ -65,7 +113,7 @@ def grid_png(frames, picks, path: Path, title: str, max_range_m: float = 10.0) -
     for col, i in enumerate(picks):
         depth, amap, action, _ = frames[i]
         axes[0, col].imshow(colourise_depth(depth, max_range_m))
-        axes[0, col].set_title(f"step {i}\n{PAPER_ACTIONS[action].name.split('_', 1)[0]}", fontsize=8)
+        axes[0, col].set_title(f"step {i}\n{action_label(action)}", fontsize=8)
         axes[1, col].imshow(overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m))
         for ax in axes[:, col]:
             ax.set_xticks([])
@@ -86,7 +134,7 @@ def flight_gif(frames, path: Path, scale: int = 3, max_range_m: float = 10.0, ev
         rgb = overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m)
         im = Image.fromarray(rgb).resize((rgb.shape[1] * scale, rgb.shape[0] * scale), Image.NEAREST)
         draw = ImageDraw.Draw(im)
-        draw.text((4, 4), f"step {i * every} {PAPER_ACTIONS[action].name.split('_', 1)[0]}", fill=(255, 255, 0))
+        draw.text((4, 4), f"step {i * every} {action_label(action)}", fill=(255, 255, 0))
         if collided:
             draw.text((4, 16), "collision: back at start", fill=(255, 60, 60))
         images.append(im)
@@ -108,7 +156,11 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--panels", type=int, default=6)
     ap.add_argument("--out", default="runs/figures", help="output folder (default: runs/figures)")
+    ap.add_argument("--bag", default="", help="pictures of a recorded flight (a bag folder) instead of flying")
+    ap.add_argument("--namespace", default="", help="with --bag: the vehicle's namespace in the bag, e.g. /uav1")
     a = ap.parse_args(argv)
+    if a.bag:
+        return figures_from_bag(Path(a.bag), a.namespace, Path(a.out), a.panels)
     if a.weights:
         files = [f for f in a.weights.split(",") if f]
     else:
@@ -123,6 +175,28 @@ def main(argv=None) -> int:
         gif = out / f"flight_{world}.gif"
         flight_gif(frames, gif)
         print(f"written: {png} {gif}")
+    return 0
+
+
+def figures_from_bag(bag: Path, namespace: str, out: Path, panels: int) -> int:
+    if not bag.exists():
+        print(f"attention_figures: --bag {bag}: no such bag", file=sys.stderr)
+        return 2
+    try:
+        frames = frames_from_bag(bag, namespace)
+    except ValueError as e:
+        print(f"attention_figures: --bag {bag}: {e}", file=sys.stderr)
+        return 2
+    if not frames:
+        print(f"attention_figures: --bag {bag}: no depth frames recorded", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    name = (bag.parent if bag.is_file() else bag).name
+    png, gif = out / f"attention_{name}.png", out / f"flight_{name}.gif"
+    with_attention = sum(f[1] is not None for f in frames)
+    grid_png(frames, representative(frames, panels), png, f"{name}: depth (top) and attention (bottom), recorded")
+    flight_gif(frames, gif)
+    print(f"written: {png} {gif} ({len(frames)} frames, {with_attention} with attention)")
     return 0
 
 

@@ -10,9 +10,8 @@ import time
 from pathlib import Path
 
 from uav_common import contract
+from uav_common.launching import Processes, params_args
 from uav_sim.reward import CENTER_WINDOW_FRACTION, step_reward
-
-from .launching import Processes, params_args
 
 
 @dataclasses.dataclass
@@ -225,8 +224,10 @@ def evaluate_once(
     sim_args: tuple[str, ...] = (),
     log_dir: Path | None = None,
     progress=None,
+    record_to: Path | None = None,
 ) -> EvalResult:
-    """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps.
+    """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps; with
+    `record_to`, uav_bringup's `record` keeps the flight there as a bag, from its first frame.
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
     reward_window_fraction the reward window they record (else the paper's), and without image_width/image_height
@@ -243,7 +244,7 @@ def evaluate_once(
     import rclpy.executors
     from nav_msgs.msg import Odometry
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Range
+    from sensor_msgs.msg import Image, Range
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -257,31 +258,54 @@ def evaluate_once(
     procs = Processes(log_dir=log_dir, quiet=log_dir is None)
     pargs = lambda kv: [x for item in kv for x in ("-p", item)]  # noqa: E731
     try:
+        wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
+        policy_args = params_args(params_dir, "policy") + pargs(
+            [f"model:={model}", f"epsilon:={epsilon}", f"seed:={seed}", "publish_overlay:=false", *wargs]
+        )
+        ready_by = time.monotonic() + 60.0
+        sim_extra = []
+        if record_to is not None:
+            # Recorder and policy first. The simulator starts once the recorder hears the policy's
+            # publishers, and holds its first frame until the policy, the recorder and this monitor
+            # all listen: the bag holds every step from the first frame on.
+            from uav_bringup.record import recorder_publishers
+
+            heard = recorder_publishers(node)
+            node.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: None, deep)  # the third listener
+            procs.start("record", "uav_bringup", "record", [], args=["-o", str(record_to), "--quiet"])
+            procs.start("policy", "uav_policy", "policy_node", policy_args)
+            wanted = [
+                node.resolve_topic_name(t) for t in (contract.ACTION_TOPIC, contract.CMD_VEL_TOPIC, contract.Q_VALUES_TOPIC)
+            ]
+            while not all(heard.get(t, 0) >= 1 for t in wanted):
+                executor.spin_once(timeout_sec=0.05)
+                for name, p in procs.procs.items():
+                    if p.poll() is not None:
+                        raise RuntimeError(f"{name} exited with code {p.returncode} before the flight")
+                if time.monotonic() > ready_by:
+                    raise TimeoutError(f"the recorder did not hear policy_node within 60 s (it hears {heard})")
+            sim_extra = ["wait_for_subscribers:=3"]
         # The lockstep sim only advances once the policy answers, and it says its first frame again
-        # every lockstep_republish_s: the policy starts once the monitor has that frame, so no step
-        # can go by before the monitor hears the simulator.
+        # every lockstep_republish_s: without a recorder the policy starts once the monitor has that
+        # frame, so no step can go by before the monitor hears the simulator.
         sim = procs.start(
             "sim",
             "uav_sim",
             "sim_node",
             params_args(params_dir, "sim")
-            + pargs([f"world:={world}", f"seed:={seed}", f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}", *sim_args]),
+            + pargs(
+                [f"world:={world}", f"seed:={seed}", f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}", *sim_args]
+                + sim_extra
+            ),
         )
-        ready_by = time.monotonic() + 60.0
         while mon.first:
             executor.spin_once(timeout_sec=0.05)
             if sim.poll() is not None:
                 raise RuntimeError(f"sim_node exited with code {sim.returncode} before its first frame")
             if time.monotonic() > ready_by:
                 raise TimeoutError("no first frame from sim_node within 60 s")
-        wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
-        procs.start(
-            "policy",
-            "uav_policy",
-            "policy_node",
-            params_args(params_dir, "policy")
-            + pargs([f"model:={model}", f"epsilon:={epsilon}", f"seed:={seed}", "publish_overlay:=false", *wargs]),
-        )
+        if record_to is None:
+            procs.start("policy", "uav_policy", "policy_node", policy_args)
         end = time.monotonic() + timeout_s
         last = 0
         while not mon.done:
@@ -297,7 +321,7 @@ def evaluate_once(
         if mon.gaps:
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
     finally:
-        procs.stop_all(["policy", "sim"])
+        procs.stop_all(["policy", "sim", "record"])
         executor.shutdown()
         node.destroy_node()
         ctx.try_shutdown()
@@ -314,6 +338,12 @@ def evaluate_once(
         b.turn_steps if b else -1,
         len(b.cells) if b else -1,
     )
+
+
+def bag_name(model: str, world: str, group: int, seed: int) -> str:
+    """A flight's bag folder under evaluate --record: model, world (a file's stem), weights group, sim seed."""
+    w = Path(world).stem if world.endswith((".yaml", ".yml")) else world.replace(":", "-")
+    return f"{model}_{w}_w{group}_seed{seed}"
 
 
 def evaluate_inprocess(

@@ -25,10 +25,10 @@ import sys
 import time
 from pathlib import Path
 
+from uav_common.launching import Processes, params_args, stop_signals
 from uav_common.settings import refuse_retired_flags
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 
-from .launching import Processes, params_args
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
 from .training import snapshot_file, snapshot_steps
 
@@ -146,17 +146,10 @@ def main(argv=None) -> int:
         f"(node logs in {logs})",
         flush=True,
     )
-    interrupted = False
-
-    def on_sigint(*_):
-        nonlocal interrupted
-        interrupted = True
-
-    signal.signal(signal.SIGINT, on_sigint)
-    signal.signal(signal.SIGTERM, on_sigint)
+    interrupted = stop_signals()
     code = 0
     try:
-        code = follow(trainer, run_dir, a.steps, lambda: interrupted, procs)
+        code = follow(trainer, run_dir, a.steps, interrupted, procs)
     finally:
         procs.stop("trainer", timeout_s=120)
         procs.stop_all(["policy", "sim"])
@@ -180,7 +173,7 @@ def main(argv=None) -> int:
         )
     else:
         print(f"this run wrote no weights in {run_dir}", file=sys.stderr)
-    return code if not interrupted else 130
+    return code if not interrupted() else 130
 
 
 PROGRESS_EVERY_S = 30.0  # a progress line this often when stdout is no terminal (a log file, CI, nohup)

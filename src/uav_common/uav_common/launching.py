@@ -28,6 +28,15 @@ def find_executable(pkg: str, exe: str) -> str:
     raise FileNotFoundError(f"cannot find executable '{exe}' of package '{pkg}': source install/setup.bash first")
 
 
+def stop_signals():
+    """Ctrl-C and SIGTERM set a flag instead of raising, so a launcher can stop its nodes in order; the
+    returned callable tells whether one came."""
+    came = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: came.append(True))
+    return lambda: bool(came)
+
+
 def params_args(params_dir: Path | None, name: str) -> list[str]:
     f = params_dir / f"{name}.yaml" if params_dir else None
     return ["--params-file", str(f)] if f and f.is_file() else []
@@ -40,8 +49,9 @@ class Processes:
         self.quiet = quiet
         self.env = env
 
-    def start(self, name: str, pkg: str, exe: str, ros_args: list[str]) -> subprocess.Popen:
-        cmd = [find_executable(pkg, exe), "--ros-args", *ros_args]
+    def start(self, name: str, pkg: str, exe: str, ros_args: list[str], args: list[str] = ()) -> subprocess.Popen:
+        """Start `exe` of `pkg` with its own `args`, then `--ros-args` and `ros_args`."""
+        cmd = [find_executable(pkg, exe), *args, "--ros-args", *ros_args]
         out = None
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)

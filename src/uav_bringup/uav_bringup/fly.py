@@ -1,0 +1,137 @@
+"""fly: watch a policy fly. Starts sim_node and policy_node with params/*.yaml (and, if asked, the
+recorder and the Foxglove live view) and stops them cleanly on Ctrl-C, as `train` does for training.
+
+    ros2 run uav_bringup fly --model sam --world turbulent --live-view       # Foxglove: ws://localhost:8765
+    ros2 run uav_bringup fly --model cnn --world complex --record runs/bags/cnn_complex --duration 120
+
+The simulator runs in real time (one step per step_duration_s, 0.5 s) unless --lockstep, which steps
+as fast as the policy answers. --namespace puts the pair in a namespace (frames follow: uav1/odom).
+The full-ROS equivalent is `ros2 launch uav_bringup fly.launch.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from pathlib import Path
+
+from uav_common.launching import Processes, params_args, stop_signals
+
+STOP_ORDER = ["sim", "policy", "record", "live_view"]  # the recorder last: the bag holds the final messages
+
+
+def wait_for_recorder(procs: Processes, namespace: str, stopped, timeout_s: float = 60.0) -> bool:
+    """Until the recorder has matched policy_node's publishers, so that the first step is on record too;
+    False (and says why) if it does not within `timeout_s`, a process exits or Ctrl-C comes."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from .record import POLICY_TOPICS, recorder_publishers
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C stays fly's
+    node = rclpy.create_node("fly", namespace=namespace or "/", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    heard = recorder_publishers(node)
+    wanted = [node.resolve_topic_name(t) for t in POLICY_TOPICS]
+    end = time.monotonic() + timeout_s
+    try:
+        while not all(heard.get(t, 0) >= 1 for t in wanted):
+            executor.spin_once(timeout_sec=0.05)
+            if stopped():
+                return False
+            dead = [(n, p.returncode) for n, p in procs.procs.items() if p.poll() is not None]
+            if dead:
+                print(f"{dead[0][0]} exited early (code {dead[0][1]}); stopping the others", file=sys.stderr)
+                return False
+            if time.monotonic() > end:
+                print(f"the recorder did not hear policy_node within {timeout_s:g} s ({heard})", file=sys.stderr)
+                return False
+        return True
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+
+
+def node_args(params: Path | None, name: str, values: list[str], namespace: str) -> list[str]:
+    ns = ["-r", f"__ns:={namespace}"] if namespace else []
+    return params_args(params, name) + ns + [x for kv in values for x in ("-p", kv)]
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="fly", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
+    ap.add_argument("--weights", default="", help="weights files a,b,c (default: the packaged policy)")
+    ap.add_argument("--world", default="basic", help="basic, complex, turbulent, random:SEED or a world file")
+    ap.add_argument("--seed", type=int, default=0, help="simulator seed")
+    ap.add_argument("--namespace", default="", help="namespace of the pair, e.g. /uav1 (default: none)")
+    ap.add_argument("--lockstep", action="store_true", help="step as fast as the policy answers, not in real time")
+    ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: until Ctrl-C)")
+    ap.add_argument("--record", default="", metavar="BAG", help="record the flight to this bag folder (must not exist)")
+    ap.add_argument("--live-view", action="store_true", help="serve the flight to Foxglove (ws://localhost:PORT)")
+    ap.add_argument("--port", type=int, default=8765, help="live view port (default: 8765)")
+    ap.add_argument("--params-dir", default="params", help="folder with sim.yaml and policy.yaml (default: params)")
+    ap.add_argument("--log-dir", default="", help="write node logs here instead of the terminal")
+    ap.add_argument("--sim-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra sim_node parameter")
+    ap.add_argument("--policy-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra policy_node parameter")
+    a = ap.parse_args(argv)
+    if a.duration < 0:
+        ap.error("--duration must be >= 0")
+    if a.namespace and not a.namespace.startswith("/"):
+        a.namespace = "/" + a.namespace
+    for arg in a.sim_arg + a.policy_arg:
+        if ":=" not in arg:
+            ap.error(f"{arg!r}: node arguments are NAME:=VALUE")
+    if a.record and Path(a.record).exists():
+        ap.error(f"--record {a.record}: already exists (a bag is never overwritten)")
+    params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
+    stopped = stop_signals()
+    procs = Processes(log_dir=Path(a.log_dir) if a.log_dir else None)
+    ns = ["-r", f"__ns:={a.namespace}"] if a.namespace else []
+    # Recorder and viewer first: the simulator's first frames find them listening.
+    if a.record:
+        procs.start("record", "uav_bringup", "record", ns, args=["-o", a.record])
+    if a.live_view:
+        procs.start("live_view", "uav_bringup", "live_view", ns, args=["--port", str(a.port)])
+    # The policy before the simulator: loading its networks takes longer than the real-time watchdog.
+    policy_values = [f"model:={a.model}"] + ([f"weights:={a.weights}"] if a.weights else [])
+    procs.start("policy", "uav_policy", "policy_node", node_args(params, "policy", policy_values + a.policy_arg, a.namespace))
+    if a.record and not wait_for_recorder(procs, a.namespace, stopped):
+        procs.stop_all(STOP_ORDER)
+        return 0 if stopped() else 1
+    sim_values = [f"world:={a.world}", f"seed:={a.seed}", f"mode:={'lockstep' if a.lockstep else 'realtime'}"]
+    if a.lockstep and a.record:
+        sim_values.append("wait_for_subscribers:=2")  # the policy and the recorder
+    procs.start("sim", "uav_sim", "sim_node", node_args(params, "sim", sim_values + a.sim_arg, a.namespace))
+    extras = (f", recording to {a.record}" if a.record else "") + (
+        f", live view on ws://localhost:{a.port}" if a.live_view else ""
+    )
+    print(f"flying D3QN-{a.model.upper()} in '{a.world}'{extras}; Ctrl-C stops", flush=True)
+
+    end = time.monotonic() + a.duration if a.duration else float("inf")
+    code = 0
+    while not stopped() and time.monotonic() < end:
+        dead = [(n, p.returncode) for n, p in procs.procs.items() if p.poll() is not None]
+        if dead:
+            print(f"{dead[0][0]} exited early (code {dead[0][1]}); stopping the others", file=sys.stderr)
+            code = 1
+            break
+        time.sleep(0.2)
+    codes = {name: procs.stop(name) for name in STOP_ORDER if name in procs.procs}
+    failed = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT)}
+    if failed and not code:
+        print(f"stopped with errors: {failed}", file=sys.stderr)
+        code = 1
+    if a.record and Path(a.record).is_dir():
+        print(f"bag: {a.record}", flush=True)
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

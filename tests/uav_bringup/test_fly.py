@@ -1,0 +1,67 @@
+"""Integration: `fly` brings up a namespaced sim/policy pair with the recorder, stops them all cleanly,
+and the bag it keeps becomes pictures with `attention_figures --bag`."""
+
+from __future__ import annotations
+
+import subprocess
+
+import numpy as np
+from test_record import read_bag
+
+from conftest import executable
+
+
+def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_path):
+    bag = tmp_path / "flight"
+    fly = subprocess.run(
+        [
+            str(executable("uav_bringup", "fly")),
+            *("--model", "sam", "--world", "complex", "--namespace", "uav2", "--lockstep", "--duration", "12"),
+            *("--record", str(bag), "--log-dir", str(tmp_path / "logs")),
+        ],
+        env=ros.env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    logs = "\n".join(f"== {p.name}\n{p.read_text()[-1500:]}" for p in sorted((tmp_path / "logs").glob("*.log")))
+    assert fly.returncode == 0, fly.stdout + fly.stderr + logs
+    got = read_bag(bag)
+    depth, actions = got["/uav2/depth/image_raw"][1], got["/uav2/action"][1]
+    frames = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in depth}
+    answered = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in actions]
+    assert len(answered) >= 20, f"only {len(answered)} steps flown in 12 s"
+    assert set(answered) <= frames, "every command answers a recorded frame"
+    assert len(frames) - len(answered) in (0, 1), "every recorded frame was answered but perhaps the last"
+    assert depth[0].header.frame_id == "uav2/camera_depth_optical_frame"
+    assert got["/uav2/odom"][1][0].header.frame_id == "uav2/odom"
+    assert actions[0].header.frame_id == "uav2/base_link"
+    markers = got["/uav2/world/markers"][1][0].markers
+    assert len([m for m in markers if m.ns == "obstacles"]) == 9  # complex
+    att = got["/uav2/attention"][1]
+    assert len(att) == len(answered) and att[0].encoding == "32FC1"
+
+    out = tmp_path / "figures"
+    r = subprocess.run(
+        [str(executable("uav_trainer", "attention_figures")), "--bag", str(bag), "--namespace", "/uav2", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert (out / "attention_flight.png").stat().st_size > 10_000 and (out / "flight_flight.gif").stat().st_size > 10_000
+    assert f"({len(frames)} frames, {len(answered)} with attention)" in r.stdout
+
+    r = subprocess.run(
+        [str(executable("uav_trainer", "attention_figures")), "--bag", str(bag), "--namespace", "/uav5"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and "no /uav5/depth/image_raw" in r.stderr and "/uav2/depth/image_raw" in r.stderr
+
+    from uav_trainer.figures import frames_from_bag
+
+    flown = frames_from_bag(bag, "/uav2")
+    assert all(a is not None for _, amap, a, _ in flown if amap is not None), "every answered frame maps to an action"
+    assert not np.array_equal(flown[0][0], flown[-1][0]), "the frames are the flight's, not one frame repeated"

@@ -1,0 +1,134 @@
+"""Integration: the installed `record` executable writes rosbag2 bags (MCAP) that read back complete."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+
+import numpy as np
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Image
+from visualization_msgs.msg import Marker, MarkerArray
+
+from conftest import deep_qos, executable, read_bag
+from uav_common import contract
+
+
+class RecordCounts:
+    """What the recorder says on /diagnostics it has written, per topic."""
+
+    def __init__(self, ros):
+        self.counts: dict[str, int] = {}
+        ros.node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, self.on, 10)
+
+    def on(self, msg):
+        for st in msg.status:
+            if st.name == "uav_bringup/record":
+                self.counts = {kv.key: kv.value for kv in st.values}
+
+    def of(self, topic: str) -> int:
+        return int(self.counts.get(topic, 0))
+
+
+def odom(k: int) -> Odometry:
+    m = Odometry()
+    m.header.stamp = contract.stamp_from_seconds(0.5 * k)
+    m.header.frame_id = "uav9/odom"
+    m.pose.pose.position.x = float(k)
+    return m
+
+
+def start_recorder(ros, bag, *topics, ns="/uav9"):
+    return ros.start("uav_bringup", "record", "-r", f"__ns:={ns}", args=["-o", str(bag), "--topics", *topics])
+
+
+def test_a_recorded_bag_reads_back_with_its_topics_types_counts_and_stamps(ros, tmp_path):
+    n = ros.node
+    markers = n.create_publisher(MarkerArray, "/uav9/world/markers", contract.LATCHED_QOS)
+    box = Marker(ns="obstacles", id=0, type=Marker.CUBE)
+    box.scale.x = 1.5
+    markers.publish(MarkerArray(markers=[box]))  # before the recorder exists: latched, it must still arrive
+    pub_odom = n.create_publisher(Odometry, "/uav9/odom", deep_qos())
+    pub_depth = n.create_publisher(Image, "/uav9/depth/image_raw", deep_qos())
+    counts = RecordCounts(ros)
+    bag = tmp_path / "flight"
+    rec = start_recorder(ros, bag, "odom", "depth/image_raw", "world/markers", "/diagnostics")
+    assert ros.spin_until(lambda: pub_odom.get_subscription_count() and pub_depth.get_subscription_count(), 30)
+    frames = 120
+    for k in range(frames):
+        pub_odom.publish(odom(k))
+        depth = np.full((8, 8), 1.0 + k, np.float32)
+        pub_depth.publish(contract.depth_to_image(depth, contract.stamp_from_seconds(0.5 * k), "uav9/cam"))
+    assert ros.spin_until(lambda: counts.of("/uav9/odom") == frames and counts.of("/uav9/depth/image_raw") == frames, 30), (
+        f"the recorder reports {counts.counts}"
+    )
+    assert counts.of("/uav9/world/markers") == 1
+    assert ros.stop(rec) == 0, ros.log_of(rec)
+
+    assert sorted(p.name for p in bag.iterdir()) == ["flight.mcap", "metadata.yaml"]
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["storage_identifier"] == "mcap"
+    got = read_bag(bag)
+    assert got["/uav9/odom"][0] == "nav_msgs/msg/Odometry"
+    assert got["/uav9/depth/image_raw"][0] == "sensor_msgs/msg/Image"
+    assert got["/uav9/world/markers"][0] == "visualization_msgs/msg/MarkerArray"
+    odoms = got["/uav9/odom"][1]
+    assert len(odoms) == frames
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in odoms]
+    assert stamps[0] == 0 and stamps[-1] == int(0.5e9) * (frames - 1) and stamps == sorted(stamps)
+    assert [m.pose.pose.position.x for m in odoms] == [float(k) for k in range(frames)]
+    images = got["/uav9/depth/image_raw"][1]
+    assert len(images) == frames and images[-1].encoding == "32FC1"
+    last = np.frombuffer(bytes(images[-1].data), "<f4")
+    assert np.all(last == frames)  # the data itself survives, not only the headers
+    assert got["/uav9/world/markers"][1][0].markers[0].scale.x == 1.5
+    by_topic = {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}
+    assert by_topic["/uav9/odom"] == frames and by_topic["/uav9/depth/image_raw"] == frames
+
+    # What Foxglove and rosbag2's MCAP plugin read: checked with Foxglove's own MCAP reader.
+    from mcap.reader import make_reader
+
+    with open(bag / "flight.mcap", "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        kinds = {(c.message_encoding, summary.schemas[c.schema_id].encoding) for c in summary.channels.values()}
+        assert kinds == {("cdr", "ros2msg")}
+        names = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        assert names["/uav9/odom"] == "nav_msgs/msg/Odometry"
+        assert summary.statistics.message_count == meta["message_count"] == len(list(reader.iter_messages()))
+
+
+def test_a_bag_stopped_by_sigint_mid_stream_is_complete_and_readable(ros, tmp_path):
+    pub = ros.node.create_publisher(Odometry, "/uav9/odom", deep_qos())
+    counts = RecordCounts(ros)
+    bag = tmp_path / "interrupted"
+    rec = start_recorder(ros, bag, "odom")
+    assert ros.spin_until(lambda: pub.get_subscription_count() > 0, 30)
+    k = 0
+    while counts.of("/uav9/odom") < 200:  # still streaming when the signal lands
+        pub.publish(odom(k))
+        k += 1
+        ros.executor.spin_once(timeout_sec=0.002)
+    assert ros.stop(rec) == 0, ros.log_of(rec)
+    odoms = read_bag(bag)["/uav9/odom"][1]
+    assert len(odoms) >= 200
+    xs = [m.pose.pose.position.x for m in odoms]
+    assert xs == [float(i) for i in range(len(xs))], "a gap-free prefix of what was published"
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["message_count"] == len(odoms)
+    assert "closed" in ros.log_of(rec)
+
+
+def test_record_refuses_an_existing_bag_and_names_it(tmp_path):
+    (tmp_path / "taken").mkdir()
+    r = subprocess.run(
+        [str(executable("uav_bringup", "record")), "-o", str(tmp_path / "taken")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "ROS_DOMAIN_ID": "99", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"},
+    )
+    assert r.returncode == 2 and "already exists" in r.stderr and "taken" in r.stderr
