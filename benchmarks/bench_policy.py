@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -61,15 +63,19 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
     from rcl_interfaces.srv import SetParameters
 
     from uav_common import contract
-    from uav_policy.push import push_request
+    from uav_policy.push import load_key, push_request, write_key
 
     nodes = private_nodes(domain)
+    key_dir = tempfile.TemporaryDirectory()
+    key_file = write_key(Path(key_dir.name) / "push.key")
+    key = load_key(key_file)
     rclpy.init(domain_id=domain)
     node = rclpy.create_node("bench_policy")
     try:
         read = sim_steps_reader(node)
         nodes.start("sim", "uav_sim", "sim_node", [])
-        nodes.start("policy", "uav_policy", "policy_node", ["-p", f"model:={model}"])
+        pushes_args = ["-p", "accept_pushes:=true", "-p", f"push_key_file:={key_file}"]
+        nodes.start("policy", "uav_policy", "policy_node", ["-p", f"model:={model}", *pushes_args])
         end = time.perf_counter() + 60
         while read()[1] is None or read()[1] < 50:
             rclpy.spin_once(node, timeout_sec=0.1)
@@ -87,7 +93,7 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
         lat = {False: [], True: []}  # as_base64: latencies (ms), the two encodings taking turns
         for i in range(2 * pushes):
             t = time.perf_counter()
-            fut = client.call_async(push_request(blob, as_base64=bool(i % 2)))
+            fut = client.call_async(push_request(blob, as_base64=bool(i % 2), key=key, seq=i + 1))
             rclpy.spin_until_future_complete(node, fut, timeout_sec=10)
             assert fut.result().results[0].successful, fut.result().results[0].reason
             lat[bool(i % 2)].append((time.perf_counter() - t) * 1e3)
@@ -96,6 +102,7 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
         node.destroy_node()
         rclpy.try_shutdown()
         nodes.stop_all()
+        key_dir.cleanup()
 
 
 def main() -> int:

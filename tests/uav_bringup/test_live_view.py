@@ -68,9 +68,8 @@ def test_a_foxglove_client_lists_the_channels_and_receives_odometry(ros):
 
 
 def test_the_foxglove_layout_shows_only_topics_the_live_view_serves_and_every_panel_is_placed():
-    from uav_bringup.taps import DEFAULT_TOPICS
-
     from conftest import ROOT
+    from uav_bringup.taps import DEFAULT_TOPICS
 
     layout = json.loads((ROOT / "src/uav_bringup/foxglove/uav_stack.json").read_text())
     panels = layout["configById"]

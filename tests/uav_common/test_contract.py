@@ -50,8 +50,8 @@ def test_stamp_joiner_pairs_exactly_and_counts_what_it_drops():
     j.add("frame", 4, "f4")
     assert j.add("action", 4, "a4") == {"frame": "f4", "action": "a4"}
     assert j.dropped == {"frame": 0, "action": 1}
-    # A straggler for a finished stamp is counted as late, never joined with something else.
-    assert j.add("action", 3, "a3") is None and j.late == 1
+    # A finished stamp said again is counted as late, never joined with something else.
+    assert j.add("frame", 4, "f4 again") is None and j.late == 1
     # A duplicate in one stream is counted and ignored.
     j.add("frame", 5, "f5")
     assert j.add("frame", 5, "again") is None and j.duplicates == 1
@@ -60,6 +60,30 @@ def test_stamp_joiner_pairs_exactly_and_counts_what_it_drops():
     for s in range(10, 20):
         j.add("frame", s, s)
     assert len(j.pending) <= 3 and j.dropped["action"] == 1 + 7
+
+
+def test_stamp_joiner_starts_afresh_when_its_source_restarts_and_survives_a_stamp_from_the_future():
+    j = contract.StampJoiner(("frame", "outcome"), max_pending=3)
+    for s in (10, 11, 12):
+        j.add("frame", s, s)
+        assert j.add("outcome", s, s) is not None
+    # A simulator restarted: its clock begins again. Before, every frame was dropped as late for good.
+    assert j.add("frame", 0, "f0") is None and j.restarts == 1
+    assert j.add("outcome", 0, "o0") == {"frame": "f0", "outcome": "o0"}
+    assert j.add("frame", 1, "f1") is None and j.add("outcome", 1, "o1") is not None
+    # One frame stamped far in the future, never completed: given up in time, it silences nothing.
+    j.add("frame", 10**15, "glitch")
+    for s in (2, 3, 4):  # their outcomes are lost: the pending stamps overflow and the glitch is dropped
+        j.add("frame", s, s)
+    assert 10**15 not in j.pending
+    for s in range(5, 8):
+        j.add("frame", s, s)
+        assert j.add("outcome", s, s) == {"frame": s, "outcome": s}
+    # A future stamp that did complete: the next true stamp is behind it, so the join starts afresh.
+    j.add("frame", 10**15 + 1, "glitch")
+    assert j.add("outcome", 10**15 + 1, "glitch") is not None
+    j.add("frame", 8, 8)
+    assert j.add("outcome", 8, 8) == {"frame": 8, "outcome": 8} and j.restarts == 2
 
 
 def test_camera_info_field_of_view():

@@ -1,5 +1,6 @@
 """Integration: installed sim_node + policy_node in lockstep, observed and pushed to with rclpy."""
 
+import itertools
 import signal
 
 import torch
@@ -16,7 +17,7 @@ from conftest import deep_qos, run_to_exit
 from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_policy.push import push_request
+from uav_policy.push import load_key, push_request, write_key
 
 SAM = NetConfig(model="sam")
 
@@ -40,9 +41,18 @@ class Watch:
         return [contract.stamp_ns(m.header.stamp) for m in self.actions]
 
 
+def push_args(ros):
+    """policy_node arguments to take pushes signed with this test's key (written on first use)."""
+    key = ros.tmp / "push.key"
+    if not key.exists():
+        write_key(key)
+    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={key}")
+
+
 def start_pair(ros, *policy_args, sim_args=()):
+    """sim_node and a policy_node that takes this test's pushes."""
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5", *sim_args)
-    return ros.start("uav_policy", "policy_node", *policy_args)
+    return ros.start("uav_policy", "policy_node", *push_args(ros), *policy_args)
 
 
 def test_policy_answers_each_frame_once_and_explains_it(ros):
@@ -110,10 +120,19 @@ def test_a_stalled_policy_does_not_answer_a_repeated_frame_twice(ros):
     assert checked >= 60
 
 
-def call_push(ros, blob: bytes | None, timeout_s=30.0, **extra):
+_push_seq = itertools.count(1)
+
+
+def call_push(ros, blob: bytes | None, timeout_s=30.0, key: bytes | None | str = "test", **extra):
+    """A push signed with this test's key (`key`: another key, or None for an unsigned push)."""
+    key = load_key(ros.tmp / "push.key") if key == "test" else key
+    return send_push(ros, push_request(blob, key=key, seq=next(_push_seq) if key else None, **extra), timeout_s)
+
+
+def send_push(ros, request, timeout_s=30.0):
     client = ros.node.create_client(SetParameters, contract.PUSH_WEIGHTS_SERVICE)
     assert client.wait_for_service(timeout_sec=20)
-    fut = client.call_async(push_request(blob, **extra))
+    fut = client.call_async(request)
     assert ros.spin_until(fut.done, timeout_s)
     return fut.result().results[0]
 
@@ -317,8 +336,21 @@ def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pus
     ros.spin_for(1.0)
     assert w.actions == [], "a held frame must not be answered before its release"
     first = w.frame_stamps()[0]
-    r = call_push(ros, forcing_action(3), epsilon=0.0, release_stamp_ns=first)
+    # Pushes not from this run's trainer take nothing and release nothing: unsigned, signed with another key,
+    # or a signed push played again.
+    r = call_push(ros, forcing_action(3), key=None, epsilon=0.0, release_stamp_ns=first)
+    assert not r.successful and "unsigned push refused" in r.reason, r.reason
+    r = call_push(ros, forcing_action(3), key=b"k" * 32, epsilon=0.0, release_stamp_ns=first)
+    assert not r.successful and "signature does not match" in r.reason, r.reason
+    ros.spin_for(1.0)
+    assert w.actions == [], "a refused push released a frame"
+    good = push_request(
+        forcing_action(3), epsilon=0.0, release_stamp_ns=first, key=load_key(ros.tmp / "push.key"), seq=next(_push_seq)
+    )
+    r = send_push(ros, good)
     assert r.successful, r.reason
+    r = send_push(ros, good)  # the same push played again
+    assert not r.successful and "not newer" in r.reason, r.reason
     assert ros.spin_until(lambda: len(w.actions) == 1, 10)
     assert contract.stamp_ns(w.actions[0].header.stamp) == first and w.actions[0].twist.linear.x == 2.0, "a3, pushed"
     ros.spin_for(1.0)
@@ -344,3 +376,78 @@ def test_an_unreleased_frame_is_answered_after_the_timeout_with_a_warning(ros):
     proc = start_pair(ros, "-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=0.5")
     assert ros.spin_until(lambda: len(w.actions) >= 3, 30), ros.log_of(proc)
     assert "trainer_node did not release the frame" in ros.log_of(proc) and "no longer in lockstep" in ros.log_of(proc)
+
+
+def test_a_flying_policy_takes_no_pushes_and_no_parameter_changes(ros):
+    """Without accept_pushes (flying) there is no push service, epsilon cannot be set at run time, and
+    wait_for_trainer without accept_pushes, or accept_pushes without a key, stop the node at start-up."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+
+    proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
+    client = ros.node.create_client(SetParameters, "/policy_node/set_parameters")
+    assert client.wait_for_service(timeout_sec=30), ros.log_of(proc)
+    services = dict(ros.node.get_service_names_and_types())
+    assert "/policy_node/get_parameters" in services and contract.PUSH_WEIGHTS_SERVICE not in services
+    assert "/" + contract.PUSH_WEIGHTS_SERVICE not in services, sorted(services)
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.0)
+    fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
+    assert ros.spin_until(fut.done, 20)
+    res = fut.result().results[0]
+    assert not res.successful and "read-only" in res.reason, res.reason
+    r = run_to_exit("uav_policy", "policy_node", "-p", "wait_for_trainer:=true")
+    assert r.returncode == 2 and "needs accept_pushes:=true" in r.stderr, r.stderr
+    r = run_to_exit("uav_policy", "policy_node", "-p", "accept_pushes:=true")
+    assert r.returncode == 2 and "needs 'push_key_file'" in r.stderr, r.stderr
+
+
+def test_stamps_going_back_or_from_the_future_restart_the_join_and_frames_without_outcome_warn(ros):
+    """A restarted simulator (stamps begin again) and a glitch stamped far in the future are answered
+    past, counted on /diagnostics; frames that are never answered turn /diagnostics to WARN."""
+    import numpy as np
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from sensor_msgs.msg import Range
+
+    w = Watch(ros, actions_only=True)
+    diag = []
+    ros.node.create_subscription(
+        DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
+    )
+    pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, deep_qos())
+    pub_out = ros.node.create_publisher(Range, contract.OUTCOME_TOPIC, deep_qos())
+    proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
+    assert ros.spin_until(lambda: pub_img.get_subscription_count() and pub_out.get_subscription_count() and diag, 30)
+
+    def send(sec: int, outcome: bool = True) -> None:
+        img = contract.depth_to_image(np.full((64, 64), 4.0, np.float32), Time(sec=sec), "cam")
+        if outcome:
+            pub_out.publish(Range(header=img.header, range=5.0))
+        pub_img.publish(img)
+
+    sent = [10, 11, 12, 0, 1, 1_000_000, 2, 3]  # a restart at 0, a glitch from the future at 1e6 s
+    for k, sec in enumerate(sent):
+        send(sec)
+        assert ros.spin_until(lambda k=k: len(w.actions) == k + 1, 10), (sec, ros.log_of(proc)[-2000:])
+    assert [s // 1_000_000_000 for s in w.action_stamps()] == sent
+    values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
+    assert ros.spin_until(lambda: values(diag[-1])["stamp_restarts"] == "2", 5), [values(d) for d in diag[-2:]]
+    assert "the source restarted" in ros.log_of(proc)
+    for sec in (20, 21, 22):  # a camera alone: frames without any step_outcome get no answer
+        send(sec, outcome=False)
+    assert ros.spin_until(lambda: diag[-1].level == DiagnosticStatus.WARN and "none answered" in diag[-1].message, 5), [
+        (d.level, d.message) for d in diag[-3:]
+    ]
+    assert values(diag[-1])["frames_received"] == str(len(sent) + 3) and len(w.actions) == len(sent)
+
+
+def test_a_restarted_simulator_is_answered_again(ros):
+    w = Watch(ros, actions_only=True)
+    sim = ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5", name="sim1")
+    ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
+    assert ros.spin_until(lambda: len(w.actions) >= 20, 60)
+    assert ros.stop(sim) == 0
+    last = max(w.action_stamps())
+    n = len(w.actions)
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5", name="sim2")
+    after = lambda: [s for s in w.action_stamps()[n:] if s < last]  # noqa: E731
+    assert ros.spin_until(lambda: len(after()) >= 10, 30), "policy_node did not answer the restarted simulator"
+    assert after()[:3] == [0, 500_000_000, 1_000_000_000], "answered from the new simulator's first frame on"

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import struct
 
@@ -276,3 +277,36 @@ def test_a_push_request_reads_back_and_bad_pushes_are_named():
     twice = push_request(None, epsilon=0.1).parameters * 2
     with pytest.raises(ValueError, match="given twice"):
         read(twice)
+
+
+def test_a_push_is_taken_only_signed_with_the_runs_key_and_newer_than_the_last(tmp_path):
+    import os
+    import stat
+
+    from uav_policy.push import load_key, push_request, read_push, verify, write_key
+
+    key = load_key(write_key(tmp_path / "push.key"))
+    assert stat.S_IMODE(os.stat(tmp_path / "push.key").st_mode) == 0o600 and len(key) == 32
+    blob = wio.to_bytes(build_network(SAM, seed=0), SAM)
+    good = read_push(push_request(blob, 0.5, 7, as_base64=True, key=key, seq=5).parameters, wio.MAX_BYTES)
+    verify(key, good, last_seq=4)  # no error
+    with pytest.raises(ValueError, match="not newer than 5"):
+        verify(key, good, last_seq=5)
+    with pytest.raises(ValueError, match="unsigned push refused"):
+        verify(key, read_push(push_request(blob, 0.5, 7).parameters, wio.MAX_BYTES), last_seq=0)
+    with pytest.raises(ValueError, match="signature does not match"):
+        verify(b"x" * 32, good, last_seq=0)
+    # Every field is covered: the same signature over other weights, epsilon, release or number fails.
+    for changed in (
+        dataclasses.replace(good, weights=blob[:-1] + b"\0"),
+        dataclasses.replace(good, epsilon=0.25),
+        dataclasses.replace(good, release_stamp_ns=8),
+        dataclasses.replace(good, seq=6),
+    ):
+        with pytest.raises(ValueError, match="signature does not match"):
+            verify(key, changed, last_seq=0)
+    os.chmod(tmp_path / "push.key", 0o644)
+    with pytest.raises(ValueError, match="can be read by others"):
+        load_key(tmp_path / "push.key")
+    with pytest.raises(ValueError, match="No such file"):
+        load_key(tmp_path / "missing.key")

@@ -154,3 +154,25 @@ def test_lockstep_release_follows_storage_and_waits_for_the_previous_answer():
     assert [n for _, n in released[1:]] == list(range(2, len(frames) + 1))
     assert released[0] == (frames[0], 0), "the first frame is released before anything can be stored"
     assert len(sink.events) == 1 + len(truth) and all(v == 0 for v in asm.report().values())
+
+
+def test_a_restarted_simulator_starts_a_new_chain_and_is_released_again():
+    """The simulator restarts mid-run (its stamps begin again): nothing is paired across the restart,
+    every step after it is stored, and lockstep release goes on (before, the trainer waited for good)."""
+    before, truth_before = simulate(40, seed=7)
+    after, truth_after = simulate(60, seed=8)
+    sink, released = Sink(), []
+    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), on_ready=released.append)
+    rng = np.random.default_rng(9)
+    for stream, m in shuffled_across_streams(before, rng) + shuffled_across_streams(after, rng):
+        asm.add(stream, m)
+    kinds = [e[0] for e in sink.events]
+    assert kinds.count("first") == 2 and kinds[41] == "first", "the restart begins a new chain"
+    steps = [e for e in sink.events if e[0] == "step"]
+    assert len(steps) == len(truth_before) + len(truth_after)
+    for e, (a, rew, col, depth, _) in zip(steps, truth_before + truth_after, strict=True):
+        assert (e[1], e[3]) == (a, col) and abs(e[2] - rew) < 1e-4
+        np.testing.assert_array_equal(e[4], depth)
+    stamps = lambda msgs: [contract.stamp_ns(m.header.stamp) for s, m in msgs if s == "frame"]  # noqa: E731
+    assert released == stamps(before) + stamps(after)
+    assert asm.report()["stamp_restarts"] == 1

@@ -29,6 +29,11 @@ def diagnostics(ros):
     return latest
 
 
+def pushes_signed_in(run_dir):
+    """policy_node arguments to take the pushes of a trainer_node in `run_dir` (it creates run_dir/push.key)."""
+    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={run_dir / 'push.key'}")
+
+
 def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
     diag = diagnostics(ros)
     actions = set()
@@ -38,7 +43,7 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     run_dir = tmp_path / "run"
     window = ("-p", "reward_window_fraction:=0.3")  # 19 of 64 px: the trainer reads it back from step_outcome
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0", "-p", "hfov_deg:=100.0", *window)
-    policy = ros.start("uav_policy", "policy_node")
+    policy = ros.start("uav_policy", "policy_node", *pushes_signed_in(run_dir))
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
     ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 2000, 300)
@@ -58,7 +63,8 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
         "chain_breaks",
         "unmatched_actions",
         "bad_frames",
-        "out_of_order",
+        "said_again",
+        "stamp_restarts",
         "duplicates",
     ):
         assert t[key] == "0", f"{key}={t[key]}"
@@ -177,7 +183,7 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
     ros.start("uav_sim", "sim_node")
     # A long timeout: the trainer may come up well after the policy holds its first frame on a busy machine.
     wait = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=300.0")
-    policy = ros.start("uav_policy", "policy_node", *wait, "-p", "frame_stack:=3")
+    policy = ros.start("uav_policy", "policy_node", *wait, "-p", "frame_stack:=3", *pushes_signed_in(run_dir))
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={run_dir}", "-p", "learning_starts:=1000")
     try:
         code = trainer.wait(90)
@@ -279,7 +285,7 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     att = []
     ros.node.create_subscription(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, att.append, 10)
     ros.start("uav_sim", "sim_node")
-    ros.start("uav_policy", "policy_node")
+    ros.start("uav_policy", "policy_node", *pushes_signed_in(tmp_path))
     sizes = ("-p", "d_model:=24", "-p", "heads:=2", "-p", "relational_blocks:=2", "-p", "mlp_hidden:=32")
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path}", "-p", "log_interval_s:=0.5", *sizes)
     pushed = lambda: int(diag.get("uav_trainer", {}).get("pushes_ok", 0)) >= 1  # noqa: E731

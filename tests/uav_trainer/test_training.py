@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import run_to_exit
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig
 from uav_sim.simulator import SimConfig
@@ -13,7 +14,7 @@ from uav_sim.world import WorldChoice
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run
 from uav_trainer.learner import LearnerConfig
-from uav_trainer.training import TrainerConfig, Training
+from uav_trainer.training import RunDirError, TrainerConfig, Training
 
 
 def run_inprocess(cfg, run_dir, log=print, world="basic", mix_world_every=0, hfov_deg=120.0, window=0.2, **sim):
@@ -479,3 +480,68 @@ def test_no_snapshot_is_written_before_the_first_update(tmp_path):
         assert any("step 280: no update yet (learning starts after 1000), no snapshot" in line for line in logs), logs
     finally:
         t.close()
+
+
+def no_space(*_args, **_kw):
+    """What safetensors raises on a full disk (seen on a 3 MB tmpfs): its own error type, not OSError."""
+    from safetensors import SafetensorError
+
+    raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+
+
+def test_a_checkpoint_the_disk_refuses_keeps_the_last_one_and_training_goes_on(tmp_path, monkeypatch):
+    logs = []
+    t = Training(small_cfg(), tmp_path, log=logs.append)
+    feed(t, 120)
+    while t.learn_once():
+        pass
+    kept = checkpoint.latest(t.checkpoint_dir)
+    assert kept is not None and kept.name.startswith("ckpt-000000030")
+    monkeypatch.setattr(checkpoint, "save_file", no_space)  # the disk is full from here on
+    feed(t, 40, seed=1)
+    while t.learn_once():  # updates 31..50 reach the checkpoints at 40 and 50: both fail, none raises
+        pass
+    assert t.learner.updates == 55 and t.checkpoint_failures == 2
+    assert checkpoint.latest(t.checkpoint_dir) == kept
+    assert not list(t.checkpoint_dir.glob(".ckpt-*")), "a failed write leaves no unfinished folder"
+    assert any("No space left on device" in line and f"latest stays {kept.name}" in line for line in logs), logs
+    monkeypatch.undo()  # space again: the next checkpoint is written
+    assert t.save_checkpoint().name.startswith("ckpt-000000055")
+    t.close()
+
+
+def test_a_final_checkpoint_whose_replay_does_not_fit_is_written_without_it(tmp_path, monkeypatch):
+    import safetensors.numpy
+
+    logs = []
+    t = Training(small_cfg(), tmp_path, log=logs.append)
+    feed(t, 120)
+    while t.learn_once():
+        pass
+    monkeypatch.setattr(safetensors.numpy, "save_file", no_space)  # the replay arrays are what does not fit
+    path = t.save_checkpoint(final=True)
+    assert path is not None and (path / "state.safetensors").is_file() and not (path / checkpoint.REPLAY_FILE).exists()
+    assert checkpoint.latest(t.checkpoint_dir) == path and t.checkpoint_failures == 0
+    assert any("writing it without" in line for line in logs), logs
+    t.close()
+
+
+def test_a_checkpoint_comes_by_time_too_and_stale_unfinished_ones_are_removed_at_start(tmp_path):
+    logs = []
+    stale = tmp_path / "checkpoints" / ".ckpt-000000007-000000100.tmp"
+    stale.mkdir(parents=True)
+    t = Training(small_cfg(checkpoint_interval_updates=10**6), tmp_path, log=logs.append)
+    assert not stale.exists() and any("removed 1 unfinished checkpoint" in line for line in logs)
+    feed(t, 60)
+    assert t.learn_once() and checkpoint.latest(t.checkpoint_dir) is None  # not due by updates, nor yet by time
+    t._checkpoint_wall -= t.cfg.checkpoint_interval_s  # the interval has passed since the start
+    assert t.learn_once() and checkpoint.latest(t.checkpoint_dir).name.startswith("ckpt-000000002")
+    t.close()
+
+
+def test_an_unwritable_run_folder_is_refused_in_one_line(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(RunDirError, match="run_dir '.*a_file/run': cannot write there"):
+        Training(small_cfg(), tmp_path / "a_file" / "run", log=lambda s: None)
+    r = run_to_exit("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path / 'a_file' / 'run'}", timeout_s=60)
+    assert r.returncode == 2 and "run_dir" in r.stderr and "cannot write there" in r.stderr and "Traceback" not in r.stderr

@@ -186,6 +186,11 @@ class StampJoiner:
     `add(stream, stamp_ns, item)` returns {stream: item} once every stream has an item with
     that stamp, else None. Incomplete stamps older than `max_pending` newer ones are
     dropped and counted per missing stream in `dropped` - never guessed.
+
+    Each stream is ordered (one reliable publisher), so an item stamped before the newest completed
+    stamp, and not awaited, means its source restarted (a simulator's clock starts again) or that
+    stamp was a glitch far in the future: the joiner starts afresh, counts it in `restarts`, and
+    joins from that item on. An item at the newest completed stamp again is a duplicate (`late`).
     """
 
     def __init__(self, streams: tuple[str, ...], max_pending: int = 200):
@@ -195,14 +200,20 @@ class StampJoiner:
         self.dropped = {s: 0 for s in self.streams}
         self.duplicates = 0
         self.late = 0
+        self.restarts = 0
         self._last_done = None
 
     def add(self, stream: str, stamp: int, item) -> dict | None:
         if stream not in self.dropped:
             raise KeyError(f"unknown stream '{stream}'")
-        if self._last_done is not None and stamp <= self._last_done and stamp not in self.pending:
-            self.late += 1  # arrived after its stamp was completed or given up
-            return None
+        if self._last_done is not None and stamp not in self.pending:
+            if stamp == self._last_done:
+                self.late += 1  # said again after it was completed (a republished frame)
+                return None
+            if stamp < self._last_done:  # the source went back in time: start afresh
+                self.restarts += 1
+                self.pending.clear()
+                self._last_done = None
         slot = self.pending.setdefault(stamp, {})
         if stream in slot:
             self.duplicates += 1
@@ -213,15 +224,16 @@ class StampJoiner:
             # Everything older than a completed stamp can no longer complete in order.
             for old in [s for s in self.pending if s < stamp]:
                 self._drop(old)
-            self._last_done = stamp if self._last_done is None else max(self._last_done, stamp)
+            self._last_done = stamp
             return slot
         while len(self.pending) > self.max_pending:
             self._drop(next(iter(self.pending)))
         return None
 
     def _drop(self, stamp: int) -> None:
+        """Give up on an incomplete stamp. Only completed stamps move the join forward, so a lone item
+        stamped far in the future is dropped in time and never silences the stamps after it."""
         slot = self.pending.pop(stamp)
         for s in self.streams:
             if s not in slot:
                 self.dropped[s] += 1
-        self._last_done = stamp if self._last_done is None else max(self._last_done, stamp)

@@ -24,7 +24,9 @@ class PolicySettings:
         "safetensors weights file, or several separated by commas, flown as one policy on the mean of their Q-values "
         "(e.g. a run's snapshots and final weights, as train prints them); empty: the packaged weights",
     )
-    epsilon: float = setting(0.0, "Probability of a random action (exploration); the trainer sets it", 0.0, 1.0, read_only=False)
+    epsilon: float = setting(
+        0.0, "Probability of a random action (exploration); while training, the trainer's pushes change it", 0.0, 1.0
+    )
     seed: int = setting(0, "Seed for the random initialisation and for exploration", 0, 2**31 - 1)
     device: str = setting(
         "auto", "Torch device: auto (cuda when present, else cpu), cpu or cuda", choices=("auto", "cpu", "cuda")
@@ -41,6 +43,16 @@ class PolicySettings:
         choices=SAM_READOUTS,
     )
     publish_overlay: bool = setting(True, "Publish attention/overlay (rgb8)")
+    accept_pushes: bool = setting(
+        False,
+        "Serve ~/push_weights, which swaps in weights and epsilon (train sets true); false: a flying policy takes "
+        "nothing from the network",
+    )
+    push_key_file: str = setting(
+        "",
+        "accept_pushes: the run's key (hex, mode 0600; train writes it, trainer_node creates it when missing); only "
+        "pushes signed with it are taken. Read at the first push",
+    )
     wait_for_trainer: bool = setting(
         False,
         "Lockstep learning (train sets true): answer a frame only once trainer_node releases it over ~/push_weights "

@@ -2,8 +2,9 @@
 
 Joins depth/image_raw and step_outcome by stamp (-Inf or NaN restarts the frame stack) and answers each
 frame with cmd_vel, action (stamped with the frame), q_values and, for SAM, the attention topics. It flies
-the packaged weights, or the 'weights' files as one policy on their mean Q-values; ~/push_weights swaps in
-new weights (uav_policy.push), and with wait_for_trainer a frame is answered once trainer_node releases it.
+the packaged weights, or the 'weights' files as one policy on their mean Q-values. With accept_pushes (train),
+~/push_weights swaps in new weights signed with the run's key (uav_policy.push), and with wait_for_trainer a
+frame is answered once trainer_node releases it; a flying policy takes nothing from the network.
 It warns when depth/camera_info shows another camera than the weights were trained behind.
 """
 
@@ -33,7 +34,7 @@ from .agent import Agent, resolve_device
 from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
-from .push import ReleaseGate, read_push
+from .push import ReleaseGate, load_key, read_push, verify
 
 
 class PolicyNode(Node):
@@ -45,6 +46,13 @@ class PolicyNode(Node):
         self.step_duration_s = st.step_duration_s
         self.publish_overlay = st.publish_overlay
         self.wait_for_trainer, self.wait_timeout_s = st.wait_for_trainer, st.wait_for_trainer_timeout_s
+        if self.wait_for_trainer and not st.accept_pushes:
+            raise ParameterError("parameter 'wait_for_trainer': frames are released by pushes, so it needs accept_pushes:=true")
+        if st.accept_pushes and not st.push_key_file:
+            raise ParameterError("parameter 'accept_pushes': needs 'push_key_file', the key pushes are signed with")
+        self.accept_pushes, self.push_key_file = st.accept_pushes, st.push_key_file
+        self.push_key: bytes | None = None  # read at the first push (trainer_node may create the file after we start)
+        self.last_push_seq = -1
         frames = st.frame_stack
         torch.set_num_threads(st.torch_threads)
         try:
@@ -73,7 +81,6 @@ class PolicyNode(Node):
         self.camera_hfov_deg = None  # from depth/camera_info
         self._camera_warned = None
         self.agent = Agent(net, self.cfg, device, seed)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
 
         q = contract.STREAM_QOS
         self.pub_cmd = self.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
@@ -89,7 +96,8 @@ class PolicyNode(Node):
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, 10)
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
         # service needs its own callback group: a suspended async callback holds its group.
-        self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
+        if self.accept_pushes:
+            self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
         self.stack = FrameStack(frames)
         self.gate = ReleaseGate(self.wait_timeout_s)  # wait_for_trainer: frames held until released
         if self.wait_for_trainer:
@@ -99,8 +107,10 @@ class PolicyNode(Node):
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
         self.source = source
         self.acted, self.bad_frames, self.pushes_accepted, self.pushes_rejected = 0, 0, 0, 0
+        self.pushes_unauthenticated = 0
         self.act_s = 0.0  # time spent answering frames since the last report (network and publishing)
-        self._reported = (time.monotonic(), 0, 0)  # (when, acted, bad_frames) at the last report
+        self.frames_in = 0  # depth frames received, answered or not
+        self._reported = (time.monotonic(), 0, 0, 0)  # (when, acted, bad_frames, frames_in) at the last report
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.create_timer(1.0, self.publish_diagnostics)
         camera = f", trained with a {self.weights_hfov_deg:g} deg camera" if self.weights_hfov_deg is not None else ""
@@ -131,19 +141,14 @@ class PolicyNode(Node):
                 f"expect more crashes (run sim_node with hfov_deg:={key[0]:g})"
             )
 
-    def _on_set_parameters(self, params):
-        for p in params:
-            if p.name == "epsilon":
-                v = p.value
-                if not isinstance(v, float) or not 0.0 <= v <= 1.0:
-                    return SetParametersResult(successful=False, reason="epsilon must be a float in [0, 1]")
-                self.epsilon = v
-        return SetParametersResult(successful=True)
-
     # -- frames -------------------------------------------------------------------------
     def _on(self, stream: str, msg) -> None:
         stamp = contract.stamp_ns(msg.header.stamp)
+        self.frames_in += stream == "frame" and stamp != self.last_stamp  # a frame said again is not new
+        restarts = self.joiner.restarts
         joined = self.joiner.add(stream, stamp, msg)
+        if self.joiner.restarts != restarts:
+            self._restarted(stream, stamp)
         if joined is not None and self.wait_for_trainer and self.gate.hold(stamp, joined, time.monotonic()):
             pass
         elif joined is not None:
@@ -154,6 +159,19 @@ class PolicyNode(Node):
             # late (a busy machine); answering it twice would advance a lockstep sim two steps.
             self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0
             self.pub_cmd.publish(self.last_cmd)
+
+    def _restarted(self, stream: str, stamp: int) -> None:
+        """The stamps went back: the simulator restarted (or the last one was a glitch from the future).
+        A new frame stack begins; nothing from before is answered or stacked with what comes now."""
+        before = self.last_stamp
+        self.stack = FrameStack(self.cfg.frames)
+        self.last_stamp, self.last_cmd, self.last_cmd_unheard = None, None, False
+        held = self.gate.restart()
+        self.get_logger().warning(
+            f"{stream} stamps went back ({stamp / 1e9:.3f} s after {before / 1e9 if before is not None else 0:.3f} s): "
+            f"the source restarted; starting a new frame stack" + (f" ({held} held frames dropped)" if held else ""),
+            throttle_duration_sec=5.0,
+        )
 
     def _check_held(self) -> None:
         """wait_for_trainer: a frame the trainer has not released in time is answered anyway, so the vehicle
@@ -203,12 +221,14 @@ class PolicyNode(Node):
         """1 Hz on /diagnostics: frames answered, malformed frames ignored, weight pushes; WARN while
         malformed frames arrive or the camera differs from the one the weights were trained with."""
         now = time.monotonic()
-        when, acted, bad = self._reported
-        new_acts, new_bad = self.acted - acted, self.bad_frames - bad
-        self._reported = (now, self.acted, self.bad_frames)
+        when, acted, bad, frames_in = self._reported
+        new_acts, new_bad, new_in = self.acted - acted, self.bad_frames - bad, self.frames_in - frames_in
+        self._reported = (now, self.acted, self.bad_frames, self.frames_in)
         problems = []
         if new_bad:
             problems.append(f"{new_bad} malformed depth frame(s) ignored in the last {now - when:.1f} s")
+        if new_in and not new_acts and not self.gate.held:
+            problems.append(f"{new_in} depth frame(s) in the last {now - when:.1f} s and none answered (no step_outcome?)")
         mismatch = wio.camera_mismatch(self.weights_hfov_deg, self.camera_hfov_deg)
         if mismatch is not None:
             problems.append(f"camera {mismatch[1]:g} deg, but the weights were trained with a {mismatch[0]:g} deg camera")
@@ -220,6 +240,13 @@ class PolicyNode(Node):
             "malformed_frames": self.bad_frames,
             "pushes_accepted": self.pushes_accepted,
             "pushes_rejected": self.pushes_rejected,
+            "pushes_unauthenticated": self.pushes_unauthenticated,
+            "frames_received": self.frames_in,
+            "frames_without_outcome": self.joiner.dropped["outcome"],
+            "outcomes_without_frame": self.joiner.dropped["frame"],
+            "duplicate_messages": self.joiner.duplicates,
+            "frames_said_again": self.joiner.late,
+            "stamp_restarts": self.joiner.restarts,
             "frames_held": len(self.gate.held),
             "released_by_timeout": self.gate.timed_out,
             "answers_per_s": f"{new_acts / max(now - when, 1e-6):.1f}",
@@ -244,9 +271,26 @@ class PolicyNode(Node):
     async def _on_push(self, request, response):
         t0 = time.perf_counter()
         result = SetParametersResult(successful=False)
-        push = None
         try:
             push = read_push(request.parameters, wio.MAX_BYTES)
+        except ValueError as e:
+            push = None
+            result.reason = str(e)
+        if push is not None:
+            try:
+                if self.push_key is None:
+                    self.push_key = load_key(self.push_key_file)
+                verify(self.push_key, push, self.last_push_seq)
+                self.last_push_seq = push.seq
+            except ValueError as e:  # not from our trainer: nothing of it is taken, no frame is released
+                self.pushes_unauthenticated += 1
+                self.get_logger().warning(f"weights push refused: {e}", throttle_duration_sec=5.0)
+                result.reason = str(e)
+                response.results = [result]
+                return response
+        try:
+            if push is None:
+                raise ValueError(result.reason)
             blob = push.weights
             if blob is not None:
                 # The trainer owns the layer sizes: a push may bring others (the interface must match).

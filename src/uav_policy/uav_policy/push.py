@@ -3,7 +3,13 @@
 A push holds any of these parameters: `weights` (BYTE_ARRAY, a safetensors blob) or
 `weights_base64` (STRING, the same blob in base64), `epsilon` (DOUBLE, the exploration rate to act
 with from now on) and `release_stamp_ns` (INTEGER: with policy_node's wait_for_trainer, answer the
-frames stamped up to this sim time, ns). trainer_node's lockstep learning sends weights, epsilon and
+frames stamped up to this sim time, ns); and, to be accepted, `push_seq` (INTEGER, larger than any
+sequence number accepted before: a recorded push cannot be played again) and `signature` (STRING:
+HMAC-SHA256, in hex, of all of the above under the run's key, `push_key_file`). The Fast DDS in the
+PyPI wheels has no security plugins, so anyone on the domain can call the service: the key, which
+`train` writes for each run (mode 0600) and hands to both nodes, is what keeps them out.
+
+trainer_node's lockstep learning sends weights, epsilon and
 release after each step's updates, so the policy acts on the network that learnt from the step that
 produced the frame, as the in-process loop does. It sends the weights in base64: rclpy converts a
 BYTE_ARRAY byte by byte (measured: serialising, deserialising and joining CNN's 1.2 MB blob takes
@@ -15,7 +21,13 @@ from __future__ import annotations
 import base64
 import binascii
 import dataclasses
+import hashlib
+import hmac
 import math
+import os
+import secrets
+import stat
+from pathlib import Path
 
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
@@ -25,11 +37,16 @@ from uav_common import contract
 WEIGHTS_BASE64_PARAMETER = "weights_base64"
 EPSILON_PARAMETER = "epsilon"
 RELEASE_PARAMETER = "release_stamp_ns"
+SEQUENCE_PARAMETER = "push_seq"
+SIGNATURE_PARAMETER = "signature"
+KEY_BYTES = 32
 _TYPES = {
     contract.WEIGHTS_PARAMETER: (ParameterType.PARAMETER_BYTE_ARRAY, "BYTE_ARRAY"),
     WEIGHTS_BASE64_PARAMETER: (ParameterType.PARAMETER_STRING, "STRING"),
     EPSILON_PARAMETER: (ParameterType.PARAMETER_DOUBLE, "DOUBLE"),
     RELEASE_PARAMETER: (ParameterType.PARAMETER_INTEGER, "INTEGER"),
+    SEQUENCE_PARAMETER: (ParameterType.PARAMETER_INTEGER, "INTEGER"),
+    SIGNATURE_PARAMETER: (ParameterType.PARAMETER_STRING, "STRING"),
 }
 
 
@@ -38,13 +55,75 @@ class Push:
     weights: bytes | None = None
     epsilon: float | None = None
     release_stamp_ns: int | None = None
+    seq: int | None = None
+    signature: str | None = None
+
+
+def signed_text(blob: bytes | None, epsilon: float | None, release_stamp_ns: int | None, seq: int) -> bytes:
+    """What a signature covers: every field of the push (the blob by its SHA-256)."""
+    digest = hashlib.sha256(blob).hexdigest() if blob is not None else "-"
+    return f"uav_push/1|{seq}|{digest}|{epsilon!r}|{release_stamp_ns!r}".encode()
+
+
+def sign(key: bytes, blob: bytes | None, epsilon: float | None, release_stamp_ns: int | None, seq: int) -> str:
+    return hmac.new(key, signed_text(blob, epsilon, release_stamp_ns, seq), hashlib.sha256).hexdigest()
+
+
+def verify(key: bytes, push: Push, last_seq: int) -> None:
+    """ValueError unless `push` is signed with `key` and newer than `last_seq`."""
+    if push.signature is None or push.seq is None:
+        raise ValueError(f"unsigned push refused: a push must carry '{SEQUENCE_PARAMETER}' and '{SIGNATURE_PARAMETER}'")
+    good = sign(key, push.weights, push.epsilon, push.release_stamp_ns, push.seq)
+    if not hmac.compare_digest(good, push.signature):
+        raise ValueError("push refused: its signature does not match this run's key (push_key_file)")
+    if push.seq <= last_seq:
+        raise ValueError(f"push refused: sequence number {push.seq} is not newer than {last_seq} (a push played again)")
+
+
+def write_key(path: str | os.PathLike) -> Path:
+    """A new random key in `path`, readable by its owner only (replacing any there)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        os.write(fd, (secrets.token_hex(KEY_BYTES) + "\n").encode())
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    return path
+
+
+def load_key(path: str | os.PathLike) -> bytes:
+    """The key in `path`; ValueError names the file and what is wrong (missing, readable by others, too short)."""
+    path = Path(path)
+    try:
+        st = path.stat()
+        text = path.read_text().strip()
+    except OSError as e:
+        raise ValueError(f"push key file '{path}': {e.strerror or e}") from None
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ValueError(f"push key file '{path}' can be read by others (mode {stat.S_IMODE(st.st_mode):o}): chmod 600 it")
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        raise ValueError(f"push key file '{path}' does not hold a hex key") from None
+    if len(key) < KEY_BYTES:
+        raise ValueError(f"push key file '{path}' holds {len(key)} bytes; at least {KEY_BYTES} are needed")
+    return key
 
 
 def push_request(
-    blob: bytes | None, epsilon: float | None = None, release_stamp_ns: int | None = None, as_base64: bool = False
+    blob: bytes | None,
+    epsilon: float | None = None,
+    release_stamp_ns: int | None = None,
+    as_base64: bool = False,
+    key: bytes | None = None,
+    seq: int | None = None,
 ) -> SetParameters.Request:
     """A push of weights (None: none; `as_base64`: as weights_base64 text), and optionally an exploration
-    rate and a release stamp."""
+    rate and a release stamp; with `key`, signed as push `seq`."""
     params = []
     if blob is not None and as_base64:
         value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=base64.b64encode(blob).decode("ascii"))
@@ -58,6 +137,18 @@ def push_request(
     if release_stamp_ns is not None:
         value = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=int(release_stamp_ns))
         params.append(Parameter(name=RELEASE_PARAMETER, value=value))
+    if key is not None:
+        if seq is None:
+            raise ValueError("a signed push needs its sequence number")
+        eps = None if epsilon is None else float(epsilon)
+        stamp = None if release_stamp_ns is None else int(release_stamp_ns)
+        signature = sign(key, None if blob is None else bytes(blob), eps, stamp, int(seq))
+        params.append(
+            Parameter(name=SEQUENCE_PARAMETER, value=ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=int(seq)))
+        )
+        params.append(
+            Parameter(name=SIGNATURE_PARAMETER, value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=signature))
+        )
     return SetParameters.Request(parameters=params)
 
 
@@ -98,7 +189,9 @@ def read_push(params, max_bytes: int) -> Push:
     stamp = seen[RELEASE_PARAMETER].integer_value if RELEASE_PARAMETER in seen else None
     if stamp is not None and stamp < 0:
         raise ValueError(f"push parameter 'release_stamp_ns' must be >= 0, got {stamp}")
-    return Push(blob, eps, stamp)
+    seq = seen[SEQUENCE_PARAMETER].integer_value if SEQUENCE_PARAMETER in seen else None
+    signature = seen[SIGNATURE_PARAMETER].string_value if SIGNATURE_PARAMETER in seen else None
+    return Push(blob, eps, stamp, seq, signature)
 
 
 class ReleaseGate:
@@ -117,6 +210,11 @@ class ReleaseGate:
             return False
         self.held.append((stamp, now, item))
         return True
+
+    def restart(self) -> int:
+        """The stamps started again (a restarted simulator): the held frames are dropped; how many."""
+        dropped, self.held, self.released_ns = len(self.held), [], -1
+        return dropped
 
     def release(self, stamp: int) -> list:
         """The held items released by a release up to `stamp`, oldest first."""

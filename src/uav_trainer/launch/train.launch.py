@@ -3,6 +3,9 @@
 lockstep. `train` is what this repository tests (`launch` is not on PyPI).
 
     ros2 launch uav_trainer train.launch.py params_dir:=$PWD/params recipe:=shipped total_steps:=30000
+
+Pushes are signed with the key in push_key_file (default runs/train/push.key): trainer_node creates it
+(mode 0600) when it is missing, policy_node reads it at the first push.
 """
 
 from launch import LaunchDescription
@@ -21,18 +24,30 @@ def generate_launch_description():
             DeclareLaunchArgument("params_dir", default_value="params"),
             DeclareLaunchArgument("recipe", default_value="shipped"),
             DeclareLaunchArgument("total_steps", default_value="30000"),
+            DeclareLaunchArgument("push_key_file", default_value="runs/train/push.key"),
             Node(package="uav_sim", executable="sim_node", parameters=[*files("sim"), {"wait_for_subscribers": 2}]),
             Node(
                 package="uav_policy",
                 executable="policy_node",
-                parameters=[*files("policy"), {"epsilon": 1.0, "wait_for_trainer": True}],
+                parameters=[
+                    *files("policy"),
+                    {
+                        "epsilon": 1.0,
+                        "wait_for_trainer": True,
+                        "accept_pushes": True,
+                        "push_key_file": LaunchConfiguration("push_key_file"),
+                    },
+                ],
             ),
             Node(
                 package="uav_trainer",
                 executable="trainer_node",
                 parameters=[
                     *files("trainer"),
-                    {"total_steps": ParameterValue(LaunchConfiguration("total_steps"), value_type=int)},
+                    {
+                        "total_steps": ParameterValue(LaunchConfiguration("total_steps"), value_type=int),
+                        "push_key_file": LaunchConfiguration("push_key_file"),
+                    },
                 ],
             ),
         ]

@@ -10,6 +10,7 @@ atomically after it, so a crash mid-write never corrupts a resume.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -58,12 +59,49 @@ def save(
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir()
+    try:
+        _write(tmp, learner, counters, extra_rng, replay)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # a failed write (a full disk) leaves nothing behind
+        raise
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    write_atomic(root / "latest", name.encode())
+    for old in sorted(p for p in root.glob("ckpt-*") if p.is_dir())[:-KEEP]:
+        shutil.rmtree(old, ignore_errors=True)
+    for older in root.glob(f"ckpt-*/{REPLAY_FILE}"):  # only the newest checkpoint's memory can be resumed with
+        if older.parent != final:
+            older.unlink(missing_ok=True)
+    return final
+
+
+def remove_stale(dir_: str | os.PathLike) -> int:
+    """Remove the unfinished checkpoint folders a killed run left behind; how many."""
+    stale = [p for p in Path(dir_).glob(".ckpt-*.tmp") if p.is_dir()]
+    for p in stale:
+        shutil.rmtree(p, ignore_errors=True)
+    return len(stale)
+
+
+def _io(save, tensors: dict, path: Path) -> None:
+    """`save(tensors, path)`, any failure to write an OSError: safetensors reports a full disk as its own
+    SafetensorError ("I/O error: No space left on device")."""
+    try:
+        save(tensors, str(path))
+    except OSError:
+        raise
+    except Exception as e:
+        raise OSError(errno.EIO, f"{path.name}: {e}") from e
+
+
+def _write(tmp: Path, learner: Learner, counters: dict, extra_rng: dict, replay) -> None:
     tensors = {f"online.{k}": v.detach().cpu().contiguous() for k, v in learner.online.state_dict().items()}
     tensors.update({f"target.{k}": v.detach().cpu().contiguous() for k, v in learner.target.state_dict().items()})
     opt_tensors, groups = _optimizer_tensors(learner.optimizer)
     tensors.update(opt_tensors)
     tensors["rng.torch"] = torch.random.get_rng_state()
-    save_file(tensors, str(tmp / "state.safetensors"))
+    _io(save_file, tensors, tmp / "state.safetensors")
     meta = {
         "format": "uav_trainer_checkpoint/1",
         "net_config": json.loads(learner.net_cfg.to_json()),
@@ -75,20 +113,10 @@ def save(
     }
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
     if replay is not None:
-        safetensors.numpy.save_file(replay, str(tmp / REPLAY_FILE))
+        _io(safetensors.numpy.save_file, replay, tmp / REPLAY_FILE)
     for f in tmp.iterdir():
         with open(f, "rb") as fh:
             os.fsync(fh.fileno())
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
-    write_atomic(root / "latest", name.encode())
-    for old in sorted(p for p in root.glob("ckpt-*") if p.is_dir())[:-KEEP]:
-        shutil.rmtree(old, ignore_errors=True)
-    for older in root.glob(f"ckpt-*/{REPLAY_FILE}"):  # only the newest checkpoint's memory can be resumed with
-        if older.parent != final:
-            older.unlink(missing_ok=True)
-    return final
 
 
 def latest(dir_: str | os.PathLike) -> Path | None:

@@ -25,7 +25,7 @@ from uav_sim.world import WorldChoice, WorldError
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
 from .rollout import Flight
-from .training import TrainerConfig, Training, reward_description
+from .training import RunDirError, TrainerConfig, Training, reward_description
 
 _TRIED = "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
 # The in-process trainer's flags that were retired, and what replaces them.
@@ -154,6 +154,11 @@ def main(argv=None) -> int:
         t = run(cfg, a.run_dir or f"runs/inproc_{cfg.model}_seed{cfg.seed}", sim_cfg, worlds, log=log, resume=a.resume)
     except (RewardWindowError, WorldError) as e:
         ap.error(f"sim_node parameters: {e}")
+    except RunDirError as e:
+        ap.error(str(e))
+    if not t.policy_weights_path.is_file():
+        print(f"no weights written in {t.policy_weights_path.parent} (see the log above)", file=sys.stderr)
+        return 1
     print(f"weights: {t.policy_weights_path}")
     return 0
 

@@ -7,7 +7,8 @@ come from outcome k+1 (the outcome of the step that produced frame k+1). The tra
 stored as soon as observation k+1 is in, before the policy answers frame k+1: a trainer that
 learns in lockstep (trainer_node) learns from it before the policy acts on
 frame k+1, as the in-process loop does. Anything else - a gap, an action that matches no known
-action, a malformed frame - starts a new chain and is counted. A NaN outcome (the episode hit
+action, a malformed frame, stamps going back (a restarted simulator) - starts a new chain and is
+counted. A NaN outcome (the episode hit
 the simulator's time limit, or was reset) stores no transition: the frame it comes with starts
 the next episode's chain.
 
@@ -47,7 +48,11 @@ class TransitionAssembler:
         self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0}
 
     def add(self, stream: str, msg) -> None:
+        restarts = self.joiner.restarts
         joined = self.joiner.add(stream, contract.stamp_ns(msg.header.stamp), msg)
+        if self.joiner.restarts != restarts:  # the simulator restarted: a new chain, released afresh
+            self.prev, self.early, self.released = None, None, -1
+            self.counts["chain_breaks"] += 1
         if joined is not None:
             self._record(joined)
         self._store_next()
@@ -139,6 +144,7 @@ class TransitionAssembler:
             "frames_without_outcome": j.dropped["outcome"],
             "outcomes_or_actions_without_frame": j.dropped["frame"],
             "duplicates": j.duplicates,
-            "out_of_order": j.late,
+            "said_again": j.late,
+            "stamp_restarts": j.restarts,
             **self.counts,
         }

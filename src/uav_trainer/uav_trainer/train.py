@@ -28,6 +28,7 @@ from pathlib import Path
 from uav_common.launching import Processes, params_args, stop_signals
 from uav_common.settings import refuse_retired_flags
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
+from uav_policy.push import write_key
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
 from .training import snapshot_file, snapshot_steps
@@ -106,6 +107,11 @@ def main(argv=None) -> int:
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     logs = run_dir / "logs"
     started = time.time() - 1.0  # files written from here on are this run's (1 s for coarse file-system clocks)
+    # A new key for each run, in the run folder (mode 0600): only this run's trainer can push to its policy.
+    try:
+        key = write_key(run_dir / "push.key")
+    except OSError as e:
+        ap.error(f"--run-dir {run_dir}: cannot write there ({e.strerror or e})")
     procs = Processes(log_dir=logs)
     p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731
@@ -120,6 +126,7 @@ def main(argv=None) -> int:
         "policy_node",
         node_args("policy")
         + p([f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
+        + p(["accept_pushes:=true", f"push_key_file:={key}"])
         + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
     )
     trainer = procs.start(
@@ -134,6 +141,7 @@ def main(argv=None) -> int:
                 f"seed:={a.seed}",
                 f"total_steps:={a.steps}",
                 f"run_dir:={run_dir}",
+                f"push_key_file:={key}",
                 f"resume:={'false' if a.no_resume else 'true'}",
                 *[f"input_size_px:={px}" for px in size],
                 *frames,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from pathlib import Path
 
 import rclpy
 import torch
@@ -34,12 +35,12 @@ from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings, setting
 from uav_policy.agent import resolve_device
 from uav_policy.networks import parameter_count
-from uav_policy.push import push_request
+from uav_policy.push import load_key, push_request, write_key
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim.reward import center_window_slices, window_fraction_for_fov
 
 from .pairing import TransitionAssembler
-from .training import RETIRED, TrainerConfig, Training, reward_description
+from .training import RETIRED, RunDirError, TrainerConfig, Training, reward_description
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +54,14 @@ class TrainerNodeSettings:
     step_duration_s: float = setting(0.5, "Sim step duration (s); must equal sim_node's", 0.01, 5.0)
     policy_node: str = setting("policy_node", "Name of the policy node to release frames and push weights to")
     log_interval_s: float = setting(5.0, "Seconds between progress lines and metrics rows", 0.1, 3600.0)
+    push_key_file: str = setting(
+        "",
+        "The run's key that every push is signed with (policy_node must be given the same file); created, mode 0600, "
+        "when missing; empty: run_dir/push.key (train writes a new one there for each run)",
+    )
+    release_timeout_s: float = setting(
+        10.0, "A release policy_node has not answered in this long is logged and sent again", 0.1, 3600.0
+    )
     torch_threads: int = setting(1, "Torch intra-op threads for the learner (2 cores are shared)", 1, 256)
 
 
@@ -72,7 +81,10 @@ class TrainerNode(Node):
             raise ParameterError(f"parameter {e}") from None
         self.step_ns = int(round(1e9 * st.step_duration_s))
         torch.set_num_threads(st.torch_threads)
-        self.training = Training(self.cfg, st.run_dir, log=self.get_logger().info, resume=st.resume)
+        try:
+            self.training = Training(self.cfg, st.run_dir, log=self.get_logger().info, resume=st.resume)
+        except RunDirError as e:
+            raise ParameterError(f"parameter {e}") from None
         policy = st.policy_node
 
         q = contract.DEEP_QOS
@@ -87,14 +99,24 @@ class TrainerNode(Node):
         self.outcome_fov_rad = None
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
+        key_file = Path(st.push_key_file or self.training.dir / "push.key")
+        try:
+            if not key_file.exists():
+                write_key(key_file)
+            self.push_key = load_key(key_file)
+        except (OSError, ValueError) as e:
+            raise ParameterError(f"parameter 'push_key_file': {e}") from None
+        self.push_seq = 0
+        self.release_timeout_s = st.release_timeout_s
         self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
         # whether policy_node waits for releases, asked once (None: not yet known)
         self.get_param_client = self.create_client(GetParameters, f"{policy}/get_parameters")
         self.policy_waits: bool | None = None
         self._wait_query = None
         # unreleased_answers: answers to frames this node had not released, i.e. not in lockstep
-        self.counts = {"pushes_ok": 0, "pushes_rejected": 0, "unreleased_answers": 0}
+        self.counts = {"pushes_ok": 0, "pushes_rejected": 0, "unreleased_answers": 0, "release_retries": 0}
         self.push_in_flight = None
+        self._in_flight_stamp, self._in_flight_t0 = None, 0.0
         self.push_latency_ms: list[float] = []
         self.exit_code = 0
         self._go_stamp = None  # the newest frame to release, once the previous push is answered
@@ -106,7 +128,8 @@ class TrainerNode(Node):
             f"training {self.cfg.model} ({parameter_count(self.training.learner.online)} parameters, seed {self.cfg.seed}) "
             f"on {self.training.learner.device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
-            f"reward: {reward_description(self.cfg)}; learning in lockstep with acting"
+            f"reward: {reward_description(self.cfg)}; learning in lockstep with acting; pushes signed with the key in "
+            f"{key_file} (policy_node needs accept_pushes:=true push_key_file:={key_file})"
         )
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -186,11 +209,15 @@ class TrainerNode(Node):
         updates = self.training.learner.updates
         blob = self.training.weights_blob() if updates != self._pushed_updates else None
         self._pushed_updates = updates
-        fut = self.push_client.call_async(push_request(blob, self.training.epsilon(), self._go_stamp, as_base64=True))
-        self._go_stamp = None
-        t0 = time.perf_counter()
+        # Larger than any number sent before, also by this run before a restart: the policy refuses replays.
+        self.push_seq = max(self.push_seq + 1, time.time_ns())
+        request = push_request(
+            blob, self.training.epsilon(), self._go_stamp, as_base64=True, key=self.push_key, seq=self.push_seq
+        )
+        fut = self.push_client.call_async(request)
+        t0 = self._in_flight_t0 = time.perf_counter()
         fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(f, t0, b is not None))
-        self.push_in_flight = fut
+        self.push_in_flight, self._in_flight_stamp, self._go_stamp = fut, self._go_stamp, None
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
@@ -204,7 +231,25 @@ class TrainerNode(Node):
             self._shutdown()
             return
         self._check_policy_waits()
+        self._check_release()
         self._send_go()
+
+    def _check_release(self) -> None:
+        """A release policy_node has not answered within release_timeout_s is sent again (with the weights), so
+        a lost request or a busy policy never stops the run for good."""
+        fut = self.push_in_flight
+        if fut is None or time.perf_counter() - self._in_flight_t0 < self.release_timeout_s:
+            return
+        self.push_client.remove_pending_request(fut)
+        self.push_in_flight = None
+        self.counts["release_retries"] += 1
+        self.get_logger().warning(
+            f"policy_node did not answer the release of the frame at {self._in_flight_stamp / 1e9:.1f} s sim time within "
+            f"{self.release_timeout_s:g} s: sending it again ({self.counts['release_retries']} so far)"
+        )
+        if self._go_stamp is None or self._go_stamp < self._in_flight_stamp:
+            self._go_stamp = self._in_flight_stamp
+        self._pushed_updates = None  # the weights go again too
 
     def _push_done(self, fut, t0: float, weights: bool = True) -> None:
         self.push_in_flight = None
@@ -243,6 +288,7 @@ class TrainerNode(Node):
             "epsilon": f"{t.epsilon():.3f}",
             "loss": f"{t.last_loss:.4f}",
             "replay_transitions": len(t.replay),
+            "checkpoint_failures": t.checkpoint_failures,
             "push_latency_p50_ms": f"{lat[len(lat) // 2]:.1f}" if lat else "nan",
             "total_steps": self.cfg.total_steps,
             **self.pairing.report(),
@@ -262,7 +308,7 @@ class TrainerNode(Node):
             f"eps {row['epsilon']:.3f} loss {row['loss']:.4f} | {row['env_steps_per_s']:.0f} steps/s "
             f"{row['updates_per_s']:.1f} updates/s (ratio {row['updates_per_s'] / max(row['env_steps_per_s'], 1e-9):.2f})"
             f" | unpaired {unpaired} breaks {st['chain_breaks']} "
-            f"out-of-order {st['out_of_order']}"
+            f"restarts {st['stamp_restarts']}"
         )
 
     def _shutdown(self) -> None:

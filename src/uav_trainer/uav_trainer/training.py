@@ -50,6 +50,9 @@ class TrainerConfig:
         0.25, "Updates per environment step (0.25: one per four steps, DQN's train_freq 4)", 0.001, 64.0
     )
     checkpoint_interval_updates: int = setting(1000, "Write a checkpoint every N updates", 1, 10**8)
+    checkpoint_interval_s: float = setting(
+        120.0, "Also write one when this long (s) has passed since the last (from the first update on)", 1.0, 10**6
+    )
     epsilon_start: float = setting(1.0, "Initial exploration rate", 0.0, 1.0)
     epsilon_end: float = setting(0.05, "Final exploration rate (the paper keeps 0.05)", 0.0, 1.0)
     epsilon_decay_steps: int = setting(
@@ -194,6 +197,10 @@ def machine_info() -> dict:
     }
 
 
+class RunDirError(ValueError):
+    """The run folder cannot be written: the message names it and why."""
+
+
 class Training:
     """One training run: add transitions as they come, then `learn_due()` after each step. Single-threaded:
     the in-process loop and trainer_node (which learns in lockstep with acting) call it the same way."""
@@ -203,7 +210,18 @@ class Training:
         self.cfg = cfg
         self.log = log
         self.dir = Path(run_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
+        try:  # refused at once, in one line, rather than as a traceback at the first write
+            self.dir.mkdir(parents=True, exist_ok=True)
+            probe = self.dir / ".write_test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as e:
+            raise RunDirError(f"run_dir '{self.dir}': cannot write there ({e.strerror or e})") from None
+        stale = checkpoint.remove_stale(self.checkpoint_dir)
+        if stale:
+            log(f"removed {stale} unfinished checkpoint folder(s) an interrupted run left behind")
+        self.checkpoint_failures = 0
+        self._checkpoint_wall = time.monotonic()
         self.net_cfg = NetConfig(
             model=cfg.model,
             sam_readout=cfg.sam_readout,
@@ -413,7 +431,8 @@ class Training:
         if self.tb and u % 10 == 0:
             self.tb.add_scalar("train/loss", out["loss"], u)
             self.tb.add_scalar("train/q_mean", out["q_mean"], u)
-        if u % self.cfg.checkpoint_interval_updates == 0:
+        due_by_time = time.monotonic() - self._checkpoint_wall >= self.cfg.checkpoint_interval_s
+        if u % self.cfg.checkpoint_interval_updates == 0 or due_by_time:
             self.save_checkpoint()
         return True
 
@@ -429,7 +448,12 @@ class Training:
                 self.log(f"step {step}: no update yet (learning starts after {self.cfg.first_update_after}), no snapshot")
                 continue
             path = self.snapshot_path(step)
-            self.save_weights(path)
+            try:
+                self.save_weights(path)
+            except OSError as e:
+                self.checkpoint_failures += 1
+                self.log(f"snapshot {path.name} not written ({e.strerror or e}); training goes on")
+                continue
             written.append(path)
         return written
 
@@ -447,19 +471,47 @@ class Training:
 
     def save_checkpoint(self, final: bool = False) -> Path | None:
         """A checkpoint, the policy weights and the curves. `final` (a stop) also writes the replay
-        memory when save_replay is on and the step budget is not used up, so a resume carries on."""
+        memory when save_replay is on and the step budget is not used up, so a resume carries on.
+
+        A write that fails (a full or read-only disk) is logged and counted (`checkpoint_failures`) and
+        the previous checkpoint stays `latest`: training goes on. A final checkpoint whose replay memory
+        does not fit is written without it."""
         if self.failed:
             return None
+        self._checkpoint_wall = time.monotonic()
         with_replay = final and self.cfg.save_replay and not self.budget_done
         rng = {"replay": checkpoint.rng_state(self.replay.rng)}
         replay = self.replay.state() if with_replay else None
-        path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, replay)
+        try:
+            path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, replay)
+        except OSError as e:
+            if replay is None:
+                return self._checkpoint_failed(e)
+            self.log(f"the checkpoint with the replay memory could not be written ({e.strerror or e}): writing it without")
+            replay = None
+            try:
+                path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng)
+            except OSError as e2:
+                return self._checkpoint_failed(e2)
         if replay is not None:
             mib = sum(a.nbytes for a in replay.values()) / 2**20
             self.log(f"replay memory saved with the checkpoint: {len(self.replay)} transitions, {mib:.0f} MiB")
-        self.save_weights(self.policy_weights_path)
-        self.plot()
+        try:
+            self.save_weights(self.policy_weights_path)
+            self.plot()
+        except OSError as e:
+            self.log(f"checkpoint {path.name} written, but not {self.policy_weights_path.name} or curves.png: {e}")
         return path
+
+    def _checkpoint_failed(self, e: OSError) -> None:
+        self.checkpoint_failures += 1
+        kept = checkpoint.latest(self.checkpoint_dir)
+        self.log(
+            f"checkpoint at update {self.learner.updates} not written ({e.strerror or e}); "
+            f"{'latest stays ' + kept.name if kept else 'there is no earlier checkpoint'}; training goes on "
+            f"({self.checkpoint_failures} failed so far)"
+        )
+        return None
 
     def snapshot_path(self, step: int) -> Path:
         return snapshot_file(self.dir, self.cfg.model, step)
