@@ -27,7 +27,7 @@ def test_big_endian_and_padded_rows_are_read():
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        (dict(height=2, width=2, encoding="16UC1", step=4, data=bytes(8)), "32FC1"),
+        (dict(height=2, width=2, encoding="rgb8", step=6, data=bytes(12)), "must be 32FC1 or 16UC1"),
         (dict(height=2, width=2, encoding="32FC1", step=8, data=bytes(10)), "bytes"),
         (dict(height=2, width=2, encoding="32FC1", step=4, data=bytes(16)), "step"),
         (dict(height=0, width=2, encoding="32FC1", step=8, data=b""), "empty"),
@@ -110,3 +110,36 @@ def test_step_outcome_marks_how_an_episode_began():
     assert [contract.outcome_collided(m) for m in (flying, crash, cut)] == [False, True, False]
     assert [contract.outcome_truncated(m) for m in (flying, crash, cut)] == [False, False, True]
     assert [contract.outcome_new_episode(m) for m in (flying, crash, cut)] == [False, True, True]
+
+
+def test_a_real_cameras_16uc1_millimetres_read_as_metres_in_either_byte_order():
+    mm = np.array([[0, 400, 1500], [65535, 1, 2000]], dtype=np.uint16)
+    for order, big in (("<", 0), (">", 1)):
+        rows = [mm[r].astype(order + "u2").tobytes() + b"\xff\xff" for r in range(2)]  # rows padded by 2 bytes
+        msg = Image(height=2, width=3, encoding="16UC1", is_bigendian=big, step=8, data=b"".join(rows))
+        depth = contract.image_to_depth(msg)
+        assert depth.dtype == np.float32 and depth.shape == (2, 3)
+        assert depth[0, 0] == np.inf, "0 is no return: nothing in range"
+        np.testing.assert_allclose(depth[0, 1:], [0.4, 1.5])
+        np.testing.assert_allclose(depth[1], [65.535, 0.001, 2.0], rtol=1e-6)
+    with pytest.raises(ValueError, match="step 5 is smaller than 2\\*width=6"):
+        contract.image_to_depth(Image(height=1, width=3, encoding="16UC1", step=5, data=bytes(5)))
+
+
+def test_a_thin_pole_survives_the_way_down_to_the_network_input():
+    """A 2 px pole at 2 m in an 848x480 frame of a wall at 6 m: still nearer than the wall at 64x64 (nearest
+    neighbour dropped it); a NaN (no reading) never hides a reading in its cell; small frames grow."""
+    from uav_common.frame_stack import fit_to_network
+
+    frame = np.full((480, 848), 6.0, np.float32)
+    frame[:, 421:423] = 2.0
+    frame[10, 10] = np.nan
+    net = fit_to_network(frame, 64, 64)
+    assert net.shape == (64, 64) and net.dtype == np.float32
+    assert np.all(net.min(axis=1) == 2.0), "the pole is in every row"
+    assert np.count_nonzero(net[0] == 2.0) == 1 and np.all(net[:, :31] == 6.0)
+    assert not np.isnan(net).any()
+    small = np.arange(12, dtype=np.float32).reshape(3, 4)
+    grown = fit_to_network(small, 6, 8)
+    assert grown.shape == (6, 8) and set(np.unique(grown)) == set(small.ravel())
+    np.testing.assert_array_equal(grown[::2, ::2], small)

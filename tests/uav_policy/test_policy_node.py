@@ -308,7 +308,7 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
     short = good()
     short.data = short.data[:100]  # says 64x64, carries 25 floats
     wrong = good()
-    wrong.encoding = "16UC1"
+    wrong.encoding = "rgb8"
     send(2, short)
     send(3, wrong)
     send(4, good())

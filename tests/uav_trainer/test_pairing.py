@@ -93,7 +93,7 @@ def test_faults_are_counted_and_never_paired_wrongly():
     frames = [i for i, (s, _) in enumerate(msgs) if s == "frame"]
     del_idx = actions[50]
     msgs[actions[120]][1].twist.linear.x = 1.7
-    msgs[frames[160]][1].encoding = "16UC1"
+    msgs[frames[160]][1].encoding = "rgb8"
     msgs = [m for i, m in enumerate(msgs) if i != del_idx]
     sink = Sink()
     asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64))

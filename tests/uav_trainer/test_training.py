@@ -545,3 +545,32 @@ def test_an_unwritable_run_folder_is_refused_in_one_line(tmp_path):
         Training(small_cfg(), tmp_path / "a_file" / "run", log=lambda s: None)
     r = run_to_exit("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path / 'a_file' / 'run'}", timeout_s=60)
     assert r.returncode == 2 and "run_dir" in r.stderr and "cannot write there" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_resume_with_too_few_stored_transitions_refills_without_a_burst_of_updates(tmp_path):
+    """A memory smaller than learning_starts (here collected since an earlier crash lost the rest) is refilled,
+    then learning goes on at replay_ratio: no burst of the updates the pause did not make, which would have
+    stalled lockstep acting."""
+    a = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(a, 120)
+    while a.learn_once():
+        pass
+    a.save_checkpoint()  # periodic: without the memory (a crash after it loses the memory)
+    a.close()
+    b = Training(small_cfg(), tmp_path, log=lambda s: None, resume=True)
+    feed(b, 20, seed=1)
+    b.save_checkpoint(final=True)  # a stop: its memory holds only the 20 transitions since the crash
+    b.close()
+    c = Training(small_cfg(), tmp_path, log=lambda s: None, resume=True)
+    assert len(c.replay) == 20 and c.learner.updates == 35
+    per_step = []
+    rng = np.random.default_rng(2)
+    for _ in range(60):
+        c.add_step(int(rng.integers(4)), 2.0, False, rng.uniform(0, 10, (64, 64)).astype(np.float32))
+        done = 0
+        while c.learn_once():
+            done += 1
+        per_step.append(done)
+    assert per_step[:29] == [0] * 29, "the memory refills to learning_starts (50) first"
+    assert max(per_step) == 1 and sum(per_step) == 15, per_step  # then one update per two steps, no burst
+    c.close()

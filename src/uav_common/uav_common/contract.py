@@ -83,20 +83,32 @@ def depth_to_image(depth_m: np.ndarray, stamp: Time, frame_id: str) -> Image:
     return msg
 
 
+DEPTH_ENCODINGS = {"32FC1": "f4", "16UC1": "u2"}  # REP 118: metres as float, millimetres as uint16
+
+
 def image_to_depth(msg: Image) -> np.ndarray:
-    """A (H, W) float32 depth array from a 32FC1 Image; ValueError says what is malformed."""
-    if msg.encoding != "32FC1":
-        raise ValueError(f"depth image encoding must be 32FC1, got '{msg.encoding}'")
+    """A (H, W) float32 depth array in metres from a REP 118 depth Image: 32FC1 (metres) or 16UC1
+    (millimetres, 0 = no return, read as +Inf: nothing in range), either byte order. ValueError says
+    what is malformed."""
+    kind = DEPTH_ENCODINGS.get(msg.encoding)
+    if kind is None:
+        raise ValueError(f"depth image encoding must be 32FC1 or 16UC1, got '{msg.encoding}'")
+    size = int(kind[1])
     h, w = int(msg.height), int(msg.width)
     if h <= 0 or w <= 0:
         raise ValueError(f"depth image has an empty size {w}x{h}")
-    if msg.step < 4 * w:
-        raise ValueError(f"depth image step {msg.step} is smaller than 4*width={4 * w}")
+    if msg.step < size * w:
+        raise ValueError(f"depth image step {msg.step} is smaller than {size}*width={size * w}")
     if len(msg.data) < msg.step * h:
         raise ValueError(f"depth image data has {len(msg.data)} bytes, expected {msg.step * h}")
-    dtype = ">f4" if msg.is_bigendian else "<f4"
+    dtype = (">" if msg.is_bigendian else "<") + kind
     rows = np.frombuffer(bytes(msg.data[: msg.step * h]), dtype=np.uint8).reshape(h, msg.step)
-    return rows[:, : 4 * w].copy().view(dtype).reshape(h, w).astype(np.float32)
+    values = rows[:, : size * w].copy().view(dtype).reshape(h, w)
+    if kind == "u2":
+        depth = values.astype(np.float32) / 1000.0
+        depth[values == 0] = np.inf
+        return depth
+    return values.astype(np.float32)
 
 
 def diagnostics(node, name: str, level: str, message: str, values: dict) -> DiagnosticArray:

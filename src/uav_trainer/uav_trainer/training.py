@@ -251,7 +251,9 @@ class Training:
         self.failed: str | None = None
         self.t_start = time.monotonic()
         self.resumed_from = None
+        # Updates are allowed replay_ratio per step after _refill steps from (_updates_at_start, _steps_at_start).
         self._updates_at_start, self._steps_at_start = 0, 0
+        self._refill = cfg.first_update_after
         if resume:
             self._resume()
         # The snapshots still to be written (a resumed run keeps those it wrote before).
@@ -333,9 +335,12 @@ class Training:
             checkpoint.set_rng_state(self.replay.rng, meta["rng"]["replay"])
         self.resumed_from = path
         restored = self._restore_replay(path)
-        if not restored:
-            # Learning waits for learning_starts new transitions, then keeps replay_ratio from here.
+        if len(self.replay) < self._learning_threshold:
+            # Too few transitions to learn from (none restored, or a memory collected since an earlier crash):
+            # learning waits until the memory holds learning_starts, then keeps replay_ratio from there, with
+            # no burst of the updates the pause did not make.
             self._updates_at_start, self._steps_at_start = self.learner.updates, self.env_steps
+            self._refill = self._learning_threshold - len(self.replay)
         self.log(
             f"resumed from {path}: {self.learner.updates} updates, {self.env_steps} env steps "
             + (f"(replay memory restored: {restored})" if restored else "(the replay memory refills before learning continues)")
@@ -402,14 +407,18 @@ class Training:
         return self.cfg.total_steps > 0 and self.env_steps >= self.cfg.total_steps
 
     # -- learning side ------------------------------------------------------------------
+    @property
+    def _learning_threshold(self) -> int:
+        """Transitions the memory must hold before an update: learning_starts (less when it cannot hold them)."""
+        return min(self.cfg.first_update_after, self.cfg.replay_capacity - 10)
+
     def can_learn(self) -> bool:
         """Enough transitions since start-up, and updates below replay_ratio x env steps."""
         if self.failed:
             return False
         c = self.cfg
-        start = c.first_update_after
-        ready = len(self.replay) >= min(start, c.replay_capacity - 10)
-        allowed = self._updates_at_start + (self.env_steps - self._steps_at_start - start) * c.replay_ratio
+        ready = len(self.replay) >= self._learning_threshold
+        allowed = self._updates_at_start + (self.env_steps - self._steps_at_start - self._refill) * c.replay_ratio
         return ready and self.learner.updates < allowed
 
     def learn_once(self) -> bool:
