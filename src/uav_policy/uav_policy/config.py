@@ -34,7 +34,9 @@ class PolicySettings:
     step_duration_s: float = setting(0.5, "Duration of one sim step (s); must equal sim_node's", 0.01, 5.0)
     actions: ActionSettings = ActionSettings()
     frame_stack: int = setting(NetConfig.frames, "Depth frames in the state", 1, MAX_FRAMES)
-    input_height: int = setting(64, "Network input height (px); frames of another size keep the nearest depth of each cell", 8, 512)
+    input_height: int = setting(
+        64, "Network input height (px); frames of another size keep the nearest depth of each cell", 8, 512
+    )
     input_width: int = setting(64, "Network input width (px)", 8, 512)
     max_range_m: float = setting(10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
     sam_readout: str = setting(
