@@ -29,7 +29,7 @@ def wait_for_recorder(procs: Processes, namespace: str, stopped, timeout_s: floa
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from .record import POLICY_TOPICS, recorder_publishers
+    from .record import recorder_publishers, wait_for_policy
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C stays fly's
@@ -37,21 +37,11 @@ def wait_for_recorder(procs: Processes, namespace: str, stopped, timeout_s: floa
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     heard = recorder_publishers(node)
-    wanted = [node.resolve_topic_name(t) for t in POLICY_TOPICS]
-    end = time.monotonic() + timeout_s
     try:
-        while not all(heard.get(t, 0) >= 1 for t in wanted):
-            executor.spin_once(timeout_sec=0.05)
-            if stopped():
-                return False
-            dead = [(n, p.returncode) for n, p in procs.procs.items() if p.poll() is not None]
-            if dead:
-                print(f"{dead[0][0]} exited early (code {dead[0][1]}); stopping the others", file=sys.stderr)
-                return False
-            if time.monotonic() > end:
-                print(f"the recorder did not hear policy_node within {timeout_s:g} s ({heard})", file=sys.stderr)
-                return False
-        return True
+        return wait_for_policy(heard, node, executor, procs.procs, timeout_s, stopped)
+    except (RuntimeError, TimeoutError) as e:
+        print(f"{e}; stopping the others", file=sys.stderr)
+        return False
     finally:
         executor.shutdown()
         node.destroy_node()

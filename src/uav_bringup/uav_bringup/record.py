@@ -127,6 +127,24 @@ def recorder_publishers(node) -> dict[str, int]:
     return heard
 
 
+def wait_for_policy(heard: dict[str, int], node, executor, procs: dict, timeout_s: float, stopped=lambda: False) -> bool:
+    """Spin `executor` until the recorder has matched policy_node's publishers (POLICY_TOPICS, resolved in
+    `node`'s namespace; `heard` from recorder_publishers(node)); False if `stopped()` first. RuntimeError
+    when a process of `procs` (name: Popen) exits, TimeoutError after `timeout_s`."""
+    wanted = [node.resolve_topic_name(t) for t in POLICY_TOPICS]
+    end = time.monotonic() + timeout_s
+    while not all(heard.get(t, 0) >= 1 for t in wanted):
+        executor.spin_once(timeout_sec=0.05)
+        if stopped():
+            return False
+        for name, p in procs.items():
+            if p.poll() is not None:
+                raise RuntimeError(f"{name} exited early (code {p.returncode})")
+        if time.monotonic() > end:
+            raise TimeoutError(f"the recorder did not hear policy_node within {timeout_s:g} s (it hears {heard})")
+    return True
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv if argv is None else ["record", *argv])
     ap = argparse.ArgumentParser(prog="record", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

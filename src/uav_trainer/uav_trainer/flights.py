@@ -268,22 +268,13 @@ def evaluate_once(
             # Recorder and policy first. The simulator starts once the recorder hears the policy's
             # publishers, and holds its first frame until the policy, the recorder and this monitor
             # all listen: the bag holds every step from the first frame on.
-            from uav_bringup.record import recorder_publishers
+            from uav_bringup.record import recorder_publishers, wait_for_policy
 
             heard = recorder_publishers(node)
             node.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: None, deep)  # the third listener
             procs.start("record", "uav_bringup", "record", [], args=["-o", str(record_to), "--quiet"])
             procs.start("policy", "uav_policy", "policy_node", policy_args)
-            wanted = [
-                node.resolve_topic_name(t) for t in (contract.ACTION_TOPIC, contract.CMD_VEL_TOPIC, contract.Q_VALUES_TOPIC)
-            ]
-            while not all(heard.get(t, 0) >= 1 for t in wanted):
-                executor.spin_once(timeout_sec=0.05)
-                for name, p in procs.procs.items():
-                    if p.poll() is not None:
-                        raise RuntimeError(f"{name} exited with code {p.returncode} before the flight")
-                if time.monotonic() > ready_by:
-                    raise TimeoutError(f"the recorder did not hear policy_node within 60 s (it hears {heard})")
+            wait_for_policy(heard, node, executor, procs.procs, ready_by - time.monotonic())
             sim_extra = ["wait_for_subscribers:=3"]
         # The lockstep sim only advances once the policy answers, and it says its first frame again
         # every lockstep_republish_s: without a recorder the policy starts once the monitor has that
