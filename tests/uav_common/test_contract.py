@@ -29,6 +29,8 @@ def test_big_endian_and_padded_rows_are_read():
     [
         (dict(height=2, width=2, encoding="rgb8", step=6, data=bytes(12)), "must be 32FC1 or 16UC1"),
         (dict(height=2, width=2, encoding="32FC1", step=8, data=bytes(10)), "bytes"),
+        (dict(height=2, width=2, encoding="32FC1", step=8, data=bytes(20)), "has 20 bytes, expected 16"),
+        (dict(height=100000, width=100000, encoding="16UC1", step=200000, data=bytes(8)), "has 8 bytes"),
         (dict(height=2, width=2, encoding="32FC1", step=4, data=bytes(16)), "step"),
         (dict(height=0, width=2, encoding="32FC1", step=8, data=b""), "empty"),
     ],
@@ -143,3 +145,55 @@ def test_a_thin_pole_survives_the_way_down_to_the_network_input():
     grown = fit_to_network(small, 6, 8)
     assert grown.shape == (6, 8) and set(np.unique(grown)) == set(small.ravel())
     np.testing.assert_array_equal(grown[::2, ::2], small)
+
+
+def test_camera_info_maps_a_frame_onto_the_field_of_view_the_weights_were_trained_with():
+    """An 87 deg 848x480 camera under weights trained at 150 deg fills the input's middle and the rest reads
+    no return (+Inf); under weights trained at 87 deg it spans the width, padded above and below; the
+    simulator's own camera maps one to one; the 2 px pole survives either way."""
+    from uav_common.frame_stack import CameraView, fit_to_network
+
+    fx = 424 / math.tan(math.radians(87 / 2))
+    frame = np.full((480, 848), 6.0, np.float32)
+    frame[:, 421:423] = 2.0
+    for trained, columns, rows in ((150.0, range(23, 41), range(27, 37)), (87.0, range(0, 64), range(13, 51))):
+        view = CameraView.from_intrinsics(fx, fx, 424, 240, 848, 480, trained, 64, 64)
+        net = fit_to_network(frame, 64, 64, view)
+        seen = np.isfinite(net)
+        assert list(np.flatnonzero(seen.any(axis=0))) == list(columns), (trained, np.flatnonzero(seen.any(axis=0)))
+        assert list(np.flatnonzero(seen.any(axis=1))) == list(rows), (trained, np.flatnonzero(seen.any(axis=1)))
+        assert view.coverage == pytest.approx(seen.mean(), abs=0.04)  # partly seen cells count in part
+        assert np.all(net[list(rows)].min(axis=1) == 2.0), "the pole is nearer than the wall in every row seen"
+    sim_f = 32 / math.tan(math.radians(75))
+    same = CameraView.from_intrinsics(sim_f, sim_f, 32, 32, 64, 64, 150.0, 64, 64)
+    small = np.random.default_rng(0).uniform(0.1, 10, (64, 64)).astype(np.float32)
+    np.testing.assert_array_equal(fit_to_network(small, 64, 64, same), small)
+    with pytest.raises(ValueError, match="fx=0"):
+        CameraView.from_intrinsics(0.0, 1.0, 1, 1, 10, 10, 90.0, 64, 64)
+
+
+def test_16uc1_frames_are_written_as_camera_drivers_write_them():
+    """sim_node's 16UC1: millimetres, 0 for no return or beyond 65.534 m; read back to the millimetre."""
+    depth = np.array([[0.4004, 2.0, np.inf], [np.nan, 70.0, 0.0006]], np.float32)
+    msg = contract.depth_to_image(depth, contract.stamp_from_seconds(1.0), "cam", "16UC1")
+    assert msg.step == 6 and np.frombuffer(bytes(msg.data), "<u2").tolist() == [400, 2000, 0, 0, 0, 1]
+    back = contract.image_to_depth(msg)
+    np.testing.assert_allclose(back[0, :2], [0.4, 2.0])
+    assert np.isinf(back[0, 2]) and np.isinf(back[1, :2]).all() and back[1, 2] == pytest.approx(0.001)
+    with pytest.raises(ValueError, match="encoding must be one of"):
+        contract.depth_to_image(depth, contract.stamp_from_seconds(1.0), "cam", "mono8")
+
+
+def test_the_sampled_stack_holds_frames_one_step_period_apart_whatever_the_camera_rate():
+    from uav_common.frame_stack import SampledStack
+
+    s = SampledStack(5, 0.5)
+    for i in range(60):  # 3 s at 20 Hz
+        s.add(i / 20, np.full((2, 2), i, np.float32))
+    np.testing.assert_array_equal(s.state()[:, 0, 0], [19, 29, 39, 49, 59])  # 59/20 s, then 0.5 s steps back
+    assert s.state().shape == (5, 2, 2)
+    fresh = SampledStack(5, 0.5)
+    fresh.add(0.0, np.zeros((2, 2), np.float32))
+    fresh.add(0.1, np.ones((2, 2), np.float32))
+    np.testing.assert_array_equal(fresh.state()[:, 0, 0], [0, 0, 0, 0, 1]), "the oldest stands in, as at a reset"
+    assert s.add(1.0, np.zeros((2, 2), np.float32)) is False and s.state()[:, 0, 0].tolist() == [0] * 5

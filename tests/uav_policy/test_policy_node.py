@@ -46,7 +46,7 @@ def push_args(ros):
     key = ros.tmp / "push.key"
     if not key.exists():
         write_key(key)
-    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={key}")
+    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={key}", "-p", "safety:=false")
 
 
 def start_pair(ros, *policy_args, sim_args=()):
@@ -229,7 +229,7 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
     r = call_push(ros, forcing_action(3, camera_hfov_deg=90.0))
     assert r.successful, r.reason
     assert ros.spin_until(lambda: "trained with a 90 deg camera" in ros.log_of(proc), 10), ros.log_of(proc)
-    assert "depth/camera_info says 150.0 deg" in ros.log_of(proc) and "hfov_deg:=90" in ros.log_of(proc)
+    assert "depth/camera_info says 150.0 deg: frames are cropped to it" in ros.log_of(proc)
 
 
 def forcing_action_cnn() -> bytes:
@@ -398,6 +398,8 @@ def test_a_flying_policy_takes_no_pushes_and_no_parameter_changes(ros):
     assert r.returncode == 2 and "needs accept_pushes:=true" in r.stderr, r.stderr
     r = run_to_exit("uav_policy", "policy_node", "-p", "accept_pushes:=true")
     assert r.returncode == 2 and "needs 'push_key_file'" in r.stderr, r.stderr
+    r = run_to_exit("uav_policy", "policy_node", "-p", "accept_pushes:=true", "-p", "push_key_file:=/tmp/k")
+    assert r.returncode == 2 and "set safety:=false (train does)" in r.stderr, "training flies the network's own actions"
 
 
 def test_stamps_going_back_or_from_the_future_restart_the_join_and_frames_without_outcome_warn(ros):
@@ -431,7 +433,7 @@ def test_stamps_going_back_or_from_the_future_restart_the_join_and_frames_withou
     values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
     assert ros.spin_until(lambda: values(diag[-1])["stamp_restarts"] == "2", 5), [values(d) for d in diag[-2:]]
     assert "the source restarted" in ros.log_of(proc)
-    for sec in (20, 21, 22):  # a camera alone: frames without any step_outcome get no answer
+    for sec in (20, 21, 22):  # a simulator's frames whose step_outcome never comes get no answer
         send(sec, outcome=False)
     assert ros.spin_until(lambda: diag[-1].level == DiagnosticStatus.WARN and "none answered" in diag[-1].message, 5), [
         (d.level, d.message) for d in diag[-3:]
@@ -451,3 +453,64 @@ def test_a_restarted_simulator_is_answered_again(ros):
     after = lambda: [s for s in w.action_stamps()[n:] if s < last]  # noqa: E731
     assert ros.spin_until(lambda: len(after()) >= 10, 30), "policy_node did not answer the restarted simulator"
     assert after()[:3] == [0, 500_000_000, 1_000_000_000], "answered from the new simulator's first frame on"
+
+
+def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
+    """No simulator: a RealSense-like stream (848x480 16UC1 millimetres, sensor-data QoS, an 87 deg
+    CameraInfo) is answered on cmd_vel_stamped; a wall at 0.4 m gives no forward command; when frames stop,
+    stop commands (zero velocity) follow within the timeout, counted on /diagnostics."""
+    import math
+
+    import numpy as np
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import CameraInfo
+
+    cmds = []
+    ros.node.create_subscription(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, cmds.append, deep_qos())
+    diag = []
+    ros.node.create_subscription(
+        DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
+    )
+    pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.SENSOR_QOS)
+    pub_info = ros.node.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, contract.SENSOR_QOS)
+    proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "publish_stamped:=true", "-p", "frame_timeout_s:=0.5")
+    assert ros.spin_until(lambda: pub_img.get_subscription_count() and diag, 30), ros.log_of(proc)
+    f = 424 / math.tan(math.radians(87 / 2))
+    info = CameraInfo(width=848, height=480, k=[f, 0.0, 424.0, 0.0, f, 240.0, 0.0, 0.0, 1.0])
+    clock = ros.node.get_clock()
+
+    def stream(depth_m: float, seconds: float) -> set[int]:
+        """Frames of a wall at depth_m at 15 Hz; their stamps."""
+        frame = np.full((480, 848), depth_m, np.float32)
+        stamps = set()
+        for _ in range(int(seconds * 15)):
+            stamp = clock.now().to_msg()
+            info.header.stamp = stamp
+            pub_info.publish(info)
+            pub_img.publish(contract.depth_to_image(frame, stamp, "camera_depth_optical_frame", "16UC1"))
+            stamps.add(contract.stamp_ns(stamp))
+            ros.spin_for(1 / 15)
+        return stamps
+
+    def answering(stamps):
+        return [c for c in cmds if contract.stamp_ns(c.header.stamp) in stamps]
+
+    far = stream(6.0, 1.5)
+    assert ros.spin_until(lambda: len(answering(far)) >= 5, 10), ros.log_of(proc)[-3000:]
+    assert all(c.twist.linear.x > 0 for c in answering(far)), "the packaged actions all fly forward"
+    near = stream(0.4, 1.0)
+    assert ros.spin_until(lambda: len(answering(near)) >= 5, 10), ros.log_of(proc)[-3000:]
+    assert all(c.twist.linear.x == 0.0 for c in answering(near)), [c.twist.linear.x for c in answering(near)]
+    last_frame_ns = max(near)
+    n = len(cmds)
+    stops = lambda: [c for c in cmds[n:] if contract.stamp_ns(c.header.stamp) > last_frame_ns]  # noqa: E731
+    assert ros.spin_until(lambda: len(stops()) >= 3, 10), ros.log_of(proc)[-3000:]
+    first_stop_s = (contract.stamp_ns(stops()[0].header.stamp) - last_frame_ns) / 1e9
+    assert 0.5 <= first_stop_s <= 1.5, first_stop_s  # the timeout, then the next control tick (15 Hz)
+    assert all(c.twist.linear.x == 0.0 and c.twist.angular.z == 0.0 for c in stops())
+    values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
+    stopping = lambda: "no depth frame for" in diag[-1].message and int(values(diag[-1])["safety_stops_no_frames"]) >= 3  # noqa: E731
+    assert ros.spin_until(stopping, 5), [(d.message, values(d)["safety_stops_no_frames"]) for d in diag[-3:]]
+    last = values(diag[-1])
+    assert last["source"] == "camera" and int(last["safety_forward_blocked"]) >= 5 and last["camera_coverage"] == "0.04"
+    assert proc.poll() is None

@@ -31,7 +31,7 @@ def diagnostics(ros):
 
 def pushes_signed_in(run_dir):
     """policy_node arguments to take the pushes of a trainer_node in `run_dir` (it creates run_dir/push.key)."""
-    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={run_dir / 'push.key'}")
+    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={run_dir / 'push.key'}", "-p", "safety:=false")
 
 
 def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
@@ -323,7 +323,7 @@ def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
         (("--steps", "0"), "--steps must be positive"),
         (
             ("--recipe", "single"),
-            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, shipped)",
+            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, realsense_d435, shipped)",
         ),
         (("--learning", "concurrent"), "--learning was removed: train always learns in lockstep"),
         (("--max-rate-hz=30",), "--max-rate-hz was removed"),

@@ -27,6 +27,7 @@ CAMERA_INFO_TOPIC = "depth/camera_info"
 ODOM_TOPIC = "odom"
 OUTCOME_TOPIC = "step_outcome"
 CMD_VEL_TOPIC = "cmd_vel"
+CMD_VEL_STAMPED_TOPIC = "cmd_vel_stamped"
 ACTION_TOPIC = "action"
 Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
@@ -43,6 +44,9 @@ STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryP
 # For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
 # history holds the backlog (64x64 frames: ~16 KiB each).
 DEEP_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=5000)
+# What camera drivers publish with (rclpy's sensor-data profile): best effort, a few frames. A best-effort
+# reader takes both these and sim_node's reliable frames; a lost simulator frame is said again by sim_node.
+SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=5)
 # State that a late subscriber must still get (the world's markers): the last message is kept for it.
 LATCHED_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
@@ -69,17 +73,27 @@ def stamp_ns(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def depth_to_image(depth_m: np.ndarray, stamp: Time, frame_id: str) -> Image:
-    """REP 118 depth image: 32FC1, metres along the optical axis."""
+def depth_to_image(depth_m: np.ndarray, stamp: Time, frame_id: str, encoding: str = "32FC1") -> Image:
+    """REP 118 depth image, depth along the optical axis: 32FC1 in metres (+Inf: nothing in range), or
+    16UC1 in millimetres as camera drivers publish it (0: no return; beyond 65.534 m: no return)."""
     h, w = depth_m.shape
     msg = Image()
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     msg.height, msg.width = h, w
-    msg.encoding = "32FC1"
+    msg.encoding = encoding
     msg.is_bigendian = 0
-    msg.step = 4 * w
-    msg.data = np.ascontiguousarray(depth_m, dtype="<f4").tobytes()
+    if encoding == "16UC1":
+        with np.errstate(invalid="ignore"):
+            mm = np.rint(np.asarray(depth_m, dtype=np.float64) * 1000.0)
+            mm[~((mm > 0) & (mm < 65535))] = 0
+        msg.step = 2 * w
+        msg.data = mm.astype("<u2").tobytes()
+    elif encoding == "32FC1":
+        msg.step = 4 * w
+        msg.data = np.ascontiguousarray(depth_m, dtype="<f4").tobytes()
+    else:
+        raise ValueError(f"depth encoding must be one of {sorted(DEPTH_ENCODINGS)}, got {encoding!r}")
     return msg
 
 
@@ -99,7 +113,7 @@ def image_to_depth(msg: Image) -> np.ndarray:
         raise ValueError(f"depth image has an empty size {w}x{h}")
     if msg.step < size * w:
         raise ValueError(f"depth image step {msg.step} is smaller than {size}*width={size * w}")
-    if len(msg.data) < msg.step * h:
+    if len(msg.data) != msg.step * h:  # shorter or longer than the header says: not this image
         raise ValueError(f"depth image data has {len(msg.data)} bytes, expected {msg.step * h}")
     dtype = (">" if msg.is_bigendian else "<") + kind
     rows = np.frombuffer(bytes(msg.data[: msg.step * h]), dtype=np.uint8).reshape(h, msg.step)
@@ -179,6 +193,19 @@ def outcome_truncated(msg: Range) -> bool:
 
 def outcome_new_episode(msg: Range) -> bool:
     return outcome_collided(msg) or outcome_truncated(msg)
+
+
+def camera_info_intrinsics(msg) -> tuple[float, float, float, float, int, int] | None:
+    """(fx, fy, cx, cy, width, height) of a sensor_msgs/CameraInfo; None when unusable (a zero focal length)."""
+    try:
+        fx, fy, cx, cy = (float(msg.k[i]) for i in (0, 4, 2, 5))
+        width, height = int(msg.width), int(msg.height)
+    except (AttributeError, IndexError, TypeError, ValueError):
+        return None
+    values = (fx, fy, cx, cy)
+    if not all(math.isfinite(v) for v in values) or fx <= 0 or fy <= 0 or width <= 0 or height <= 0:
+        return None
+    return fx, fy, cx, cy, width, height
 
 
 def camera_info_hfov_deg(msg) -> float | None:

@@ -9,6 +9,7 @@ from uav_common.actions import ActionSettings
 from uav_common.settings import setting
 
 from .networks import MAX_FRAMES, SAM_READOUTS, NetConfig
+from .safety import SafetySettings
 
 # Parameters retired, and why: a node given one stops at start-up and says so.
 RETIRED = {"ensemble_rule": "several weights files always act on their mean Q-values (the min rule did not help)"}
@@ -31,7 +32,24 @@ class PolicySettings:
     device: str = setting(
         "auto", "Torch device: auto (cuda when present, else cpu), cpu or cuda", choices=("auto", "cpu", "cuda")
     )
-    step_duration_s: float = setting(0.5, "Duration of one sim step (s); must equal sim_node's", 0.01, 5.0)
+    step_duration_s: float = setting(
+        0.5,
+        "Duration of one step the weights were trained with (s; sim_node's step_duration_s): the frame stack holds frames "
+        "this far apart, whatever the camera's rate",
+        0.01,
+        5.0,
+    )
+    control_rate_hz: float = setting(
+        15.0,
+        "With a camera (no simulator): commands at most this often, each on the newest frame (a frame is answered as it "
+        "arrives, or at the next control tick); a simulator's frames are each answered",
+        0.5,
+        200.0,
+    )
+    publish_stamped: bool = setting(
+        False, "Also publish cmd_vel_stamped (TwistStamped: the frame's stamp, the vehicle's base_link), for flight stacks"
+    )
+    safety: SafetySettings = SafetySettings()
     actions: ActionSettings = ActionSettings()
     frame_stack: int = setting(NetConfig.frames, "Depth frames in the state", 1, MAX_FRAMES)
     input_height: int = setting(

@@ -1,16 +1,22 @@
 """policy_node: flies the quadrotor with D3QN-SAM or D3QN-CNN and publishes what it attends to.
 
-Joins depth/image_raw and step_outcome by stamp (-Inf or NaN restarts the frame stack) and answers each
-frame with cmd_vel, action (stamped with the frame), q_values and, for SAM, the attention topics. It flies
-the packaged weights, or the 'weights' files as one policy on their mean Q-values. With accept_pushes (train),
-~/push_weights swaps in new weights signed with the run's key (uav_policy.push), and with wait_for_trainer a
-frame is answered once trainer_node releases it; a flying policy takes nothing from the network.
-It warns when depth/camera_info shows another camera than the weights were trained behind.
+With a simulator (a step_outcome publisher) it joins depth/image_raw and step_outcome by stamp (-Inf or
+NaN restarts the frame stack) and answers each frame. With a depth camera alone it answers the newest
+frame at most control_rate_hz times a second, on a stack sampled one step period apart. Answers are
+cmd_vel (optionally cmd_vel_stamped), action (the network's choice, stamped with the frame), q_values
+and, for SAM, the attention topics. Frames of any size and encoding (32FC1, 16UC1) are mapped through
+depth/camera_info onto the field of view the weights were trained with. A safety layer (uav_policy.safety)
+stands between the network and cmd_vel unless turned off. It flies the packaged weights, or the 'weights'
+files as one policy on their mean Q-values. With accept_pushes (train), ~/push_weights swaps in new
+weights signed with the run's key (uav_policy.push), and with wait_for_trainer a frame is answered once
+trainer_node releases it; a flying policy takes nothing from the network.
 """
 
 from __future__ import annotations
 
+import math
 import time
+from collections import deque
 
 import numpy as np
 import torch
@@ -24,7 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image, Range
 from std_msgs.msg import Float32MultiArray
 
 from uav_common import contract
-from uav_common.frame_stack import FrameStack, fit_to_network
+from uav_common.frame_stack import CameraView, FrameStack, NetworkInput, SampledStack
 from uav_common.node_runner import in_thread, run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
@@ -35,6 +41,7 @@ from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
 from .push import ReleaseGate, load_key, read_push, verify
+from .safety import SafetyLayer
 
 
 class PolicyNode(Node):
@@ -50,6 +57,12 @@ class PolicyNode(Node):
             raise ParameterError("parameter 'wait_for_trainer': frames are released by pushes, so it needs accept_pushes:=true")
         if st.accept_pushes and not st.push_key_file:
             raise ParameterError("parameter 'accept_pushes': needs 'push_key_file', the key pushes are signed with")
+        if st.accept_pushes and st.safety.safety:
+            # The trainer learns from `action`, the network's choice: the vehicle must fly exactly that.
+            raise ParameterError(
+                "parameter 'safety': a policy that takes pushes (training) flies the network's own actions; "
+                "set safety:=false (train does)"
+            )
         self.accept_pushes, self.push_key_file = st.accept_pushes, st.push_key_file
         self.push_key: bytes | None = None  # read at the first push (trainer_node may create the file after we start)
         self.last_push_seq = -1
@@ -79,11 +92,23 @@ class PolicyNode(Node):
             raise ParameterError(f"parameter 'weights': {e}") from None
         self.cfg = net.cfg  # with the files' layer sizes
         self.camera_hfov_deg = None  # from depth/camera_info
+        self.camera_intrinsics = None  # (fx, fy, cx, cy, width, height) from depth/camera_info
+        self.to_input = NetworkInput(self.cfg.height, self.cfg.width)
         self._camera_warned = None
+        self._stretch_warned = False
+        self.safety = None
+        if st.safety.safety:
+            hfov = self.weights_hfov_deg if self.weights_hfov_deg is not None else wio.UNRECORDED_HFOV_DEG
+            self.safety = SafetyLayer(st.safety, self.cfg.height, self.cfg.width, hfov)
+        self.frame_timeout_s = st.safety.frame_timeout_s
+        self.control_period_s = 1.0 / st.control_rate_hz
         self.agent = Agent(net, self.cfg, device, seed)
 
         q = contract.STREAM_QOS
         self.pub_cmd = self.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
+        self.pub_stamped = None
+        if st.publish_stamped:
+            self.pub_stamped = self.create_publisher(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, q)
         self.base_frame = contract.vehicle_frame(self.get_namespace(), "base_link")  # what action commands move
         self.pub_action = self.create_publisher(TwistStamped, contract.ACTION_TOPIC, q)
         self.pub_q = self.create_publisher(Float32MultiArray, contract.Q_VALUES_TOPIC, 10)
@@ -91,9 +116,11 @@ class PolicyNode(Node):
         self.pub_overlay = self.create_publisher(Image, contract.ATTENTION_OVERLAY_TOPIC, 10)
         self.pub_weights = self.create_publisher(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, 10)
         self.joiner = contract.StampJoiner(("frame", "outcome"))
-        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), q)
+        # Camera drivers publish best effort; a best-effort reader takes sim_node's reliable frames too.
+        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), contract.SENSOR_QOS)
         self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), q)
-        self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, 10)
+        self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, contract.SENSOR_QOS)
+        self.outcome_topic = self.resolve_topic_name(contract.OUTCOME_TOPIC)
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
         # service needs its own callback group: a suspended async callback holds its group.
         if self.accept_pushes:
@@ -104,6 +131,16 @@ class PolicyNode(Node):
             self.create_timer(min(1.0, self.wait_timeout_s / 4), self._check_held)
         self.last_stamp = None
         self.last_cmd, self.last_cmd_unheard = None, False
+        # A camera alone (no step_outcome publisher): frames sampled one step period apart, answered at most
+        # control_rate_hz, and a stop when they stop (safety).
+        self.sampled = SampledStack(frames, self.step_duration_s)
+        self.pending = None  # the newest camera frame not yet answered: (arrival time, Image, depth, input)
+        self.last_frame_wall = None  # when the last camera frame came (None: no camera frames)
+        self.last_answer_wall = -math.inf  # when the last answered camera frame came (or the last stop went out)
+        self.stopping_since = None  # frames stopped: stop commands go out
+        self.camera_restarts, self.bad_camera_info = 0, 0
+        self.latency_ms = deque(maxlen=1000)  # frame arrival to cmd_vel published
+        self.create_timer(self.control_period_s / 2, self._control_tick)
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
         self.source = source
         self.acted, self.bad_frames, self.pushes_accepted, self.pushes_rejected = 0, 0, 0, 0
@@ -114,37 +151,90 @@ class PolicyNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.create_timer(1.0, self.publish_diagnostics)
         camera = f", trained with a {self.weights_hfov_deg:g} deg camera" if self.weights_hfov_deg is not None else ""
+        safety = (
+            f"safety layer on (stop after {self.frame_timeout_s:g} s without camera frames, stop distance "
+            f"{st.safety.stop_distance_m:g} m); "
+            if self.safety
+            else "safety layer off; "
+        )
         lockstep = "answering each frame once trainer_node releases it (lockstep learning); " if self.wait_for_trainer else ""
         att = "attention on attention, attention/overlay, attention/weights"
         att = att if model == "sam" else "cnn has no attention module: the attention topics are not published"
         self.get_logger().info(
             f"model {model} ({parameter_count(net)} parameters, {source}{camera}) on {device}; epsilon {self.epsilon}; "
-            f"{lockstep}{att}"
+            f"{safety}{lockstep}{att}"
         )
 
     # -- camera -------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        hfov = contract.camera_info_hfov_deg(msg)
-        if hfov is None:
-            self.get_logger().warning("ignoring malformed depth/camera_info (width or fx)", throttle_duration_sec=10.0)
+        intrinsics = contract.camera_info_intrinsics(msg)
+        if intrinsics is None:
+            self.bad_camera_info += 1
+            self.get_logger().warning(
+                "ignoring malformed depth/camera_info (size or focal length): frames fill the network's input whole",
+                throttle_duration_sec=10.0,
+            )
             return
-        self.camera_hfov_deg = hfov
+        if intrinsics != self.camera_intrinsics:
+            self.camera_intrinsics = intrinsics
+            self.camera_hfov_deg = contract.camera_info_hfov_deg(msg)
+            self._use_camera()
         self._check_camera()
+
+    @property
+    def trained_hfov_deg(self) -> float | None:
+        """The field of view frames are mapped onto: the weights', else (a file that records none, or a
+        network not trained yet) the camera's own, so that nothing is cropped; None while neither is known."""
+        return self.weights_hfov_deg if self.weights_hfov_deg is not None else self.camera_hfov_deg
+
+    def _use_camera(self) -> None:
+        """Map frames and place the safety corridor for the camera and weights now known."""
+        hfov = self.trained_hfov_deg
+        if self.camera_intrinsics is not None and hfov is not None:
+            self.to_input.set_camera(self.camera_intrinsics, hfov)
+        if self.safety is not None and hfov is not None:
+            self.safety.set_hfov(hfov)
 
     def _check_camera(self) -> None:
         """Warn once per mismatch between the camera and the camera the weights were trained with."""
         key = wio.camera_mismatch(self.weights_hfov_deg, self.camera_hfov_deg)
         if key is not None and key != self._camera_warned:
             self._camera_warned = key
+            fx, fy, cx, cy, w, h = self.camera_intrinsics
+            view = CameraView.from_intrinsics(fx, fy, cx, cy, w, h, key[0], self.cfg.height, self.cfg.width)
+            how = (
+                f"frames are cropped to it (it sees {100 * view.coverage:.0f}% of the trained view)"
+                if key[1] > key[0]
+                else f"frames cover {100 * view.coverage:.0f}% of the trained view, the rest reads as no return"
+            )
             self.get_logger().warning(
                 f"the weights were trained with a {key[0]:g} deg camera, but depth/camera_info says {key[1]:.1f} deg: "
-                f"expect more crashes (run sim_node with hfov_deg:={key[0]:g})"
+                f"{how}; expect more crashes. Weights trained behind this camera fly it better "
+                f"(docs/REAL_CAMERA.md)"
             )
+
+    def _to_network(self, depth: np.ndarray) -> np.ndarray:
+        """The frame on the network's input: through CameraInfo onto the trained field of view, else whole."""
+        hw = self.to_input.hw
+        if self.camera_intrinsics is None and depth.shape != hw and not self._stretch_warned:
+            self._stretch_warned = True
+            self.get_logger().warning(
+                f"no depth/camera_info yet: {depth.shape[1]}x{depth.shape[0]} frames fill the "
+                f"{hw[1]}x{hw[0]} input whole (their field of view is unknown)"
+            )
+        return self.to_input(depth)
 
     # -- frames -------------------------------------------------------------------------
     def _on(self, stream: str, msg) -> None:
+        t_in = time.perf_counter()
         stamp = contract.stamp_ns(msg.header.stamp)
         self.frames_in += stream == "frame" and stamp != self.last_stamp  # a frame said again is not new
+        if stream == "frame" and not self.wait_for_trainer and self.count_publishers(self.outcome_topic) == 0:
+            self._on_camera_frame(msg, stamp, t_in)
+            return
+        if stream == "frame" and self.last_frame_wall is not None:  # a simulator now: its frames are each answered
+            self.last_frame_wall, self.pending, self.stopping_since = None, None, None
+            self.sampled.clear()
         restarts = self.joiner.restarts
         joined = self.joiner.add(stream, stamp, msg)
         if self.joiner.restarts != restarts:
@@ -152,7 +242,7 @@ class PolicyNode(Node):
         if joined is not None and self.wait_for_trainer and self.gate.hold(stamp, joined, time.monotonic()):
             pass
         elif joined is not None:
-            self._act(joined["frame"], joined["outcome"])
+            self._act(joined["frame"], joined["outcome"], t_in)
         elif stream == "frame" and stamp == self.last_stamp and self.last_cmd_unheard:
             # The simulator said an answered frame again, and our command went out before anyone
             # listened (discovery): answer again. A command that had a reliable listener is only
@@ -184,38 +274,111 @@ class PolicyNode(Node):
                 throttle_duration_sec=10.0,
             )
         for joined in released:
-            self._act(joined["frame"], joined["outcome"])
+            self._act(joined["frame"], joined["outcome"], time.perf_counter())
 
-    def _act(self, img: Image, outcome: Range) -> None:
-        t0 = time.perf_counter()
-        stamp = contract.stamp_ns(img.header.stamp)
+    def _decode(self, img: Image) -> np.ndarray | None:
         try:
-            depth = contract.image_to_depth(img)
+            return contract.image_to_depth(img)
         except ValueError as e:
             self.bad_frames += 1
             self.get_logger().warning(f"ignoring malformed depth frame: {e}", throttle_duration_sec=2.0)
+            return None
+
+    def _on_camera_frame(self, img: Image, stamp: int, t_in: float) -> None:
+        """A camera's frame (no simulator): into the sampled stack; answered now when the control period has
+        passed since the last answer (most of it: camera clocks jitter), else at the next control tick."""
+        depth = self._decode(img)
+        if depth is None:
             return
-        net_in = fit_to_network(depth, self.cfg.height, self.cfg.width)
+        net_in = self._to_network(depth)
+        if not self.sampled.add(stamp / 1e9, net_in):
+            self.camera_restarts += 1
+            self.get_logger().warning("depth frame stamps went back: starting a new frame stack", throttle_duration_sec=5.0)
+        now = time.monotonic()
+        if self.stopping_since is not None:
+            self.get_logger().info(f"depth frames are back after {now - self.stopping_since:.1f} s: flying again")
+            self.stopping_since = None
+        self.last_frame_wall = now
+        self.pending = (t_in, now, img, depth, net_in)
+        if now - self.last_answer_wall >= 0.8 * self.control_period_s:
+            self._answer_pending()
+
+    def _answer_pending(self) -> None:
+        t_in, arrived, img, depth, net_in = self.pending
+        self.pending = None
+        self.last_answer_wall = arrived  # the control period runs from frame to frame, not from answer to frame
+        self._decide(img, depth, net_in, self.sampled.state(), t_in)
+
+    def _control_tick(self) -> None:
+        """Camera only: answer a frame that came within the control period, and stop when frames stop."""
+        if self.last_frame_wall is None:
+            return
+        now = time.monotonic()
+        if self.pending is not None and now - self.last_answer_wall >= self.control_period_s:
+            self._answer_pending()
+        elif self.safety and self._frames_stopped(now) and now - self.last_answer_wall >= self.control_period_s:
+            if self.stopping_since is None:
+                self.stopping_since = self.last_frame_wall
+                self.get_logger().warning(
+                    f"no depth frame for {self.frame_timeout_s:g} s: commanding a stop until frames come back"
+                )
+            self.safety.counts.stops_no_frames += 1
+            self.last_answer_wall = now
+            self._command(Twist(), self.get_clock().now().to_msg())
+
+    def _frames_stopped(self, now: float) -> bool:
+        return now - self.last_frame_wall > self.frame_timeout_s
+
+    def _act(self, img: Image, outcome: Range, t_in: float) -> None:
+        """A simulator's frame, joined with its step's outcome: answered at once."""
+        stamp = contract.stamp_ns(img.header.stamp)
+        if stamp == self.last_stamp:  # already answered (before the simulator's step_outcome was discovered)
+            return
+        depth = self._decode(img)
+        if depth is None:
+            return
+        net_in = self._to_network(depth)
         if contract.outcome_new_episode(outcome) or self.stack.empty:
             state = self.stack.reset(net_in)
         else:
             state = self.stack.push(net_in)
+        self._decide(img, depth, net_in, state, t_in)
+
+    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float) -> None:
+        t0 = time.perf_counter()
         action, q, w, _ = self.agent.act(state, self.epsilon)
         a = self.actions[action]
-        cmd = Twist()
-        cmd.linear.x = a.linear_x_mps
-        cmd.angular.z = a.yaw_rate_radps(self.step_duration_s)
-        stamped = TwistStamped(twist=cmd)
+        chosen = Twist()
+        chosen.linear.x = a.linear_x_mps
+        chosen.angular.z = a.yaw_rate_radps(self.step_duration_s)
+        stamped = TwistStamped(twist=chosen)
         stamped.header.stamp = img.header.stamp
         stamped.header.frame_id = self.base_frame
-        # The record goes out before the command: whatever the simulator acts on is on record.
+        cmd = chosen
+        if self.safety:
+            vx, wz, why = self.safety.filter(chosen.linear.x, chosen.angular.z, net_in)
+            if why:
+                cmd = Twist()
+                cmd.linear.x, cmd.angular.z = vx, wz
+                self.get_logger().info(f"safety: {why}", throttle_duration_sec=2.0)
+        # The record (the network's choice) goes out before the command: whatever is flown is on record.
         self.pub_action.publish(stamped)
-        self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0
-        self.pub_cmd.publish(cmd)
-        self.last_stamp, self.last_cmd = stamp, cmd
+        self._command(cmd, img.header.stamp)
+        self.last_stamp = contract.stamp_ns(img.header.stamp)
+        self.latency_ms.append(1e3 * (time.perf_counter() - t_in))
         self._publish_insight(img, depth, q, w)
         self.acted += 1
         self.act_s += time.perf_counter() - t0
+
+    def _command(self, cmd: Twist, stamp) -> None:
+        self.last_cmd_unheard = self.pub_cmd.get_subscription_count() == 0
+        self.pub_cmd.publish(cmd)
+        if self.pub_stamped is not None:
+            out = TwistStamped(twist=cmd)
+            out.header.stamp = stamp
+            out.header.frame_id = self.base_frame
+            self.pub_stamped.publish(out)
+        self.last_cmd = cmd
 
     def publish_diagnostics(self) -> None:
         """1 Hz on /diagnostics: frames answered, malformed frames ignored, weight pushes; WARN while
@@ -228,10 +391,15 @@ class PolicyNode(Node):
         if new_bad:
             problems.append(f"{new_bad} malformed depth frame(s) ignored in the last {now - when:.1f} s")
         if new_in and not new_acts and not self.gate.held:
-            problems.append(f"{new_in} depth frame(s) in the last {now - when:.1f} s and none answered (no step_outcome?)")
+            problems.append(f"{new_in} depth frame(s) in the last {now - when:.1f} s and none answered")
+        if self.stopping_since is not None:
+            problems.append(f"no depth frame for {time.monotonic() - self.stopping_since:.1f} s: stop commanded")
         mismatch = wio.camera_mismatch(self.weights_hfov_deg, self.camera_hfov_deg)
         if mismatch is not None:
-            problems.append(f"camera {mismatch[1]:g} deg, but the weights were trained with a {mismatch[0]:g} deg camera")
+            cover = f", covering {100 * self.to_input.view.coverage:.0f}% of it" if self.to_input.view is not None else ""
+            problems.append(f"camera {mismatch[1]:g} deg, but the weights were trained with a {mismatch[0]:g} deg camera{cover}")
+        lat = np.percentile(self.latency_ms, (50, 99)) if self.latency_ms else None
+        counts = self.safety.counts if self.safety else None
         vals = {
             "model": self.cfg.model,
             "weights": self.source,
@@ -249,6 +417,18 @@ class PolicyNode(Node):
             "stamp_restarts": self.joiner.restarts,
             "frames_held": len(self.gate.held),
             "released_by_timeout": self.gate.timed_out,
+            "source": "camera" if self.last_frame_wall is not None else "simulator" if self.acted else "-",
+            "camera_restarts": self.camera_restarts,
+            "malformed_camera_info": self.bad_camera_info,
+            "camera_coverage": f"{self.to_input.view.coverage:.2f}" if self.to_input.view is not None else "-",
+            "safety": "on" if self.safety else "off",
+            "safety_interventions": counts.total if counts else 0,
+            "safety_stops_no_frames": counts.stops_no_frames if counts else 0,
+            "safety_forward_blocked": counts.forward_blocked if counts else 0,
+            "safety_speed_limited": counts.speed_limited if counts else 0,
+            "safety_yaw_rate_limited": counts.yaw_rate_limited if counts else 0,
+            "latency_ms_p50": f"{lat[0]:.2f}" if lat is not None else "-",
+            "latency_ms_p99": f"{lat[1]:.2f}" if lat is not None else "-",
             "answers_per_s": f"{new_acts / max(now - when, 1e-6):.1f}",
             "ms_per_answer": f"{1e3 * self.act_s / new_acts:.2f}" if new_acts else "-",
         }
@@ -315,7 +495,7 @@ class PolicyNode(Node):
             self.get_logger().warning(f"weights push rejected: {result.reason}")
         if released:
             for joined in self.gate.release(push.release_stamp_ns):
-                self._act(joined["frame"], joined["outcome"])
+                self._act(joined["frame"], joined["outcome"], time.perf_counter())
         response.results = [result]
         return response
 
@@ -329,6 +509,8 @@ class PolicyNode(Node):
             self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
         self.cfg = net.cfg
         self.weights_hfov_deg = wio.read_header_camera(blob)
+        self.to_input = NetworkInput(self.cfg.height, self.cfg.width)  # the input size or camera may have changed
+        self._use_camera()
         self._check_camera()
         self.pushes_accepted += 1
         self.source = f"pushed weights ({len(blob)} bytes)"

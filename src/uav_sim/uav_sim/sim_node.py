@@ -74,6 +74,11 @@ class SimNodeSettings:
         "odom", "the world frame: Odometry header, markers and trajectory (REP 105); prefixed with the namespace"
     )
     base_frame_id: str = setting("base_link", "Odometry child frame (REP 105); prefixed with the namespace")
+    depth_encoding: str = setting(
+        "32FC1",
+        "depth/image_raw encoding: 32FC1 (metres) or 16UC1 (millimetres, 0 = no return, as camera drivers)",
+        choices=tuple(contract.DEPTH_ENCODINGS),
+    )
 
 
 class SimNode(Node):
@@ -97,7 +102,8 @@ class SimNode(Node):
             self.sim = Simulator(world, cfg, next_worlds=layouts)
         except ValueError as e:
             raise ParameterError(str(e)) from None
-        self.cfg = cfg
+        self.cfg = cfg = self.sim.config  # with the sensor preset's camera
+        self.depth_encoding = st.depth_encoding
         floor = reward_floor_problem(cfg, world.start_xyz_m[2])
         if floor:  # crash counts stay meaningful (evaluation); training on this reward does not
             self.get_logger().warning(floor)
@@ -146,7 +152,8 @@ class SimNode(Node):
             (f"a new layout every episode{mixed}, first " if layouts else "")
             + f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
             f"snow={world.weather.snow} leaves={world.weather.leaves}), mode {self.mode}, "
-            f"{cfg.image_width}x{cfg.image_height} depth, step {cfg.step_duration_s} s"
+            f"{cfg.image_width}x{cfg.image_height} depth ({self.depth_encoding}, {cfg.hfov_deg:g} deg, sensor "
+            f"{cfg.sensor}), step {cfg.step_duration_s} s"
         )
 
     # -- commands ----------------------------------------------------------------------
@@ -253,7 +260,7 @@ class SimNode(Node):
         k = info.k
         info.p = [k[0], 0.0, k[2], 0.0, 0.0, k[4], k[5], 0.0, 0.0, 0.0, 1.0, 0.0]
         self.pub_info.publish(info)
-        self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id))
+        self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
         self.last_publish_wall = time.monotonic()
 
     def publish_path(self, r: StepResult, stamp) -> None:

@@ -24,6 +24,7 @@ from uav_common.settings import setting
 
 from .camera import CameraIntrinsics, DepthCamera
 from .reward import DELTA_M, center_window_min_depth, floor_beta_m, step_reward
+from .sensor import SENSORS, SensorModel, preset, scaled_size
 from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from .weather import Particles
 from .world import Obstacle, World
@@ -33,10 +34,23 @@ from .world import Obstacle, World
 class SimConfig:
     """The simulator's settings (sim_node's parameters; the in-process tools take them from a recipe)."""
 
-    image_width: int = setting(64, "Depth image width (px)", 8, 1024)
-    image_height: int = setting(64, "Depth image height (px)", 8, 1024)
+    sensor: str = setting(
+        "ideal",
+        "Depth sensor: ideal (exact depth; the paper's protocol) or a preset camera with its own resolution, field of "
+        "view, range, noise, dropout and edge holes (docs/TRAINING.md); a preset replaces image_width, image_height "
+        "and hfov_deg",
+        choices=SENSORS,
+    )
+    sensor_scale: float = setting(
+        1.0, "A preset sensor renders at this share of its resolution (e.g. 0.25 for training speed)", 0.05, 1.0
+    )
+    image_width: int = setting(64, "Depth image width (px); sensor ideal only", 8, 1024)
+    image_height: int = setting(64, "Depth image height (px); sensor ideal only", 8, 1024)
     hfov_deg: float = setting(
-        150.0, "Horizontal field of view (deg); the packaged weights were trained at 150, the paper's camera is 90", 10.0, 170.0
+        150.0,
+        "Horizontal field of view (deg; sensor ideal only); the packaged weights were trained at 150, the paper's camera is 90",
+        10.0,
+        170.0,
     )
     min_range_m: float = setting(0.1, "Closest measurable depth (m); also the near clip plane", 0.01, 10.0)
     max_range_m: float = setting(10.0, "Farthest measurable depth (m); beyond it pixels are +Inf", 0.5, 100.0)
@@ -67,7 +81,9 @@ class SimConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that cannot be used."""
+        preset(self.sensor)  # ValueError naming the presets
         checks = [
+            ("sensor_scale", 0.05 <= self.sensor_scale <= 1.0, "in [0.05, 1]"),
             ("image_width", 8 <= self.image_width <= 1024, "an integer in [8, 1024]"),
             ("image_height", 8 <= self.image_height <= 1024, "an integer in [8, 1024]"),
             ("hfov_deg", 10.0 <= self.hfov_deg <= 170.0, "in [10, 170] degrees"),
@@ -85,9 +101,18 @@ class SimConfig:
                 raise ValueError(f"{name}={getattr(self, name)!r} is invalid: expected {valid}")
 
 
+def with_sensor(config: SimConfig) -> SimConfig:
+    """`config` with the camera geometry of its sensor preset (at sensor_scale); ideal: unchanged."""
+    p_ = preset(config.sensor)
+    if p_ is None:
+        return config
+    width, height = scaled_size(p_, config.sensor_scale)
+    return dataclasses.replace(config, image_width=width, image_height=height, hfov_deg=p_.hfov_deg)
+
+
 @dataclasses.dataclass
 class StepResult:
-    depth_m: np.ndarray  # (H, W) float32, REP 117 (+Inf beyond range)
+    depth_m: np.ndarray  # (H, W) float32, REP 117 (+Inf beyond range), as the sensor measures it
     beta_m: float  # centre-window minimum depth of depth_m (capped at max range)
     collided: bool  # the step ended in a collision; depth_m is then the new episode's first frame
     reward: float
@@ -143,8 +168,11 @@ class Simulator:
         """With `next_worlds`, every new episode (after a collision or reset) flies the next world
         from it, starting at the run's first heading draw (see change_world)."""
         config.validate()
+        config = with_sensor(config)
         self.world = world
         self.config = config
+        p_ = preset(config.sensor)
+        self.sensor = SensorModel(p_, config.seed + 2) if p_ is not None else None
         self.next_worlds = next_worlds
         self.rng = np.random.default_rng(config.seed)
         self.client = p.connect(p.DIRECT)
@@ -226,15 +254,19 @@ class Simulator:
 
     # -- public API -----------------------------------------------------------------------
     def render(self) -> np.ndarray:
-        """The current depth frame (m)."""
+        """The current depth frame (m), exact."""
         return self.camera.render(self.camera_xyz(), self.pose.yaw_rad)
+
+    def measure(self, depth_m: np.ndarray) -> np.ndarray:
+        """What the sensor reports for the exact depth (the reward's beta comes from the exact one)."""
+        return depth_m if self.sensor is None else self.sensor.measure(depth_m)
 
     def observe(self) -> StepResult:
         """The current frame as a StepResult without moving (the first frame of a run)."""
         depth = self.render()
         beta = center_window_min_depth(depth, self.config.max_range_m, self.config.reward_window_fraction)
         return StepResult(
-            depth,
+            self.measure(depth),
             beta,
             False,
             step_reward(beta, False),
@@ -318,7 +350,7 @@ class Simulator:
         depth = self.render()
         beta = center_window_min_depth(depth, cfg.max_range_m, cfg.reward_window_fraction)
         return StepResult(
-            depth,
+            self.measure(depth),
             beta,
             collided,
             step_reward(beta, collided),

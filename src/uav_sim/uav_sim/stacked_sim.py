@@ -4,8 +4,10 @@ uav_trainer.rollout.Flight) and the Gymnasium environment (uav_sim.gym) all step
 
 from __future__ import annotations
 
+import numpy as np
+
 from uav_common.actions import PAPER_ACTIONS, Action
-from uav_common.frame_stack import FrameStack
+from uav_common.frame_stack import FrameStack, NetworkInput
 
 from .simulator import Simulator, StepResult
 from .vehicle import BodyTwist
@@ -13,23 +15,47 @@ from .vehicle import BodyTwist
 
 class StackedSim:
     """`step(action)` applies the action's body velocity for one step and stacks the new frame; a new
-    episode (after a collision, a time limit or `reset`) restarts the stack with its first frame."""
+    episode (after a collision, a time limit or `reset`) restarts the stack with its first frame.
 
-    def __init__(self, sim: Simulator, frames: int, actions: tuple[Action, ...] = PAPER_ACTIONS):
+    With `input_hw`, frames are mapped onto a network input of that size and `trained_hfov_deg` (default:
+    the simulator's camera) as policy_node maps a camera's frames through CameraInfo: a sensor preset's
+    frames are cropped or padded to the trained field of view and min-pooled. `last_input` is the newest."""
+
+    def __init__(
+        self,
+        sim: Simulator,
+        frames: int,
+        actions: tuple[Action, ...] = PAPER_ACTIONS,
+        input_hw: tuple[int, int] | None = None,
+        trained_hfov_deg: float | None = None,
+    ):
         self.sim, self.actions = sim, actions
         self.stack = FrameStack(frames)
+        cfg = sim.config
+        self.to_input = None  # frames are the network's input as they are
+        hfov = cfg.hfov_deg if trained_hfov_deg is None else trained_hfov_deg
+        if input_hw is not None and (input_hw != (cfg.image_height, cfg.image_width) or hfov != cfg.hfov_deg):
+            k = sim.camera.intrinsics.k_matrix()
+            self.to_input = NetworkInput(*input_hw)
+            self.to_input.set_camera((k[0], k[4], k[2], k[5], cfg.image_width, cfg.image_height), hfov)
         self.last = sim.observe()
-        self.state = self.stack.reset(self.last.depth_m)
+        self.last_input = self._input(self.last)
+        self.state = self.stack.reset(self.last_input)
+
+    def _input(self, r: StepResult) -> np.ndarray:
+        return r.depth_m if self.to_input is None else self.to_input(r.depth_m)
 
     def step(self, action: int) -> StepResult:
         a = self.actions[action]
         r = self.sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(self.sim.config.step_duration_s)))
-        self.state = self.stack.reset(r.depth_m) if r.collided or r.truncated else self.stack.push(r.depth_m)
+        self.last_input = x = self._input(r)
+        self.state = self.stack.reset(x) if r.collided or r.truncated else self.stack.push(x)
         self.last = r
         return r
 
     def reset(self) -> StepResult:
         """End the episode without a collision (the simulator's reset) and start the stack again."""
         self.last = self.sim.reset()
-        self.state = self.stack.reset(self.last.depth_m)
+        self.last_input = self._input(self.last)
+        self.state = self.stack.reset(self.last_input)
         return self.last

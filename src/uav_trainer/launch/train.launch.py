@@ -35,6 +35,7 @@ def generate_launch_description():
                         "epsilon": 1.0,
                         "wait_for_trainer": True,
                         "accept_pushes": True,
+                        "safety": False,
                         "push_key_file": LaunchConfiguration("push_key_file"),
                     },
                 ],

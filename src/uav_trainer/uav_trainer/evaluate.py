@@ -108,7 +108,15 @@ def main(argv=None) -> int:
         metavar="DIR",
         help="keep each flight as a bag (MCAP) in DIR/<model>_<world>_w<weights group>_seed<seed> (needs the ROS nodes)",
     )
+    ap.add_argument(
+        "--safety",
+        action="store_true",
+        help="fly through policy_node's safety layer (needs the ROS nodes); crashes then include what it prevented, "
+        "and its interventions are counted: compare with a run without it, never mix the two",
+    )
     a = ap.parse_args(argv)
+    if a.safety and a.inprocess:
+        ap.error("--safety is policy_node's safety layer: it needs the ROS nodes (leave out --inprocess)")
     if a.record and a.inprocess:
         ap.error("--record needs the ROS nodes: it records their topics (leave out --inprocess)")
     if a.record and Path(a.record).is_dir() and any(Path(a.record).iterdir()):
@@ -128,6 +136,17 @@ def main(argv=None) -> int:
         for arg in a.sim_arg:
             if arg.partition(":=")[0] not in INPROCESS_SIM_ARGS:
                 ap.error(f"--inprocess takes only --sim-arg {':=X, '.join(INPROCESS_SIM_ARGS)}:=X, got {arg!r}")
+        given = dict(arg.partition(":=")[::2] for arg in a.sim_arg)
+        from uav_sim.sensor import preset
+
+        sensor = {"sensor": given.get("sensor", "ideal")}
+        try:
+            preset(sensor["sensor"])
+            sensor["sensor_scale"] = float(given.get("sensor_scale", 1.0))
+        except ValueError as e:
+            ap.error(f"--sim-arg: {e}")
+        if not 0.05 <= sensor["sensor_scale"] <= 1.0:
+            ap.error(f"--sim-arg sensor_scale must lie in [0.05, 1], got {sensor['sensor_scale']:g}")
         if window is not None and not 0.0 < window <= 1.0:
             ap.error(f"--sim-arg reward_window_fraction must lie in (0, 1], got {window:g}")
         if a.epsilon != 0.0:
@@ -153,6 +172,8 @@ def main(argv=None) -> int:
             " Camera: each weights file flies with the field of view it was trained with (its header;"
             f" {UNRECORDED_HFOV_DEG:g}° when it has none)."
         )
+    if a.safety:
+        protocol += " Flown through policy_node's safety layer (--safety, its default settings)."
     if a.inprocess:
         protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     if a.ensemble > 1:
@@ -234,6 +255,7 @@ def main(argv=None) -> int:
                     sim_args=tuple(a.sim_arg),
                     progress=bar.update,
                     record_to=bag,
+                    safety=a.safety,
                 )
             net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
             r = evaluate_inprocess(
@@ -248,6 +270,7 @@ def main(argv=None) -> int:
                 net_cfg=net_cfg,
                 crash_log=crash_rows if a.crash_log else None,
                 reward_window_fraction=win,
+                **sensor,
             )
             bar.update(a.steps)
             return r
@@ -265,6 +288,7 @@ def main(argv=None) -> int:
                 bar.write(
                     f"[{len(results)}/{rows}, {elapsed:.0f} s, ETA {eta:.0f} s] {model:3s} {world:10s} {weights_label(files)}: "
                     f"{r.crashes} crashes at {r.crash_sites} sites, mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
+                    + (f", {r.interventions} safety interventions" if r.interventions >= 0 else "")
                 )
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())

@@ -26,6 +26,7 @@ class EvalResult:
     crash_sites: int = -1  # distinct places (0.1 m grid) where a crashing step began, per run, summed; -1 unknown
     turn_steps: int = -1  # steps that changed the heading by more than TURN_DEG (-1 unknown)
     cells: int = -1  # distinct 1 m x 1 m floor cells flown through, per run, summed (-1 unknown)
+    interventions: int = -1  # commands policy_node's safety layer changed (-1: flown without it)
 
     @property
     def distance_between_crashes_m(self) -> float:
@@ -208,7 +209,8 @@ def weights_label(files: list[str]) -> str:
     return files[0] if files else "packaged"
 
 
-INPROCESS_SIM_ARGS = ("hfov_deg", "reward_window_fraction")  # the sim_node parameters --inprocess honours
+# The sim_node parameters --inprocess honours.
+INPROCESS_SIM_ARGS = ("hfov_deg", "reward_window_fraction", "sensor", "sensor_scale")
 
 
 def evaluate_once(
@@ -225,9 +227,11 @@ def evaluate_once(
     log_dir: Path | None = None,
     progress=None,
     record_to: Path | None = None,
+    safety: bool = False,
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps; with
-    `record_to`, uav_bringup's `record` keeps the flight there as a bag, from its first frame.
+    `record_to`, uav_bringup's `record` keeps the flight there as a bag, from its first frame. The policy
+    flies without its safety layer (its own crashes), or with `safety` through it (interventions counted).
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
     reward_window_fraction the reward window they record (else the paper's), and without image_width/image_height
@@ -242,6 +246,7 @@ def evaluate_once(
     sim_args = (*sim_args, *image_size_args(model, first, sim_args))
     import rclpy
     import rclpy.executors
+    from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image, Range
@@ -255,12 +260,21 @@ def evaluate_once(
     deep = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10000)
     node.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: mon.add("outcome", m), deep)
     node.create_subscription(Odometry, contract.ODOM_TOPIC, lambda m: mon.add("odom", m), deep)
+    said = {}  # the policy's latest /diagnostics values, and when they came
+    node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: policy_said(said, m), 10)
     procs = Processes(log_dir=log_dir, quiet=log_dir is None)
     pargs = lambda kv: [x for item in kv for x in ("-p", item)]  # noqa: E731
     try:
         wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
         policy_args = params_args(params_dir, "policy") + pargs(
-            [f"model:={model}", f"epsilon:={epsilon}", f"seed:={seed}", "publish_overlay:=false", *wargs]
+            [
+                f"model:={model}",
+                f"epsilon:={epsilon}",
+                f"seed:={seed}",
+                "publish_overlay:=false",
+                f"safety:={str(safety).lower()}",
+                *wargs,
+            ]
         )
         ready_by = time.monotonic() + 60.0
         sim_extra = []
@@ -311,6 +325,12 @@ def evaluate_once(
                 raise TimeoutError(f"evaluation reached only {mon.steps}/{steps} steps in {timeout_s} s")
         if mon.gaps:
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
+        if safety:  # the interventions counted up to now: policy_node reports every second
+            asked = time.monotonic()
+            while said.get("at", 0.0) <= asked and time.monotonic() < asked + 5.0:
+                executor.spin_once(timeout_sec=0.05)
+            if "safety_interventions" not in said:
+                raise RuntimeError("policy_node did not report its safety interventions on /diagnostics")
     finally:
         procs.stop_all(["policy", "sim", "record"])
         executor.shutdown()
@@ -328,7 +348,15 @@ def evaluate_once(
         len(mon.sites),
         b.turn_steps if b else -1,
         len(b.cells) if b else -1,
+        int(said["safety_interventions"]) if safety else -1,
     )
+
+
+def policy_said(said: dict, msg) -> None:
+    """Keep the values of policy_node's /diagnostics status, and when they came."""
+    for st in msg.status:
+        if st.name == "uav_policy":
+            said.update({kv.key: kv.value for kv in st.values}, at=time.monotonic())
 
 
 def bag_name(model: str, world: str, group: int, seed: int) -> str:
@@ -349,6 +377,8 @@ def evaluate_inprocess(
     net_cfg=None,
     crash_log: list | None = None,
     reward_window_fraction: float | None = None,
+    sensor: str = "ideal",
+    sensor_scale: float = 1.0,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
@@ -356,7 +386,9 @@ def evaluate_inprocess(
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
     `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
     camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
-    `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default)."""
+    `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default).
+    A `sensor` preset renders its own camera (at `sensor_scale`), mapped onto the weights' field of view as
+    policy_node maps a camera through CameraInfo."""
     from uav_policy import weights as wio
     from uav_policy.agent import Agent
     from uav_sim.simulator import SimConfig, Simulator
@@ -382,9 +414,11 @@ def evaluate_inprocess(
         image_width=cfg.width,
         image_height=cfg.height,
         reward_window_fraction=reward_window_fraction,
+        sensor=sensor,
+        sensor_scale=sensor_scale,
     )
     sim = Simulator(load_world(world), sim_cfg)
-    flight = Flight(sim, agent, cfg.frames)
+    flight = Flight(sim, agent, cfg.frames, trained_hfov_deg=hfov_deg)
     r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)

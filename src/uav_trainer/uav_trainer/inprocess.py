@@ -20,7 +20,7 @@ from uav_common.actions import PAPER_ACTIONS, turning_indices
 from uav_common.settings import SettingError, add_flags, build, given_flags, refuse_retired_flags, specs
 from uav_policy.agent import Agent
 from uav_sim.reward import CENTER_WINDOW_FRACTION
-from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem
+from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem, with_sensor
 from uav_sim.world import WorldChoice, WorldError
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
@@ -76,6 +76,7 @@ def run(
     A camera whose reward window sees the floor nearer than delta is refused (RewardWindowError) before
     anything is written: every step would be punished and the run could only learn to crash."""
     sim_cfg.validate()
+    sim_cfg = with_sensor(sim_cfg)  # a preset's camera: its field of view is the one the weights record
     first, layouts = worlds.load(cfg.seed)
     floor = reward_floor_problem(sim_cfg, first.start_xyz_m[2])
     if floor:
@@ -88,16 +89,17 @@ def run(
     sim = Simulator(first, sim_cfg, next_worlds=layouts)
     agent = Agent(training.learner.online, training.net_cfg, str(training.learner.device), seed=cfg.seed)
     flight = Flight(sim, agent, training.net_cfg.frames)
-    training.add_first(flight.last.depth_m)
+    training.add_first(flight.env.last_input)
     t0 = time.perf_counter()
     try:
         while not training.budget_done and not training.failed:
             step = flight.step(training.epsilon())
             r = step.after
+            frame = flight.env.last_input  # on the network's input, as policy_node gives it
             if r.truncated:
-                training.add_truncated(r.depth_m)
+                training.add_truncated(frame)
             else:
-                training.add_step(step.action, r.beta_m, r.collided, r.depth_m)
+                training.add_step(step.action, r.beta_m, r.collided, frame)
             for path in training.learn_due():
                 log(f"step {training.env_steps}: weights snapshot {path}")
             if on_step is not None and on_step(training):

@@ -23,7 +23,7 @@ import dataclasses
 
 from uav_common import contract
 from uav_common.actions import match_action
-from uav_common.frame_stack import fit_to_network
+from uav_common.frame_stack import NetworkInput
 
 
 @dataclasses.dataclass
@@ -46,6 +46,12 @@ class TransitionAssembler:
         self.early: tuple[int, bool] | None = None  # (stamp, frame usable) stored before its record completed
         self.released = -1  # the newest stamp handed to on_ready
         self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0}
+        self.to_input = NetworkInput(*net_hw)
+
+    def set_camera(self, intrinsics, hfov_deg: float) -> None:
+        """Frames go onto the network's input through the camera's intrinsics, as policy_node maps them (the
+        trained field of view is the camera's own): a sensor preset's frames are padded to a square view."""
+        self.to_input.set_camera(intrinsics, hfov_deg)
 
     def add(self, stream: str, msg) -> None:
         restarts = self.joiner.restarts
@@ -61,7 +67,7 @@ class TransitionAssembler:
     def _frame(self, img):
         """The frame at the network's size, or None (counted) when malformed."""
         try:
-            return fit_to_network(contract.image_to_depth(img), *self.net_hw)
+            return self.to_input(contract.image_to_depth(img))
         except ValueError:
             self.counts["bad_frames"] += 1
             return None

@@ -29,8 +29,19 @@ class Step:
 class Flight:
     """An Agent flying a Simulator: `step(epsilon)` acts on the stacked frames and steps the simulator."""
 
-    def __init__(self, sim: Simulator, agent: Agent, frames: int, actions: tuple[Action, ...] = PAPER_ACTIONS):
-        self.env, self.agent, self.actions = StackedSim(sim, frames, actions), agent, actions
+    def __init__(
+        self,
+        sim: Simulator,
+        agent: Agent,
+        frames: int,
+        actions: tuple[Action, ...] = PAPER_ACTIONS,
+        trained_hfov_deg: float | None = None,
+    ):
+        """Frames reach the network as policy_node gives them: mapped onto its input size and the field of
+        view it was trained with (`trained_hfov_deg`; default: the simulator's camera)."""
+        hw = (agent.cfg.height, agent.cfg.width)
+        self.env = StackedSim(sim, frames, actions, input_hw=hw, trained_hfov_deg=trained_hfov_deg)
+        self.agent, self.actions = agent, actions
 
     @property
     def last(self) -> StepResult:

@@ -36,7 +36,7 @@ def pool(runs: list[EvalResult]) -> EvalResult:
         sum(r.distance_m for r in runs),
         *(
             sum(getattr(r, k) for r in runs) if all(getattr(r, k) >= 0 for r in runs) else -1
-            for k in ("crash_sites", "turn_steps", "cells")
+            for k in ("crash_sites", "turn_steps", "cells", "interventions")
         ),
     )
 
@@ -132,6 +132,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                 "crash_sites",
                 "turn_steps",
                 "cells_visited",
+                "safety_interventions",
             ]
         )
         for r in results:
@@ -149,6 +150,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     r.crash_sites,
                     r.turn_steps,
                     r.cells,
+                    r.interventions,
                 ]
             )
     models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
@@ -212,6 +214,16 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
             ),
             intro,
         )
+    if results and all(r.interventions >= 0 for r in results):
+        lines += pooled_table(
+            results,
+            models,
+            worlds,
+            "Safety layer interventions per 1000 steps (commands it changed; the crashes above are with it on)",
+            "",
+            lambda runs: fmt(*mean_ci95([1000 * r.interventions / r.steps for r in runs]), 0),
+            "Counted by policy_node (/diagnostics) over each flight. Mean ± 95% CI over the weight files.",
+        )
     md_path = out_dir / "results.md"
     md_path.write_text("\n".join(lines))
     return md_path, csv_path
@@ -244,7 +256,7 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
     """The rows of earlier results.csv files (write_tables' format) as EvalResults, in order. ValueError,
     naming the file and line, for a missing or unreadable file, a missing column, a model other than sam
     or cnn, a count that is not a whole number or is impossible (crashes > steps), a number that is not
-    finite, or no rows at all. The optional columns (crash_sites, turn_steps, cells_visited) default to
+    finite, or no rows at all. The optional columns (crash_sites, turn_steps, cells_visited, safety_interventions) default to
     -1 (unknown), as for tables written before they existed."""
     results = []
     for path in paths:
@@ -278,6 +290,7 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
                     _csv_whole(r, "crash_sites", where, -1),
                     _csv_whole(r, "turn_steps", where, -1),
                     _csv_whole(r, "cells_visited", where, -1),
+                    _csv_whole(r, "safety_interventions", where, -1),
                 )
             )
     if not results:

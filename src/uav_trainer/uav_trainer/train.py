@@ -126,7 +126,7 @@ def main(argv=None) -> int:
         "policy_node",
         node_args("policy")
         + p([f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
-        + p(["accept_pushes:=true", f"push_key_file:={key}"])
+        + p(["accept_pushes:=true", f"push_key_file:={key}", "safety:=false"])
         + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
     )
     trainer = procs.start(

@@ -129,7 +129,7 @@ class TrainerNode(Node):
             f"on {self.training.learner.device} into {self.training.dir}; "
             f"budget {self.cfg.total_steps or 'unlimited'} env steps; replay {self.cfg.replay_capacity} frames; "
             f"reward: {reward_description(self.cfg)}; learning in lockstep with acting; pushes signed with the key in "
-            f"{key_file} (policy_node needs accept_pushes:=true push_key_file:={key_file})"
+            f"{key_file} (policy_node needs accept_pushes:=true push_key_file:={key_file} safety:=false)"
         )
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -144,6 +144,7 @@ class TrainerNode(Node):
             self.get_logger().info(f"depth camera: {hfov:g} deg horizontal field of view (recorded in the weights files)")
             self.training.camera_hfov_deg = hfov
         self.camera_width_px = msg.width
+        self.pairing.set_camera(contract.camera_info_intrinsics(msg), hfov)
         self._update_window()
 
     def _check_policy_waits(self) -> None:

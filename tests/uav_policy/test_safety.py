@@ -1,0 +1,43 @@
+"""The safety layer's rules on constructed inputs (policy_node applies them to every command)."""
+
+import math
+
+import numpy as np
+
+from uav_policy.safety import SafetyLayer, SafetySettings
+
+CLEAR = np.full((64, 64), 8.0, np.float32)
+
+
+def layer(**kw):
+    return SafetyLayer(SafetySettings(**kw), 64, 64, 150.0)
+
+
+def test_a_wall_inside_the_stop_distance_removes_forward_motion_but_not_turning():
+    s = layer(stop_distance_m=0.6)
+    wall = np.full((64, 64), 0.4, np.float32)
+    assert s.filter(1.0, 1.05, wall)[:2] == (0.0, 1.05)
+    assert s.filter(1.0, 0.0, CLEAR) == (1.0, 0.0, "")
+    assert s.filter(-0.5, 0.0, wall)[:2] == (-0.5, 0.0), "backing away stays allowed"
+    assert s.counts.forward_blocked == 1 and s.counts.total == 1
+
+
+def test_only_the_flight_corridor_counts():
+    """A post 0.4 m ahead and 1 m to the side (outside a 0.35 m corridor) does not block; straight ahead it does."""
+    s = layer(stop_distance_m=0.6, corridor_half_width_m=0.35)
+    f = 32 / math.tan(math.radians(75))
+    side = CLEAR.copy()
+    col = int(32 + f * 1.0 / 0.4)  # 1 m to the side at 0.4 m depth
+    side[:, col] = 0.4
+    assert s.filter(1.0, 0.0, side)[0] == 1.0
+    ahead = CLEAR.copy()
+    ahead[30:34, 31:33] = 0.4
+    assert s.filter(1.0, 0.0, ahead)[0] == 0.0
+    assert math.isinf(s.nearest_in_corridor_m(side)) and s.nearest_in_corridor_m(ahead) == np.float32(0.4)
+
+
+def test_speed_and_yaw_rate_are_limited_and_counted():
+    s = layer(max_speed_mps=1.5, max_yaw_rate_radps=0.5)
+    vx, wz, why = s.filter(2.0, -1.0, CLEAR)
+    assert (vx, wz) == (1.5, -0.5) and "speed limited" in why and "yaw rate limited" in why
+    assert s.counts.speed_limited == 1 and s.counts.yaw_rate_limited == 1
