@@ -39,7 +39,7 @@ def scene(width: int, height: int, t_s: float) -> np.ndarray:
     return depth
 
 
-def measure(model: str, width: int, height: int, encoding: str, frames: int, rate_hz: float, domain: int) -> dict:
+def measure(model: str, weights: str, width: int, height: int, encoding: str, frames: int, rate_hz: float, domain: int) -> dict:
     import rclpy
     import rclpy.executors
     from diagnostic_msgs.msg import DiagnosticArray
@@ -65,7 +65,8 @@ def measure(model: str, width: int, height: int, encoding: str, frames: int, rat
 
     node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, on_diag, 10)
     try:
-        procs.start("policy", "uav_policy", "policy_node", ["-p", f"model:={model}", "-p", "publish_stamped:=true"])
+        args = ["-p", f"model:={model}", "-p", "publish_stamped:=true"] + (["-p", f"weights:={weights}"] if weights else [])
+        procs.start("policy", "uav_policy", "policy_node", args)
         deadline = time.monotonic() + 60
         while pub.get_subscription_count() == 0 or not diag:
             ex.spin_once(timeout_sec=0.1)
@@ -106,14 +107,15 @@ def measure(model: str, width: int, height: int, encoding: str, frames: int, rat
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default="sam", choices=("sam", "cnn"))
+    ap.add_argument("--weights", default="", help="policy_node weights (default: the packaged ten networks)")
     ap.add_argument("--frames", type=int, default=450, help="frames per stream (15 Hz)")
     ap.add_argument("--domain", type=int, default=173)
     a = ap.parse_args()
     rows = [
-        ("848x480 16UC1 (camera)", measure(a.model, 848, 480, "16UC1", a.frames, 15.0, a.domain)),
-        ("64x64 32FC1 (baseline)", measure(a.model, 64, 64, "32FC1", a.frames, 15.0, a.domain)),
+        ("848x480 16UC1 (camera)", measure(a.model, a.weights, 848, 480, "16UC1", a.frames, 15.0, a.domain)),
+        ("64x64 32FC1 (baseline)", measure(a.model, a.weights, 64, 64, "32FC1", a.frames, 15.0, a.domain)),
     ]
-    print(f"policy_node --model {a.model}, no simulator, 15 Hz, safety layer on (its default)")
+    print(f"policy_node model {a.model}, weights {a.weights or 'packaged'}, no simulator, 15 Hz, safety layer on")
     print(f"{'stream':26s} {'received':>9s} {'answered':>9s} {'in node p50/p99 ms':>20s} {'end to end p50/p99 ms':>23s}")
     for name, r in rows:
         print(

@@ -14,6 +14,8 @@ setup(
         ("share/uav_policy/weights", glob("weights/*.md")),
         ("share/uav_policy/weights/sam", glob("weights/sam/*.safetensors")),
         ("share/uav_policy/weights/cnn", glob("weights/cnn/*.safetensors")),
+        ("share/uav_policy/weights/realsense_d435/sam", glob("weights/realsense_d435/sam/*.safetensors")),
+        ("share/uav_policy/weights/realsense_d435/cnn", glob("weights/realsense_d435/cnn/*.safetensors")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

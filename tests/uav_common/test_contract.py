@@ -196,4 +196,9 @@ def test_the_sampled_stack_holds_frames_one_step_period_apart_whatever_the_camer
     fresh.add(0.0, np.zeros((2, 2), np.float32))
     fresh.add(0.1, np.ones((2, 2), np.float32))
     np.testing.assert_array_equal(fresh.state()[:, 0, 0], [0, 0, 0, 0, 1]), "the oldest stands in, as at a reset"
+    from uav_common.frame_stack import FrameStack
+
+    carried = FrameStack(5)
+    carried.restore(s.state())  # policy_node: a simulator found after its first frames were answered
+    assert carried.push(np.full((2, 2), 60, np.float32))[:, 0, 0].tolist() == [29, 39, 49, 59, 60]
     assert s.add(1.0, np.zeros((2, 2), np.float32)) is False and s.state()[:, 0, 0].tolist() == [0] * 5

@@ -22,6 +22,16 @@ def test_a_wall_inside_the_stop_distance_removes_forward_motion_but_not_turning(
     assert s.counts.forward_blocked == 1 and s.counts.total == 1
 
 
+def test_a_blocked_straight_command_turns_the_policys_best_way_instead_of_hovering_for_good():
+    s = layer(stop_distance_m=0.6)
+    wall = np.full((64, 64), 0.4, np.float32)
+    vx, wz, why = s.filter(2.0, 0.0, wall, turn_radps=-1.05)
+    assert (vx, wz) == (0.0, -1.05) and "turning" in why
+    assert s.filter(1.0, 1.05, wall)[:2] == (0.0, -1.05), "the way round is kept until clear: no dithering"
+    assert s.filter(2.0, 0.0, CLEAR, turn_radps=-1.05)[:2] == (2.0, 0.0), "a clear way flies straight"
+    assert s.filter(1.0, 1.05, wall)[:2] == (0.0, 1.05), "once clear, a new blockage picks its way again"
+
+
 def test_only_the_flight_corridor_counts():
     """A post 0.4 m ahead and 1 m to the side (outside a 0.35 m corridor) does not block; straight ahead it does."""
     s = layer(stop_distance_m=0.6, corridor_half_width_m=0.35)

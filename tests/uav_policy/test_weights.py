@@ -310,3 +310,16 @@ def test_a_push_is_taken_only_signed_with_the_runs_key_and_newer_than_the_last(t
         load_key(tmp_path / "push.key")
     with pytest.raises(ValueError, match="No such file"):
         load_key(tmp_path / "missing.key")
+
+
+def test_a_weights_folder_stands_for_its_files_in_name_order(tmp_path):
+    for name in ("b.safetensors", "a.safetensors", "notes.md"):
+        (tmp_path / name).write_bytes(b"x")
+    assert wio.parse_files(f"{tmp_path}, c.safetensors") == [
+        str(tmp_path / "a.safetensors"),
+        str(tmp_path / "b.safetensors"),
+        "c.safetensors",
+    ]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="holds no .safetensors file"):
+        wio.parse_files(str(tmp_path / "empty"))

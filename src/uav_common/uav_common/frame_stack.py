@@ -138,6 +138,13 @@ class FrameStack:
         """(frames, H, W) float32, oldest first."""
         return np.stack(self._buf, axis=0).astype(np.float32, copy=False)
 
+    def restore(self, state: np.ndarray) -> None:
+        """Carry on from a state (frames, H, W), oldest first, e.g. one a SampledStack built."""
+        if len(state) != self.frames:
+            raise ValueError(f"a state of {len(state)} frames for a stack of {self.frames}")
+        self._buf.clear()
+        self._buf.extend(state)
+
     @property
     def empty(self) -> bool:
         return not self._buf

@@ -23,7 +23,8 @@ class PolicySettings:
     weights: str = setting(
         "",
         "safetensors weights file, or several separated by commas, flown as one policy on the mean of their Q-values "
-        "(e.g. a run's snapshots and final weights, as train prints them); empty: the packaged weights",
+        "(e.g. a run's snapshots and final weights, as train prints them); a folder: its .safetensors files; empty: "
+        "the packaged weights",
     )
     epsilon: float = setting(
         0.0, "Probability of a random action (exploration); while training, the trainer's pushes change it", 0.0, 1.0

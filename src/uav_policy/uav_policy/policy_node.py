@@ -30,6 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image, Range
 from std_msgs.msg import Float32MultiArray
 
 from uav_common import contract
+from uav_common.actions import turning_indices
 from uav_common.frame_stack import CameraView, FrameStack, NetworkInput, SampledStack
 from uav_common.node_runner import in_thread, run
 from uav_common.ros_params import ParameterError
@@ -42,6 +43,8 @@ from .config import RETIRED, PolicySettings
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
 from .push import ReleaseGate, load_key, read_push, verify
 from .safety import SafetyLayer
+
+CAMERA_INFO_WAIT_S = 2.0  # how long frames wait for their first CameraInfo (see _wait_for_camera_info)
 
 
 class PolicyNode(Node):
@@ -121,6 +124,9 @@ class PolicyNode(Node):
         self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), q)
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, contract.SENSOR_QOS)
         self.outcome_topic = self.resolve_topic_name(contract.OUTCOME_TOPIC)
+        self.info_topic = self.resolve_topic_name(contract.CAMERA_INFO_TOPIC)
+        self.info_wait_since = None  # the first frame that waited for depth/camera_info
+        self.frames_before_camera_info = 0
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
         # service needs its own callback group: a suspended async callback holds its group.
         if self.accept_pushes:
@@ -142,6 +148,7 @@ class PolicyNode(Node):
         self.latency_ms = deque(maxlen=1000)  # frame arrival to cmd_vel published
         self.create_timer(self.control_period_s / 2, self._control_tick)
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
+        self.turning = turning_indices(self.actions)
         self.source = source
         self.acted, self.bad_frames, self.pushes_accepted, self.pushes_rejected = 0, 0, 0, 0
         self.pushes_unauthenticated = 0
@@ -229,12 +236,13 @@ class PolicyNode(Node):
         t_in = time.perf_counter()
         stamp = contract.stamp_ns(msg.header.stamp)
         self.frames_in += stream == "frame" and stamp != self.last_stamp  # a frame said again is not new
+        if stream == "frame" and self._wait_for_camera_info(msg):
+            return
         if stream == "frame" and not self.wait_for_trainer and self.count_publishers(self.outcome_topic) == 0:
             self._on_camera_frame(msg, stamp, t_in)
             return
-        if stream == "frame" and self.last_frame_wall is not None:  # a simulator now: its frames are each answered
-            self.last_frame_wall, self.pending, self.stopping_since = None, None, None
-            self.sampled.clear()
+        if stream == "frame" and self.last_frame_wall is not None:
+            self._simulator_found()
         restarts = self.joiner.restarts
         joined = self.joiner.add(stream, stamp, msg)
         if self.joiner.restarts != restarts:
@@ -275,6 +283,19 @@ class PolicyNode(Node):
             )
         for joined in released:
             self._act(joined["frame"], joined["outcome"], time.perf_counter())
+
+    def _wait_for_camera_info(self, img: Image) -> bool:
+        """A frame of another size than the network's input is not used before its CameraInfo (it would be
+        stretched over the wrong field of view) while a publisher offers one, for CAMERA_INFO_WAIT_S at most:
+        a driver that sent its CameraInfo only once, before we listened, still gets flown (stretched)."""
+        if self.camera_intrinsics is not None or (img.height, img.width) == (self.cfg.height, self.cfg.width):
+            return False
+        now = time.monotonic()
+        self.info_wait_since = now if self.info_wait_since is None else self.info_wait_since
+        if now - self.info_wait_since > CAMERA_INFO_WAIT_S or self.count_publishers(self.info_topic) == 0:
+            return False
+        self.frames_before_camera_info += 1
+        return True
 
     def _decode(self, img: Image) -> np.ndarray | None:
         try:
@@ -317,6 +338,9 @@ class PolicyNode(Node):
         if self.pending is not None and now - self.last_answer_wall >= self.control_period_s:
             self._answer_pending()
         elif self.safety and self._frames_stopped(now) and now - self.last_answer_wall >= self.control_period_s:
+            if self.count_publishers(self.outcome_topic) > 0:  # a lockstep simulator waits for us: never stop it
+                self._simulator_found()
+                return
             if self.stopping_since is None:
                 self.stopping_since = self.last_frame_wall
                 self.get_logger().warning(
@@ -325,6 +349,16 @@ class PolicyNode(Node):
             self.safety.counts.stops_no_frames += 1
             self.last_answer_wall = now
             self._command(Twist(), self.get_clock().now().to_msg())
+
+    def _simulator_found(self) -> None:
+        """The frames answered as a camera's came from a simulator whose step_outcome was discovered after
+        them: from now on each frame is answered with its outcome, stacked on those answered so far (one
+        per step, as the sampled stack holds them), and no stop command goes out (it would step the
+        simulator)."""
+        self.last_frame_wall, self.pending, self.stopping_since = None, None, None
+        if not self.sampled.empty:
+            self.stack.restore(self.sampled.state())
+        self.sampled.clear()
 
     def _frames_stopped(self, now: float) -> bool:
         return now - self.last_frame_wall > self.frame_timeout_s
@@ -356,7 +390,10 @@ class PolicyNode(Node):
         stamped.header.frame_id = self.base_frame
         cmd = chosen
         if self.safety:
-            vx, wz, why = self.safety.filter(chosen.linear.x, chosen.angular.z, net_in)
+            # Should the way be blocked, the network's best turning action decides the way round.
+            best_turn = max(self.turning, key=lambda i: q[i], default=None)
+            turn = self.actions[best_turn].yaw_rate_radps(self.step_duration_s) if best_turn is not None else 0.0
+            vx, wz, why = self.safety.filter(chosen.linear.x, chosen.angular.z, net_in, turn)
             if why:
                 cmd = Twist()
                 cmd.linear.x, cmd.angular.z = vx, wz
@@ -420,6 +457,7 @@ class PolicyNode(Node):
             "source": "camera" if self.last_frame_wall is not None else "simulator" if self.acted else "-",
             "camera_restarts": self.camera_restarts,
             "malformed_camera_info": self.bad_camera_info,
+            "frames_before_camera_info": self.frames_before_camera_info,
             "camera_coverage": f"{self.to_input.view.coverage:.2f}" if self.to_input.view is not None else "-",
             "safety": "on" if self.safety else "off",
             "safety_interventions": counts.total if counts else 0,

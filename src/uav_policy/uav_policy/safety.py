@@ -70,6 +70,7 @@ class SafetyLayer:
     def __init__(self, st: SafetySettings, height: int, width: int, hfov_deg: float):
         self.st, self.hw = st, (height, width)
         self.counts = Interventions()
+        self.escape_sign = 0.0  # while blocked: the way round, kept until clear (no left-right dithering)
         self.set_hfov(hfov_deg)
 
     def set_hfov(self, hfov_deg: float) -> None:
@@ -82,14 +83,28 @@ class SafetyLayer:
             hit = depth < self.reach
         return float(depth[hit].min()) if hit.any() else math.inf
 
-    def filter(self, linear_x_mps: float, yaw_rate_radps: float, depth: np.ndarray) -> tuple[float, float, str]:
+    def filter(
+        self, linear_x_mps: float, yaw_rate_radps: float, depth: np.ndarray, turn_radps: float = 0.0
+    ) -> tuple[float, float, str]:
         """(linear_x, yaw_rate, reason): the command within the limits, no forward motion while the corridor
-        is blocked; reason is "" when nothing changed."""
+        is blocked; reason is "" when nothing changed. A blocked command that does not turn turns at
+        `turn_radps` (the policy's best turning action): hovering in front of the obstacle would leave
+        the same view, the same choice and the vehicle stuck for good. The first blocked command's way
+        round is kept until the corridor is clear, so the vehicle does not dither left and right."""
         reasons = []
-        if linear_x_mps > 0 and math.isfinite(self.nearest_in_corridor_m(depth)):
+        blocked = math.isfinite(self.nearest_in_corridor_m(depth))
+        if not blocked:
+            self.escape_sign = 0.0
+        elif linear_x_mps > 0:
             linear_x_mps = 0.0
             self.counts.forward_blocked += 1
             reasons.append(f"obstacle nearer than {self.st.stop_distance_m:g} m ahead: no forward motion")
+            rate = yaw_rate_radps if yaw_rate_radps != 0.0 else turn_radps
+            if self.escape_sign == 0.0:
+                self.escape_sign = math.copysign(1.0, rate) if rate != 0.0 else 0.0
+            if rate != 0.0:
+                yaw_rate_radps = self.escape_sign * abs(rate)
+                reasons.append(f"turning at {yaw_rate_radps:g} rad/s until clear")
         if abs(linear_x_mps) > self.st.max_speed_mps:
             linear_x_mps = math.copysign(self.st.max_speed_mps, linear_x_mps)
             self.counts.speed_limited += 1

@@ -321,10 +321,20 @@ def camera_mismatch(trained: float | None, camera: float | None) -> tuple[float,
 
 def parse_files(value: str) -> list[str]:
     """The 'weights' parameter as a list of files: [] (the packaged weights), one file, or several separated
-    by commas (flown as one policy); ValueError for an empty name in the list."""
-    files = [f.strip() for f in value.split(",")] if value.strip() else []
-    if not all(files):
+    by commas (flown as one policy); a folder stands for its .safetensors files in name order (a run's
+    snapshots and final weights, or a packaged set). ValueError for an empty name or an empty folder."""
+    names = [f.strip() for f in value.split(",")] if value.strip() else []
+    if not all(names):
         raise ValueError(f"'weights': an empty file name in the list {value!r}")
+    files = []
+    for name in names:
+        if os.path.isdir(name):
+            inside = sorted(str(p) for p in Path(name).glob("*.safetensors"))
+            if not inside:
+                raise ValueError(f"'weights': the folder {name} holds no .safetensors file")
+            files += inside
+        else:
+            files.append(name)
     return files
 
 
