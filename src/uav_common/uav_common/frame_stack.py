@@ -19,6 +19,7 @@ class CameraView:
     edges_x: np.ndarray
     edges_y: np.ndarray
     coverage: float  # the share of the network's cells the camera sees
+    one_to_one: bool = False  # cell i is pixel i on both axes (the simulator's own camera): nothing to map
 
     @staticmethod
     def from_intrinsics(
@@ -34,7 +35,10 @@ class CameraView:
         ey = cy + fy * (np.arange(out_h + 1) - out_h / 2.0) / f_net
         seen_x = np.clip(np.minimum(ex[1:], width) - np.maximum(ex[:-1], 0), 0, None) / np.diff(ex)
         seen_y = np.clip(np.minimum(ey[1:], height) - np.maximum(ey[:-1], 0), 0, None) / np.diff(ey)
-        return CameraView(ex, ey, float(seen_x.mean() * seen_y.mean()))
+        one_to_one = (width, height) == (out_w, out_h) and all(
+            np.allclose(e, np.arange(len(e)), rtol=0.0, atol=1e-6) for e in (ex, ey)
+        )
+        return CameraView(ex, ey, float(seen_x.mean() * seen_y.mean()), one_to_one)
 
     @staticmethod
     def stretch(height: int, width: int, out_h: int, out_w: int) -> CameraView:
@@ -74,9 +78,9 @@ def fit_to_network(depth_m: np.ndarray, height: int, width: int, view: CameraVie
     grows repeats the nearest pixel. NaN (no reading) loses to any reading in its cell. With a `view`
     (CameraInfo and the trained field of view) the frame is cropped or padded with +Inf (no return) to the
     field of view the weights were trained with; without one the whole frame fills the input."""
+    if depth_m.shape == (height, width) and (view is None or view.one_to_one):
+        return depth_m  # the per-step case in the simulator: no copy, no pooling
     if view is None:
-        if depth_m.shape == (height, width):
-            return depth_m
         view = CameraView.stretch(depth_m.shape[0], depth_m.shape[1], height, width)
     out = np.asarray(depth_m, dtype=np.float32)
     out = _fit_axis(out, 0, view.edges_y)

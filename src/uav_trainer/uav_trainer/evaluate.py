@@ -136,13 +136,14 @@ def main(argv=None) -> int:
         for arg in a.sim_arg:
             if arg.partition(":=")[0] not in INPROCESS_SIM_ARGS:
                 ap.error(f"--inprocess takes only --sim-arg {':=X, '.join(INPROCESS_SIM_ARGS)}:=X, got {arg!r}")
-        given = dict(arg.partition(":=")[::2] for arg in a.sim_arg)
         from uav_sim.sensor import preset
 
+        given = dict(arg.partition(":=")[::2] for arg in a.sim_arg)
         sensor = {"sensor": given.get("sensor", "ideal")}
         try:
             preset(sensor["sensor"])
-            sensor["sensor_scale"] = float(given.get("sensor_scale", 1.0))
+            scale = sim_arg_number(a.sim_arg, "sensor_scale")
+            sensor["sensor_scale"] = 1.0 if scale is None else scale
         except ValueError as e:
             ap.error(f"--sim-arg: {e}")
         if not 0.05 <= sensor["sensor_scale"] <= 1.0:
