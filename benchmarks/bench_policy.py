@@ -1,5 +1,6 @@
 """Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN, alone and as
-ensembles of 3 and 10 networks; lockstep steps/s of sim_node <-> policy_node over ROS on their defaults
+ensembles of 3 and 10 networks; the cost of measuring one decision (uav_policy.insight) against it;
+lockstep steps/s of sim_node <-> policy_node over ROS on their defaults
 (the packaged weights) against the same loop in-process; weight-push latency, the blob as a BYTE_ARRAY
 against as base64 text (what lockstep learning sends), measured in the same run.
 
@@ -40,6 +41,26 @@ def inference_latency(model: str, n: int = 2000, members: int = 1) -> tuple[floa
         agent.act(state, 0.0)
         times.append(time.perf_counter() - t)
     return float(np.percentile(times, 50) * 1e3), float(np.percentile(times, 99) * 1e3)
+
+
+def insight_cost(model: str, members: int, n: int = 200) -> float:
+    """p50 ms of measuring one decision (uav_policy.insight: the explanation, Grad-CAM for the CNN, and the
+    deletion test's five masked forward passes), what policy_node spends on every insight_every-th frame."""
+    from uav_policy.insight import Insight, explanation
+
+    cfg = NetConfig(model=model)
+    nets = [build_network(cfg, seed=i) for i in range(members)]
+    net = nets[0] if members == 1 else QEnsemble(nets)
+    state = np.random.default_rng(0).uniform(0, 10, (5, 64, 64)).astype(np.float32)
+    insight, times = Insight(net.grid_hw), []
+    with torch.no_grad():
+        q, w = net(torch.from_numpy(state)[None])
+    action, w = int(q.argmax()), None if w is None else w[0].numpy()
+    for _ in range(n):
+        t = time.perf_counter()
+        insight.observe(net, state, action, explanation(net, state, action, w))
+        times.append(time.perf_counter() - t)
+    return float(np.percentile(times, 50) * 1e3)
 
 
 def in_process_loop(model: str, steps: int) -> float:
@@ -119,6 +140,11 @@ def main() -> int:
         for k in (3, 10):  # ensembles of k networks (policy_node weights:=A,B,...): cost against one
             e50, e99 = inference_latency(model, n=500, members=k)
             print(f"[{model}] ensemble of {k}: p50 {e50:.3f} ms ({e50 / p50:.1f}x one network), p99 {e99:.3f} ms")
+        for k in (1, 10):
+            cost = insight_cost(model, k, n=200 if k == 1 else 50)
+            print(
+                f"[{model}] measuring one decision (insight), {k} network(s): p50 {cost:.2f} ms ({cost / p50:.1f}x one inference)"
+            )
     for i, model in enumerate(("sam", "cnn")):
         base = in_process_loop(model, a.steps)
         ros, lat, size = ros_loop_and_pushes(model, a.seconds, a.pushes, 80 + (os.getpid() + i) % 10)

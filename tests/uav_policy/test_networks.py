@@ -120,15 +120,62 @@ def test_normalisation_of_rep117_values():
     assert normalise_depth(x, 10.0).tolist() == [1.0, 0.0, 1.0, 0.5, 1.0]
 
 
-def test_attention_map_and_overlay():
+def test_attention_map_is_on_an_absolute_scale_and_the_overlay_is_readable():
     w = np.zeros((3, 4, 4), dtype=np.float32)
     w[:, :, 2] = 1.0  # every query attends to node 2 = grid cell (row 1, col 0) of a 2x2 grid
     amap = attention_map(w, (2, 2), (8, 8))
-    assert amap.shape == (8, 8) and amap.max() == 1.0
-    assert (amap[4:, :4] == 1.0).all() and amap[:4].sum() == 0 and amap[4:, 4:].sum() == 0
-    rgb = overlay(np.full((8, 8), 2.0, np.float32), amap, 10.0)
-    assert rgb.dtype == np.uint8 and rgb.shape == (8, 8, 3)
-    assert rgb[6, 1, 1] > rgb[6, 1, 0] and rgb[1, 6, 1] == rgb[1, 6, 0]  # green only where attended
+    assert amap.shape == (8, 8) and (amap[4:, :4] == 4.0).all(), "all the mass on 1 of 4 nodes: 4x its uniform share"
+    assert amap[:4].sum() == 0 and amap[4:, 4:].sum() == 0
+    assert (attention_map(np.full((3, 4, 4), 0.25), (2, 2), (8, 8)) == 1.0).all(), "uniform reads 1, not a stretch"
+    rgb = overlay(np.full((8, 8), 2.0, np.float32), amap, 10.0, label="a1 Q 2.00, margin +0.10")
+    k = 256 // 8
+    assert rgb.dtype == np.uint8 and rgb.shape == (8 * k + 40, 8 * k, 3), "upscaled to 256 px, a 40 px legend below"
+    assert rgb[6 * k, 1 * k, 1] > rgb[6 * k, 1 * k, 0] and rgb[1 * k, 6 * k, 1] == rgb[1 * k, 6 * k, 0]
+    legend = rgb[8 * k :]
+    assert (legend[:16] == 255).any(), "the label is written"
+    bar = legend[29, 4:100, 1].astype(int)
+    assert bar[0] < bar[-1], "the legend bar runs from a uniform share (no colour) to full green"
+    faint = overlay(np.full((8, 8), 2.0, np.float32), amap / 2, 10.0)
+    assert faint[6 * k, 1 * k, 1] < rgb[6 * k, 1 * k, 1], "half the mass, a fainter green: the scale is absolute"
+
+
+def test_attention_readout_weights_form_the_q_values():
+    """Readout `attend`: one learned query per head over the nodes; its weights are what the forward pass returns,
+    and a node given no weight cannot change the Q-values."""
+    net = build_network(NetConfig(model="sam", sam_readout="attend"), seed=0)
+    x = depth_batch(2)
+    q, w = net(x)
+    assert w.shape == (2, 3, 1, 64)
+    torch.testing.assert_close(w.sum(-1), torch.ones(2, 3, 1))
+    with torch.no_grad():
+        net.pooling.query.zero_()
+        net.pooling.query[:, 0, 0] = 1.0
+        net.pooling.kv.weight.zero_()
+        net.pooling.kv.bias.zero_()
+        net.pooling.kv.bias[0] = -1e4  # head 0's first key feature: every node's key pushes its weight to 0 ...
+    q, w = net(x)
+    assert torch.allclose(w, torch.full_like(w, 1 / 64)), "equal keys: equal weights"
+    # ... and values all zero: the pooled vector, hence Q, is the same whatever the depth.
+    q2, _ = net(depth_batch(2, seed=5))
+    torch.testing.assert_close(q, q2)
+
+
+def test_attention_on_content_looks_where_the_cells_features_say_not_where_the_others_are():
+    """Readout `attend_content`: a cell's weight comes from its own conv features, so changing the top-left of the
+    image leaves the ratios between far cells' weights as they were; with `attend` (keys from the relational
+    nodes) every ratio moves."""
+    x = depth_batch(1)
+    y = x.clone()
+    y[:, :, :16, :16] = 0.5  # something near in the top-left corner
+    far = [63, 62, 55, 54]  # bottom-right cells: their receptive fields do not reach the corner
+    for readout, same in (("attend_content", True), ("attend", False)):
+        net = build_network(NetConfig(model="sam", sam_readout=readout), seed=0)
+        with torch.no_grad():
+            (_, wx), (_, wy) = net(x), net(y)
+        assert wx.shape == (1, 3, 1, 64)
+        rx, ry = wx[0, :, 0, far] / wx[0, :, 0, far[:1]], wy[0, :, 0, far] / wy[0, :, 0, far[:1]]
+        moved = float((rx - ry).abs().max())
+        assert (moved < 1e-6) == same, (readout, moved)
 
 
 def test_frame_stack_resets_per_episode():

@@ -204,6 +204,29 @@ def test_bad_commands_are_rejected_and_the_node_survives(ros):
     assert "rejected cmd_vel" in ros.log_of(proc)
 
 
+def test_commands_lost_in_a_flood_are_counted(ros):
+    """A lockstep simulator takes one command per step: a flood faster than it steps overwrites the publisher's
+    history. Every command is either flown (a step) or counted lost on /diagnostics, none is silent."""
+    said = []
+    ros.node.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: said.extend({kv.key: kv.value for kv in s.values} for s in m.status if s.name == "uav_sim"),
+        10,
+    )
+    pub = ros.node.create_publisher(Twist, contract.CMD_VEL_TOPIC, contract.STREAM_QOS)
+    ros.start("uav_sim", "sim_node")
+    assert ros.spin_until(lambda: said and said[-1]["cmd_vel_publishers"] == "1", 30), said[-1:]
+    before = int(said[-1]["steps"])
+    pub.publish(twist(vx=1.0))  # the first command heard starts the count of this publisher's sequence
+    assert ros.spin_until(lambda: int(said[-1]["steps"]) == before + 1, 10), said[-1]
+    for _ in range(3000):
+        pub.publish(twist(vx=1.0))
+    accounted = lambda: int(said[-1]["steps"]) - before + int(said[-1]["commands_lost"]) == 3001  # noqa: E731
+    assert ros.spin_until(accounted, 30), said[-1]
+    assert int(said[-1]["commands_lost"]) > 0 and int(said[-1]["commands_ignored"]) == 0
+
+
 def test_realtime_watchdog_stops_the_vehicle(ros):
     rec = Recorder(ros)
     proc = ros.start(

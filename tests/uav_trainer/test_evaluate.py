@@ -100,6 +100,12 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
     assert "Flight behaviour" in (tmp_path / "ros" / "results.md").read_text()
     for k in ("crashes", "mean_reward", "distance_m", "crash_sites", "turn_steps", "cells_visited"):
         assert a[0][k] == b[0][k], (k, a[0], b[0])
+    # What the decisions looked at, measured on every step: policy_node (its /diagnostics) and in process alike.
+    # policy_node may have answered the frame after the last step before it reported: a frame more per run.
+    assert int(b[0]["insight_frames"]) == 120 and 120 <= int(a[0]["insight_frames"]) <= 122
+    for k in ("entropy", "top10_share", "map_correlation", "deletion_top", "near_ratio"):
+        assert float(a[0][k]) == pytest.approx(float(b[0][k]), abs=0.03), (k, a[0], b[0])
+    assert "What the decisions look at" in (tmp_path / "ros" / "results.md").read_text()
     assert paper.returncode == 0, paper.stderr[-2000:]
     c = next(csv.DictReader(open(tmp_path / "paper" / "results.csv")))
     assert (
@@ -216,7 +222,8 @@ def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, 
     (tmp_path / "good.csv").write_text(head + good)
     assert main(["--from-csv", str(tmp_path / "good.csv"), "--out", str(tmp_path / "ok")]) == 0
     row = (tmp_path / "ok" / "results.csv").read_text().splitlines()[1].split(",")
-    assert row[:5] == ["sam", "basic", "a.safetensors", "1000", "2"] and row[-3:] == ["-1", "-1", "-1"]
+    assert row[:5] == ["sam", "basic", "a.safetensors", "1000", "2"] and row[10:13] == ["-1", "-1", "-1"]
+    assert row[13:] == [""] * 8, "a row measured before the insight columns existed has none"
 
 
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):

@@ -33,6 +33,8 @@ Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
 ATTENTION_OVERLAY_TOPIC = "attention/overlay"
 ATTENTION_WEIGHTS_TOPIC = "attention/weights"
+SALIENCY_TOPIC = "saliency"  # the CNN's Grad-CAM: never called attention
+SALIENCY_OVERLAY_TOPIC = "saliency/overlay"
 WORLD_MARKERS_TOPIC = "world/markers"
 TRAJECTORY_TOPIC = "trajectory"
 DIAGNOSTICS_TOPIC = "/diagnostics"
@@ -149,13 +151,14 @@ def q_values_msg(q: np.ndarray, label: str) -> Float32MultiArray:
 
 
 def attention_weights_msg(w: np.ndarray, grid_hw: tuple[int, int]) -> Float32MultiArray:
-    """SAM's raw attention [heads, query_nodes, key_nodes], nodes row-major on the grid."""
-    h, n, _ = w.shape
+    """SAM's raw attention the decision uses [heads, queries, key_nodes], nodes row-major on the grid: the relational
+    block's (queries = the nodes) or the attention readout's (one query per head)."""
+    h, n, k = w.shape
     msg = Float32MultiArray()
     msg.layout.dim = [
-        MultiArrayDimension(label="heads", size=h, stride=h * n * n),
-        MultiArrayDimension(label=f"query_nodes(grid {grid_hw[0]}x{grid_hw[1]} row-major)", size=n, stride=n * n),
-        MultiArrayDimension(label="key_nodes", size=n, stride=n),
+        MultiArrayDimension(label="heads", size=h, stride=h * n * k),
+        MultiArrayDimension(label="queries", size=n, stride=n * k),
+        MultiArrayDimension(label=f"key_nodes(grid {grid_hw[0]}x{grid_hw[1]} row-major)", size=k, stride=k),
     ]
     msg.data = w.astype(np.float32).ravel().tolist()
     return msg

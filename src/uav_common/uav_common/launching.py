@@ -37,6 +37,14 @@ def stop_signals():
     return lambda: bool(came)
 
 
+def ros_log_dir() -> Path:
+    """Where ROS keeps logs: $ROS_LOG_DIR, else $ROS_HOME/log, else ~/.ros/log (as rcl decides)."""
+    if os.environ.get("ROS_LOG_DIR"):
+        return Path(os.environ["ROS_LOG_DIR"]).expanduser()
+    home = os.environ.get("ROS_HOME")
+    return (Path(home).expanduser() if home else Path.home() / ".ros") / "log"
+
+
 def params_args(params_dir: Path | None, name: str) -> list[str]:
     f = params_dir / f"{name}.yaml" if params_dir else None
     return ["--params-file", str(f)] if f and f.is_file() else []

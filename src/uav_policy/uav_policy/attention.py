@@ -1,29 +1,32 @@
-"""Turning attention weights into pictures: a per-pixel map and an RGB overlay."""
+"""Turning an explanation (SAM's attention, the CNN's saliency) into pictures on an absolute scale: a per-pixel
+map of each region's mass relative to its uniform share, and an rgb overlay with its legend."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
+from .insight import received
 
-def attention_received(weights: np.ndarray) -> np.ndarray:
-    """How much attention each node receives: (heads, n, n) -> (n,), averaged over heads and queries."""
-    if weights.ndim != 3 or weights.shape[1] != weights.shape[2]:
-        raise ValueError(f"attention weights must be (heads, nodes, nodes), got {weights.shape}")
-    return weights.mean(axis=(0, 1))
+SCALE_MAX = 4.0  # the overlay's full colour: four times a uniform share
+OVERLAY_MIN_PX = 256  # the overlay's shorter side is upscaled to at least this
 
 
 def attention_map(weights: np.ndarray, grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
-    """(H, W) float32 in [0, 1]: the attention each image region receives, max-normalised.
+    """(H, W) float32: the mass each image region receives relative to a uniform share (1 = as if uniform, 0 =
+    none, 4 = four times its share), the same scale on every frame. `weights` (..., nodes): SAM's attention
+    (heads, queries, nodes) or a saliency map (nodes,).
 
-    Node i covers grid cell (i // grid_w, i % grid_w); each cell is upsampled to the image
-    region it sees (nearest neighbour: no attention is smeared onto cells that got none).
+    Node i covers grid cell (i // grid_w, i % grid_w); each cell is upsampled to the image region it sees
+    (nearest neighbour: no mass is smeared onto cells that got none).
     """
-    received = attention_received(weights).reshape(grid_hw).astype(np.float32)
-    lo, hi = float(received.min()), float(received.max())
-    norm = (received - lo) / (hi - lo) if hi > lo else np.zeros_like(received)
+    gh, gw = grid_hw
+    dist = received(weights)
+    if dist.size != gh * gw:
+        raise ValueError(f"{dist.size} nodes do not fill a {gh}x{gw} grid")
+    rel = (dist * dist.size).reshape(grid_hw).astype(np.float32)
     h, w = image_hw
-    return cv2.resize(norm, (w, h), interpolation=cv2.INTER_NEAREST)
+    return cv2.resize(rel, (w, h), interpolation=cv2.INTER_NEAREST)
 
 
 def colourise_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
@@ -33,10 +36,37 @@ def colourise_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
     return np.repeat(grey[:, :, None], 3, axis=2)
 
 
-def overlay(depth_m: np.ndarray, att_map: np.ndarray, max_range_m: float, strength: float = 0.7) -> np.ndarray:
-    """rgb8 picture: the depth in grey with the attention in green on top (as in the paper)."""
+def strength(att_map: np.ndarray) -> np.ndarray:
+    """The overlay's colour strength in [0, 1] on the absolute scale: 0 at or below a uniform share, 1 at SCALE_MAX
+    times it (a log scale, so twice a uniform share is half-way)."""
+    return np.clip(np.log(np.maximum(att_map, 1e-6)) / np.log(SCALE_MAX), 0.0, 1.0)
+
+
+def overlay(depth_m: np.ndarray, att_map: np.ndarray, max_range_m: float, label: str = "", kind: str = "attention") -> np.ndarray:
+    """rgb8 picture: the depth in grey with `kind` (attention or saliency) in green on top, upscaled so its shorter
+    side is at least OVERLAY_MIN_PX, a legend bar of the absolute scale (x uniform share) and `label` (e.g. the
+    chosen action and its Q margin) in a strip below."""
     base = colourise_depth(depth_m, max_range_m).astype(np.float32)
-    a = np.clip(att_map, 0.0, 1.0)[:, :, None] * strength
+    a = strength(att_map)[:, :, None] * 0.8
     green = np.zeros_like(base)
     green[:, :, 1] = 255.0
-    return (base * (1.0 - a) + green * a).astype(np.uint8)
+    img = (base * (1.0 - a) + green * a).astype(np.uint8)
+    h, w = img.shape[:2]
+    k = max(1, -(-OVERLAY_MIN_PX // min(h, w)))
+    img = cv2.resize(img, (w * k, h * k), interpolation=cv2.INTER_NEAREST)
+    return np.concatenate([img, legend(img.shape[1], label, kind)], axis=0)
+
+
+def legend(width: int, label: str, kind: str) -> np.ndarray:
+    """A 40 px strip: `label` on top; below it a bar from a uniform share (no colour) to SCALE_MAX times it."""
+    strip = np.full((40, width, 3), 32, np.uint8)
+    font, white = cv2.FONT_HERSHEY_SIMPLEX, (255, 255, 255)
+    cv2.putText(strip, label, (4, 14), font, 0.4, white, 1, cv2.LINE_AA)
+    text = f"{kind} 1x..{SCALE_MAX:g}x uniform"
+    x0, x1 = 4, max(width - 6 * len(text) - 8, 24)
+    ramp = strength(SCALE_MAX ** np.linspace(0.0, 1.0, x1 - x0))[None, :, None] * 0.8
+    green = np.zeros((1, x1 - x0, 3), np.float32)
+    green[..., 1] = 255.0
+    strip[24:34, x0:x1] = np.repeat((green * ramp).astype(np.uint8), 10, axis=0)
+    cv2.putText(strip, text, (x1 + 4, 33), font, 0.35, white, 1, cv2.LINE_AA)
+    return strip

@@ -60,10 +60,22 @@ class PolicySettings:
     max_range_m: float = setting(10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
     sam_readout: str = setting(
         "max",
-        "SAM readout: max pools the nodes (the paper's design); flatten keeps each node's place; must match the weights",
+        "SAM readout: max pools the nodes (the paper's design); flatten keeps each node's place; attend pools them by "
+        "attention (the attention shown forms the Q-values), attend_content with keys from each cell alone; must match "
+        "the weights",
         choices=SAM_READOUTS,
     )
-    publish_overlay: bool = setting(True, "Publish attention/overlay (rgb8)")
+    publish_overlay: bool = setting(
+        True, "Publish attention/overlay (SAM) or saliency/overlay (CNN), rgb8, when someone subscribes"
+    )
+    insight_every: int = setting(
+        5,
+        "Measure what the decision looks at (uav_policy.insight: sharpness, variation, deletion test, grounding) on every "
+        "Nth answered frame, reported on /diagnostics; 0: never",
+        0,
+        10000,
+    )
+    insight_window: int = setting(200, "The measured frames /diagnostics summarises (the newest)", 1, 1000000)
     accept_pushes: bool = setting(
         False,
         "Serve ~/push_weights, which swaps in weights and epsilon (train sets true); false: a flying policy takes "

@@ -11,6 +11,12 @@ weights (B, heads, nodes, nodes); each row sums to 1. Readout `max` (default, Za
 feature-wise max over nodes, which keeps what was seen but not where. Readout `flatten` (an
 extension): each node is projected to the trunk's channel count and the nodes are flattened in
 grid order into the CNN's hidden layer, so the head sees where each feature is, as the CNN does.
+Readout `attend` (an extension): attention pooling, one learned query per head over the nodes (as in Set
+Transformer's PMA); the heads' weighted values are the head's only input, so the weights shown are the weights
+that form the Q-values. The forward pass then returns those readout weights (B, heads, 1, nodes) as the
+attention the decision uses, in place of the relational block's. Readout `attend_content`: the same, with
+keys from each cell's conv features alone (no coordinates, no relational mixing), so where it looks follows
+what is seen; the values are the relational nodes as in `attend`.
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
@@ -31,7 +37,7 @@ import torch
 from torch import nn
 
 MODELS = ("sam", "cnn")
-SAM_READOUTS = ("max", "flatten")
+SAM_READOUTS = ("max", "flatten", "attend", "attend_content")
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
@@ -67,7 +73,7 @@ class NetConfig:
     mlp_hidden: int = 96
     cnn_hidden: int = 128
     head_hidden: int = 64
-    sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten (cnn: always max)
+    sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten | attend (cnn: always max)
 
     def __post_init__(self):
         # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)
@@ -174,6 +180,31 @@ class RelationalBlock(nn.Module):
         return nodes, weights
 
 
+class AttentionPooling(nn.Module):
+    """One learned query per head attends over the nodes: (B, n, d) -> (B, d) and the weights (B, heads, 1, n).
+    Keys come from `key_in` (B, n, key_dim) features when given, else from the nodes."""
+
+    def __init__(self, d_model: int, heads: int, key_dim: int | None = None):
+        super().__init__()
+        self.heads, self.d_head = heads, d_model // heads
+        self.query = nn.Parameter(torch.randn(heads, 1, self.d_head) / math.sqrt(self.d_head))
+        if key_dim is None:
+            self.kv = nn.Linear(d_model, 2 * d_model)
+        else:
+            self.key, self.value = nn.Linear(key_dim, d_model), nn.Linear(d_model, d_model)
+        self.out = nn.Linear(d_model, d_model)
+
+    def forward(self, nodes: torch.Tensor, key_in: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        b, n, d = nodes.shape
+        split = lambda t: t.view(b, n, self.heads, self.d_head).transpose(1, 2)  # noqa: E731  (b, h, n, d_head)
+        if key_in is None:
+            k, v = self.kv(nodes).view(b, n, 2, self.heads, self.d_head).permute(2, 0, 3, 1, 4)
+        else:
+            k, v = split(self.key(key_in)), split(self.value(nodes))
+        weights = torch.softmax(self.query @ k.transpose(-1, -2) / math.sqrt(self.d_head), dim=-1)  # (b, h, 1, n)
+        return self.out((weights @ v).reshape(b, d)), weights
+
+
 class DuelingHead(nn.Module):
     """Q = V + A - mean(A)."""
 
@@ -206,6 +237,10 @@ class D3QNSam(nn.Module):
         self.relational_blocks = nn.ModuleList(
             RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
         )
+        self.pooling = None
+        if cfg.sam_readout in ("attend", "attend_content"):
+            key_dim = self.trunk.out_channels if cfg.sam_readout == "attend_content" else None
+            self.pooling = AttentionPooling(cfg.d_model, cfg.heads, key_dim)
         if cfg.sam_readout == "flatten":
             c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
             self.readout = nn.Sequential(
@@ -221,15 +256,22 @@ class D3QNSam(nn.Module):
         return self.trunk.grid_h, self.trunk.grid_w
 
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Q-values (B, actions) and the last block's attention weights (B, heads, nodes, nodes)."""
-        fmap = self.trunk(depth_m)  # (B, C, h, w)
+        """Q-values (B, actions) and the attention the decision uses: the last block's weights (B, heads, nodes,
+        nodes), or with the `attend` readout its weights (B, heads, 1, nodes)."""
+        return self.from_features(self.trunk(depth_m))
+
+    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward() from the trunk's feature map (B, C, h, w) on."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
+        cells = nodes
         coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
         nodes = self.node_projection(torch.cat([nodes, coords], dim=-1))
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)
-        if self.readout is None:
+        if self.pooling is not None:
+            pooled, weights = self.pooling(nodes, cells if self.cfg.sam_readout == "attend_content" else None)
+        elif self.readout is None:
             pooled = nodes.max(dim=1).values  # feature-wise max pooling over nodes
         else:
             pooled = self.readout(nodes)  # (B, nodes, d) -> per-node projection -> flattened in grid order
@@ -246,8 +288,17 @@ class D3QNCnn(nn.Module):
         self.hidden = nn.Sequential(nn.Linear(flat, cfg.cnn_hidden), nn.ReLU(inplace=True))
         self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
 
+    @property
+    def grid_hw(self) -> tuple[int, int]:
+        """The trunk's feature grid (Grad-CAM's cells)."""
+        return self.trunk.grid_h, self.trunk.grid_w
+
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, None]:
-        return self.dueling_head(self.hidden(self.trunk(depth_m).flatten(1))), None
+        return self.from_features(self.trunk(depth_m))
+
+    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, None]:
+        """forward() from the trunk's feature map (B, C, h, w) on."""
+        return self.dueling_head(self.hidden(fmap.flatten(1))), None
 
 
 class QEnsemble(nn.Module):

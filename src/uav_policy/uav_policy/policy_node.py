@@ -3,18 +3,21 @@
 With a simulator (a step_outcome publisher) it joins depth/image_raw and step_outcome by stamp (-Inf or
 NaN restarts the frame stack) and answers each frame. With a depth camera alone it answers the newest
 frame at most control_rate_hz times a second, on a stack sampled one step period apart. Answers are
-cmd_vel (optionally cmd_vel_stamped), action (the network's choice, stamped with the frame), q_values
-and, for SAM, the attention topics. Frames of any size and encoding (32FC1, 16UC1) are mapped through
-depth/camera_info onto the field of view the weights were trained with. A safety layer (uav_policy.safety)
-stands between the network and cmd_vel unless turned off. It flies the packaged weights, or the 'weights'
-files as one policy on their mean Q-values. With accept_pushes (train), ~/push_weights swaps in new
-weights signed with the run's key (uav_policy.push), and with wait_for_trainer a frame is answered once
-trainer_node releases it; a flying policy takes nothing from the network.
+cmd_vel (optionally cmd_vel_stamped), action (the network's choice, stamped with the frame), q_values and
+what the decision looks at: for SAM the attention topics, for the CNN its Grad-CAM saliency topics, both
+on an absolute scale and measured (uav_policy.insight) on /diagnostics. Frames of any size and encoding
+(32FC1, 16UC1) are mapped through depth/camera_info onto the field of view the weights were trained with.
+A safety layer (uav_policy.safety) stands between the network and cmd_vel unless turned off. It flies the
+packaged weights, or the 'weights' files as one policy on their mean Q-values. With accept_pushes
+(train), ~/push_weights swaps in new weights signed with the run's key (uav_policy.push), and with
+wait_for_trainer a frame is answered once trainer_node releases it; a flying policy takes nothing from
+the network.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import deque
 
@@ -40,6 +43,7 @@ from . import weights as wio
 from .agent import Agent, resolve_device
 from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
+from .insight import Insight, explanation
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
 from .push import ReleaseGate, load_key, read_push, verify
 from .safety import SafetyLayer
@@ -118,6 +122,13 @@ class PolicyNode(Node):
         self.pub_att = self.create_publisher(Image, contract.ATTENTION_TOPIC, 10)
         self.pub_overlay = self.create_publisher(Image, contract.ATTENTION_OVERLAY_TOPIC, 10)
         self.pub_weights = self.create_publisher(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, 10)
+        self.pub_saliency = self.create_publisher(Image, contract.SALIENCY_TOPIC, 10)
+        self.pub_saliency_overlay = self.create_publisher(Image, contract.SALIENCY_OVERLAY_TOPIC, 10)
+        self.insight_every = st.insight_every
+        self.insight = Insight(net.grid_hw, st.insight_window, seed)
+        self.insight_lock = threading.Lock()  # a camera's frames are measured on a worker thread
+        self.insight_busy = threading.Lock()  # held while that worker measures
+        self.insight_skipped = 0  # camera frames due a measurement that came while the worker was busy
         self.joiner = contract.StampJoiner(("frame", "outcome"))
         # Camera drivers publish best effort; a best-effort reader takes sim_node's reliable frames too.
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), contract.SENSOR_QOS)
@@ -152,6 +163,7 @@ class PolicyNode(Node):
         self.source = source
         self.acted, self.bad_frames, self.pushes_accepted, self.pushes_rejected = 0, 0, 0, 0
         self.pushes_unauthenticated = 0
+        self.releases_refused = 0  # pushes whose release led every frame seen by too much
         self.act_s = 0.0  # time spent answering frames since the last report (network and publishing)
         self.frames_in = 0  # depth frames received, answered or not
         self._reported = (time.monotonic(), 0, 0, 0)  # (when, acted, bad_frames, frames_in) at the last report
@@ -166,7 +178,9 @@ class PolicyNode(Node):
         )
         lockstep = "answering each frame once trainer_node releases it (lockstep learning); " if self.wait_for_trainer else ""
         att = "attention on attention, attention/overlay, attention/weights"
-        att = att if model == "sam" else "cnn has no attention module: the attention topics are not published"
+        att = att if model == "sam" else "cnn has no attention module: its Grad-CAM saliency on saliency, saliency/overlay"
+        if self.insight_every:
+            att += f"; what it looks at measured every {self.insight_every} frame(s) on /diagnostics"
         self.get_logger().info(
             f"model {model} ({parameter_count(net)} parameters, {source}{camera}) on {device}; epsilon {self.epsilon}; "
             f"{safety}{lockstep}{att}"
@@ -403,7 +417,7 @@ class PolicyNode(Node):
         self._command(cmd, img.header.stamp)
         self.last_stamp = contract.stamp_ns(img.header.stamp)
         self.latency_ms.append(1e3 * (time.perf_counter() - t_in))
-        self._publish_insight(img, depth, q, w)
+        self._publish_insight(img, depth, state, action, q, w)
         self.acted += 1
         self.act_s += time.perf_counter() - t0
 
@@ -454,6 +468,7 @@ class PolicyNode(Node):
             "stamp_restarts": self.joiner.restarts,
             "frames_held": len(self.gate.held),
             "released_by_timeout": self.gate.timed_out,
+            "releases_refused": self.releases_refused,
             "source": "camera" if self.last_frame_wall is not None else "simulator" if self.acted else "-",
             "camera_restarts": self.camera_restarts,
             "malformed_camera_info": self.bad_camera_info,
@@ -469,21 +484,69 @@ class PolicyNode(Node):
             "latency_ms_p99": f"{lat[1]:.2f}" if lat is not None else "-",
             "answers_per_s": f"{new_acts / max(now - when, 1e-6):.1f}",
             "ms_per_answer": f"{1e3 * self.act_s / new_acts:.2f}" if new_acts else "-",
+            "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)",
         }
+        with self.insight_lock:
+            summary = self.insight.summary()
+        if summary is not None:
+            vals.update(summary.values())
+            vals["insight_skipped"] = self.insight_skipped
         self.act_s = 0.0
         message = "; ".join(problems) or ("acting" if new_acts else "waiting for depth frames")
         self.pub_diag.publish(contract.diagnostics(self, "uav_policy", "WARN" if problems else "OK", message, vals))
 
-    def _publish_insight(self, img: Image, depth: np.ndarray, q: np.ndarray, w) -> None:
+    def _publish_insight(self, img: Image, depth: np.ndarray, state: np.ndarray, action: int, q: np.ndarray, w) -> None:
+        """q_values; what the decision looks at (SAM's attention, else Grad-CAM saliency), published on an absolute
+        scale when wanted, and measured on every insight_every-th frame. The costly part (Grad-CAM, the deletion
+        test) runs at once for a simulator's frames and on a worker thread for a camera's, so the next frame is not
+        delayed; a camera frame that comes while the worker is busy is not measured (counted)."""
         self.pub_q.publish(contract.q_values_msg(q, self.q_label))
-        if w is None:
-            return
-        amap = attention_map(w, self.agent.net.grid_hw, depth.shape)
-        self.pub_att.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
-        if self.publish_overlay and self.pub_overlay.get_subscription_count() > 0:
-            self.pub_overlay.publish(contract.rgb_image(img.header, overlay(depth, amap, self.cfg.max_range_m)))
-        if self.pub_weights.get_subscription_count() > 0:
-            self.pub_weights.publish(contract.attention_weights_msg(w, self.agent.net.grid_hw))
+        net = self.agent.net
+        measure = self.insight_every > 0 and self.acted % self.insight_every == 0
+        if w is not None:  # SAM: the attention is at hand
+            self._publish_map(img, depth, action, q, w, "attention", (self.pub_att, self.pub_overlay))
+            if self.pub_weights.get_subscription_count() > 0:
+                self.pub_weights.publish(contract.attention_weights_msg(w, net.grid_hw))
+        pubs = (self.pub_saliency, self.pub_saliency_overlay)
+        saliency = w is None and any(p.get_subscription_count() > 0 for p in pubs)
+        if not (measure or saliency):
+            return  # the CNN's saliency costs a backward pass: only for a subscriber or a measurement
+
+        def job():
+            try:
+                greedy = int(np.argmax(q))
+                rows = explanation(net, state, greedy, w)
+                if saliency:
+                    self._publish_map(img, depth, action, q, rows, "saliency", pubs)
+                if measure:
+                    with self.insight_lock:
+                        self.insight.observe(net, state, greedy, rows)
+            except Exception as e:  # an explanation is never worth the flight
+                self.get_logger().warning(f"measuring a decision failed: {e!r}", throttle_duration_sec=10.0)
+
+        if self.last_frame_wall is None:  # a simulator waits for our answer: measure now
+            job()
+        elif self.insight_busy.acquire(blocking=False):
+
+            def work():
+                try:
+                    job()
+                finally:
+                    self.insight_busy.release()
+
+            threading.Thread(target=work, daemon=True).start()
+        else:
+            self.insight_skipped += 1
+
+    def _publish_map(self, img: Image, depth: np.ndarray, action: int, q: np.ndarray, rows, kind: str, pubs) -> None:
+        """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the action and Q margin."""
+        pub_map, pub_overlay = pubs
+        amap = attention_map(rows, self.agent.net.grid_hw, depth.shape)
+        pub_map.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
+        if self.publish_overlay and pub_overlay.get_subscription_count() > 0:
+            second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]
+            label = f"{self.actions[action].name.split('_', 1)[0]} Q {q[action]:.2f}, margin {q[action] - second:+.2f}"
+            pub_overlay.publish(contract.rgb_image(img.header, overlay(depth, amap, self.cfg.max_range_m, label, kind)))
 
     # -- weight pushes ------------------------------------------------------------------
     async def _on_push(self, request, response):
@@ -500,6 +563,13 @@ class PolicyNode(Node):
                     self.push_key = load_key(self.push_key_file)
                 verify(self.push_key, push, self.last_push_seq)
                 self.last_push_seq = push.seq
+                beyond = None if push.release_stamp_ns is None else self.gate.beyond(push.release_stamp_ns)
+                if beyond:  # a trainer that lost track of the stream: nothing of the push is taken
+                    self.releases_refused += 1
+                    self.get_logger().warning(f"weights push refused: {beyond}", throttle_duration_sec=5.0)
+                    result.reason = beyond
+                    response.results = [result]
+                    return response
             except ValueError as e:  # not from our trainer: nothing of it is taken, no frame is released
                 self.pushes_unauthenticated += 1
                 self.get_logger().warning(f"weights push refused: {e}", throttle_duration_sec=5.0)
@@ -545,6 +615,9 @@ class PolicyNode(Node):
         if net.cfg != self.cfg:
             sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
             self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
+        if net.grid_hw != replaced.grid_hw:  # measured maps of another grid do not compare
+            with self.insight_lock:
+                self.insight = Insight(net.grid_hw, self.insight.frames.maxlen)
         self.cfg = net.cfg
         self.weights_hfov_deg = wio.read_header_camera(blob)
         self.to_input = NetworkInput(self.cfg.height, self.cfg.width)  # the input size or camera may have changed

@@ -194,6 +194,11 @@ def read_push(params, max_bytes: int) -> Push:
     return Push(blob, eps, stamp, seq, signature)
 
 
+# How far a release may lead the newest frame the policy has seen: trainer_node releases frames it has
+# received, which reach the policy by another path, a few steps later at most.
+MAX_RELEASE_LEAD_NS = 10_000_000_000
+
+
 class ReleaseGate:
     """wait_for_trainer: frames held until trainer_node releases them (a push's release_stamp_ns), or until
     one has waited `timeout_s` (no trainer, or one that stopped: the vehicle must not stall)."""
@@ -202,10 +207,22 @@ class ReleaseGate:
         self.timeout_s = timeout_s
         self.held: list[tuple[int, float, object]] = []  # (stamp, held since, item), oldest first
         self.released_ns = -1  # frames stamped up to this may be answered
+        self.newest_ns = -1  # the newest frame stamp seen
         self.timed_out = 0  # frames answered without a release
+
+    def beyond(self, stamp: int) -> str | None:
+        """Why a release up to `stamp` is refused (it leads every frame seen by more than MAX_RELEASE_LEAD_NS: it
+        would answer frames not yet taken without their updates), or None."""
+        if self.newest_ns >= 0 and stamp > self.newest_ns + MAX_RELEASE_LEAD_NS:
+            return (
+                f"release_stamp_ns {stamp} is {(stamp - self.newest_ns) / 1e9:.1f} s beyond the newest frame seen "
+                f"({self.newest_ns}): refused"
+            )
+        return None
 
     def hold(self, stamp: int, item, now: float) -> bool:
         """Hold `item` unless its frame is already released; whether it was held."""
+        self.newest_ns = max(self.newest_ns, stamp)
         if stamp <= self.released_ns:
             return False
         self.held.append((stamp, now, item))
@@ -213,7 +230,7 @@ class ReleaseGate:
 
     def restart(self) -> int:
         """The stamps started again (a restarted simulator): the held frames are dropped; how many."""
-        dropped, self.held, self.released_ns = len(self.held), [], -1
+        dropped, self.held, self.released_ns, self.newest_ns = len(self.held), [], -1, -1
         return dropped
 
     def release(self, stamp: int) -> list:

@@ -120,10 +120,16 @@ class SimNode(Node):
         self.marked_world = None
         self.path = collections.deque(maxlen=TRAJECTORY_POSES)
         self.path_wall = -math.inf
-        self.create_subscription(Twist, contract.CMD_VEL_TOPIC, self.on_cmd_vel, q)
+        # Commands lost on the way (a publisher's history overwritten under a flood, a gap) are counted from the
+        # publisher's sequence numbers, not silent.
+        self.create_subscription(Twist, contract.CMD_VEL_TOPIC, self.on_cmd_vel_with_info, q)
+        self.cmd_topic = self.resolve_topic_name(contract.CMD_VEL_TOPIC)
+        self.cmd_publishers, self.last_cmd_seq = 0, None
         self.create_service(Trigger, "~/reset", self.on_reset)
 
         self.rejected = 0
+        self.commands_lost = 0  # gaps in the publisher's sequence numbers (one publisher on cmd_vel)
+        self.commands_ignored = 0  # came while the first frame was held (wait_for_subscribers)
         self.brushes = 0
         self.cmd = HOVER
         self.executed = HOVER
@@ -166,6 +172,7 @@ class SimNode(Node):
             self.cmd = HOVER
             return
         if not self.gate_open:
+            self.commands_ignored += 1
             self.get_logger().warning(
                 "ignoring cmd_vel: the first frame is held (wait_for_subscribers)", throttle_duration_sec=5.0
             )
@@ -178,6 +185,18 @@ class SimNode(Node):
             if self.watchdog_active:
                 self.get_logger().info("cmd_vel is back: watchdog released")
                 self.watchdog_active = False
+
+    def on_cmd_vel_with_info(self, msg: Twist, info: dict) -> None:
+        """Count the commands lost before this one (a gap in its publisher's sequence numbers; several publishers
+        interleave theirs, so only with one), then take it."""
+        seq = info.get("publication_sequence_number")
+        if seq is not None and self.last_cmd_seq is not None and seq > self.last_cmd_seq + 1 and self.cmd_publishers == 1:
+            self.commands_lost += seq - self.last_cmd_seq - 1
+            self.get_logger().warning(
+                f"{self.commands_lost} cmd_vel message(s) lost before they reached the simulator", throttle_duration_sec=5.0
+            )
+        self.last_cmd_seq = seq
+        self.on_cmd_vel(msg)
 
     def on_realtime_tick(self) -> None:
         if time.monotonic() - self.last_cmd_wall > self.watchdog_s:
@@ -292,6 +311,7 @@ class SimNode(Node):
         return msg
 
     def publish_diagnostics(self) -> None:
+        self.cmd_publishers = self.count_publishers(self.cmd_topic)
         now = time.monotonic()
         rate = (self.sim.total_steps - self.steps_at_diag) / max(now - self.diag_wall, 1e-6)
         self.steps_at_diag, self.diag_wall = self.sim.total_steps, now
@@ -302,6 +322,9 @@ class SimNode(Node):
             "collisions": self.sim.collisions,
             "brushes": self.brushes,
             "rejected_commands": self.rejected,
+            "commands_lost": self.commands_lost,
+            "commands_ignored": self.commands_ignored,
+            "cmd_vel_publishers": self.cmd_publishers,
             "steps_per_s": f"{rate:.1f}",
         }
         level, message = ("WARN", "watchdog: hovering") if self.watchdog_active else ("OK", "running")

@@ -290,6 +290,12 @@ def main(argv=None) -> int:
                     f"[{len(results)}/{rows}, {elapsed:.0f} s, ETA {eta:.0f} s] {model:3s} {world:10s} {weights_label(files)}: "
                     f"{r.crashes} crashes at {r.crash_sites} sites, mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                     + (f", {r.interventions} safety interventions" if r.interventions >= 0 else "")
+                    + (
+                        f"; looks at: entropy {r.insight.entropy:.2f}, map correlation {r.insight.map_correlation:.2f}, "
+                        f"faithfulness {r.insight.faithfulness:.2f}"
+                        if r.insight
+                        else ""
+                    )
                 )
     md, csv_path = write_tables(results, Path(a.out), a.steps * a.repeats, protocol)
     print(md.read_text())

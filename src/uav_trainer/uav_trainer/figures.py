@@ -4,7 +4,8 @@
     ros2 run uav_trainer attention_figures --bag runs/bags/flight1        # what was flown and recorded
 
 Writes attention_<world>.png (depth frames and their attention overlays at representative
-steps, like the paper's attention figure) and flight_<world>.gif (an exploit-only flight). With
+steps, like the paper's attention figure; saliency_<world>.png for the CNN: its Grad-CAM) and
+flight_<world>.gif (an exploit-only flight). The maps are on the nodes' absolute scale. With
 --bag, the same two pictures (attention_<bag>.png, flight_<bag>.gif) of a flight recorded with
 `record` (or `fly --record`, `evaluate --record`): its depth frames, attention maps, actions and
 collisions, joined by stamp.
@@ -21,7 +22,8 @@ import numpy as np
 from uav_common.actions import PAPER_ACTIONS
 from uav_policy import weights as wio
 from uav_policy.agent import Agent
-from uav_policy.attention import attention_map, colourise_depth, overlay
+from uav_policy.attention import OVERLAY_MIN_PX, attention_map, colourise_depth, overlay
+from uav_policy.insight import explanation
 from uav_policy.networks import build_network
 
 from .rollout import Flight
@@ -29,7 +31,8 @@ from .rollout import Flight
 
 def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     """Frames of an exploit-only flight of `files` (several: one policy on their mean Q-values; none: a
-    seeded random initialisation): (depth, attention map or None, action index, collided)."""
+    seeded random initialisation): (depth, map of what the decision looks at (SAM's attention, the CNN's
+    saliency), action index, collided)."""
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.world import load_world
 
@@ -45,8 +48,10 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     out = []
     try:
         for _ in range(steps):
+            state = flight.env.state.copy()
             s = flight.step(0.0)
-            amap = attention_map(s.attention, net.grid_hw, s.before.depth_m.shape) if s.attention is not None else None
+            rows = explanation(net, state, s.action, s.attention)
+            amap = attention_map(rows, net.grid_hw, s.before.depth_m.shape)
             out.append((s.before.depth_m, amap, s.action, s.before.collided))
     finally:
         sim.close()
@@ -54,8 +59,8 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
 
 
 def frames_from_bag(path: Path, namespace: str = ""):
-    """The frames of a recorded flight as `fly` gives them: (depth, attention map or None, action index or
-    None, collided), joined by header stamp over NAMESPACE/depth/image_raw, attention, action and
+    """The frames of a recorded flight as `fly` gives them: (depth, attention or saliency map or None, action index
+    or None, collided), joined by header stamp over NAMESPACE/depth/image_raw, attention (saliency), action and
     step_outcome. ValueError names what the bag lacks."""
     from rosbags.highlevel import AnyReader
 
@@ -64,7 +69,7 @@ def frames_from_bag(path: Path, namespace: str = ""):
 
     folder = path.parent if path.is_file() else path
     ns = namespace.rstrip("/")
-    names = {f"{ns}/{t}": t for t in ("depth/image_raw", "attention", "action", "step_outcome")}
+    names = {f"{ns}/{t}": t for t in ("depth/image_raw", "attention", "saliency", "action", "step_outcome")}
     by_stamp: dict[int, dict] = {}
     with AnyReader([folder]) as reader:
         conns = [c for c in reader.connections if c.topic in names]
@@ -74,7 +79,7 @@ def frames_from_bag(path: Path, namespace: str = ""):
         for conn, _t, raw in reader.messages(connections=conns):
             # Converted as read: only the arrays the pictures need are kept.
             msg, topic = reader.deserialize(raw, conn.msgtype), names[conn.topic]
-            if topic in ("depth/image_raw", "attention"):
+            if topic in ("depth/image_raw", "attention", "saliency"):
                 value = contract.image_to_depth(msg)
             elif topic == "action":
                 value = (float(msg.twist.linear.x), float(msg.twist.angular.z))
@@ -88,7 +93,8 @@ def frames_from_bag(path: Path, namespace: str = ""):
         got = by_stamp[s]
         act = got.get("action")
         action = match_action(PAPER_ACTIONS, act[0], act[1], step_s) if act else None
-        frames.append((got["depth/image_raw"], got.get("attention"), action, got.get("step_outcome", False)))
+        amap = got.get("attention", got.get("saliency"))  # a SAM's attention, a CNN's saliency
+        frames.append((got["depth/image_raw"], amap, action, got.get("step_outcome", False)))
     return frames
 
 
@@ -103,7 +109,7 @@ def representative(frames, k: int) -> list[int]:
     return [int(c[np.argmin(nearest[c])]) for c in chunks if len(c)]
 
 
-def grid_png(frames, picks, path: Path, title: str, max_range_m: float = 10.0) -> None:
+def grid_png(frames, picks, path: Path, title: str, max_range_m: float = 10.0, kind: str = "attention") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -114,25 +120,32 @@ def grid_png(frames, picks, path: Path, title: str, max_range_m: float = 10.0) -
         depth, amap, action, _ = frames[i]
         axes[0, col].imshow(colourise_depth(depth, max_range_m))
         axes[0, col].set_title(f"step {i}\n{action_label(action)}", fontsize=8)
-        axes[1, col].imshow(overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m))
+        axes[1, col].imshow(picture(depth, amap, max_range_m, kind))
         for ax in axes[:, col]:
             ax.set_xticks([])
             ax.set_yticks([])
     axes[0, 0].set_ylabel("depth (near = bright)", fontsize=8)
-    axes[1, 0].set_ylabel("attention (green)", fontsize=8)
+    axes[1, 0].set_ylabel(f"{kind} (green)", fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def flight_gif(frames, path: Path, scale: int = 3, max_range_m: float = 10.0, every: int = 1, limit: int = 100) -> None:
+def picture(depth, amap, max_range_m: float, kind: str, label: str = "") -> np.ndarray:
+    """The node's overlay (absolute scale, legend), or the depth alone at the overlay's size when there is no map."""
+    if amap is not None:
+        return overlay(depth, amap, max_range_m, label, kind)
+    k = max(1, -(-OVERLAY_MIN_PX // min(depth.shape)))
+    return np.kron(colourise_depth(depth, max_range_m), np.ones((k, k, 1), np.uint8))
+
+
+def flight_gif(frames, path: Path, max_range_m: float = 10.0, every: int = 1, limit: int = 100, kind: str = "attention") -> None:
     from PIL import Image, ImageDraw
 
     images = []
     for i, (depth, amap, action, collided) in enumerate(frames[: limit * every : every]):
-        rgb = overlay(depth, amap, max_range_m) if amap is not None else colourise_depth(depth, max_range_m)
-        im = Image.fromarray(rgb).resize((rgb.shape[1] * scale, rgb.shape[0] * scale), Image.NEAREST)
+        im = Image.fromarray(picture(depth, amap, max_range_m, kind))
         draw = ImageDraw.Draw(im)
         draw.text((4, 4), f"step {i * every} {action_label(action)}", fill=(255, 255, 0))
         if collided:
@@ -170,10 +183,11 @@ def main(argv=None) -> int:
     for world in a.worlds:
         frames = fly(a.model, files, world, a.steps)
         picks = representative(frames, a.panels)
-        png = out / f"attention_{world}.png"
-        grid_png(frames, picks, png, f"D3QN-{a.model.upper()} in {world}: depth (top) and attention (bottom)")
+        kind = "attention" if a.model == "sam" else "saliency"
+        png = out / f"{kind}_{world}.png"
+        grid_png(frames, picks, png, f"D3QN-{a.model.upper()} in {world}: depth (top) and {kind} (bottom)", kind=kind)
         gif = out / f"flight_{world}.gif"
-        flight_gif(frames, gif)
+        flight_gif(frames, gif, kind=kind)
         print(f"written: {png} {gif}")
     return 0
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from uav_common import contract
 from uav_common.launching import Processes, params_args
+from uav_policy.insight import Insight, InsightSummary, explanation
 from uav_sim.reward import CENTER_WINDOW_FRACTION, step_reward
 
 
@@ -27,6 +28,7 @@ class EvalResult:
     turn_steps: int = -1  # steps that changed the heading by more than TURN_DEG (-1 unknown)
     cells: int = -1  # distinct 1 m x 1 m floor cells flown through, per run, summed (-1 unknown)
     interventions: int = -1  # commands policy_node's safety layer changed (-1: flown without it)
+    insight: InsightSummary | None = None  # what the decisions looked at, measured on every step (None: not measured)
 
     @property
     def distance_between_crashes_m(self) -> float:
@@ -273,6 +275,8 @@ def evaluate_once(
                 f"seed:={seed}",
                 "publish_overlay:=false",
                 f"safety:={str(safety).lower()}",
+                "insight_every:=1",  # every decision measured, over the whole flight
+                f"insight_window:={2 * steps + 100}",
                 *wargs,
             ]
         )
@@ -325,12 +329,14 @@ def evaluate_once(
                 raise TimeoutError(f"evaluation reached only {mon.steps}/{steps} steps in {timeout_s} s")
         if mon.gaps:
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
-        if safety:  # the interventions counted up to now: policy_node reports every second
-            asked = time.monotonic()
-            while said.get("at", 0.0) <= asked and time.monotonic() < asked + 5.0:
-                executor.spin_once(timeout_sec=0.05)
-            if "safety_interventions" not in said:
-                raise RuntimeError("policy_node did not report its safety interventions on /diagnostics")
+        # The interventions and insight measured over the flight: the simulator stops first (no step more is
+        # flown), then policy_node's next report (every second) is read.
+        procs.stop("sim")
+        asked = time.monotonic()
+        while said.get("at", 0.0) <= asked and time.monotonic() < asked + 5.0:
+            executor.spin_once(timeout_sec=0.05)
+        if "safety_interventions" not in said:
+            raise RuntimeError("policy_node did not report its safety interventions on /diagnostics")
     finally:
         procs.stop_all(["policy", "sim", "record"])
         executor.shutdown()
@@ -349,6 +355,7 @@ def evaluate_once(
         b.turn_steps if b else -1,
         len(b.cells) if b else -1,
         int(said["safety_interventions"]) if safety else -1,
+        InsightSummary.from_values(said),
     )
 
 
@@ -423,10 +430,15 @@ def evaluate_inprocess(
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
     start_yaw = r.pose.yaw_rad  # the episode's start heading
+    # What the decisions look at, for the stack's networks (a stand-in network without a grid is not measured).
+    insight = Insight(net.grid_hw, seed=seed) if hasattr(net, "grid_hw") else None
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
+            state = flight.env.state.copy()
             s = flight.step(0.0)
+            if insight is not None:
+                insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention))
             before, r = s.before.pose, s.after
             reward += r.reward
             if r.collided:
@@ -455,7 +467,17 @@ def evaluate_inprocess(
     finally:
         sim.close()
     return EvalResult(
-        model, world, weights, steps, crashes, reward / steps, dist, len(sites), behaviour.turn_steps, len(behaviour.cells)
+        model,
+        world,
+        weights,
+        steps,
+        crashes,
+        reward / steps,
+        dist,
+        len(sites),
+        behaviour.turn_steps,
+        len(behaviour.cells),
+        insight=insight.summary() if insight is not None else None,
     )
 
 

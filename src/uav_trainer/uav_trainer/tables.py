@@ -9,7 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
+from uav_policy.insight import InsightSummary
+
 from .flights import TURN_DEG, EvalResult
+
+# The insight columns of results.csv, in InsightSummary's order (frames first).
+INSIGHT_COLUMNS = (
+    "insight_frames",
+    "entropy",
+    "top10_share",
+    "map_correlation",
+    "deletion_top",
+    "deletion_random",
+    "near_ratio",
+)
 
 PAPER = {  # Table 1 crashes / Table 2 mean reward, per 1000 test steps
     ("sam", "basic"): (0, 2.406),
@@ -38,6 +51,7 @@ def pool(runs: list[EvalResult]) -> EvalResult:
             sum(getattr(r, k) for r in runs) if all(getattr(r, k) >= 0 for r in runs) else -1
             for k in ("crash_sites", "turn_steps", "cells", "interventions")
         ),
+        InsightSummary.pool([r.insight for r in runs]),
     )
 
 
@@ -133,9 +147,15 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                 "turn_steps",
                 "cells_visited",
                 "safety_interventions",
+                *INSIGHT_COLUMNS,
+                "faithfulness",
             ]
         )
         for r in results:
+            i = r.insight
+            insight = [""] * (len(INSIGHT_COLUMNS) + 1)
+            if i is not None:
+                insight = [i.frames, *(f"{getattr(i, k):.4f}" for k in InsightSummary.FIELDS), f"{i.faithfulness:.4f}"]
             w.writerow(
                 [
                     r.model,
@@ -151,6 +171,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     r.turn_steps,
                     r.cells,
                     r.interventions,
+                    *insight,
                 ]
             )
     models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
@@ -224,9 +245,54 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
             lambda runs: fmt(*mean_ci95([1000 * r.interventions / r.steps for r in runs]), 0),
             "Counted by policy_node (/diagnostics) over each flight. Mean ± 95% CI over the weight files.",
         )
+    if results and all(r.insight is not None for r in results):
+        lines += insight_table(results, models, worlds)
     md_path = out_dir / "results.md"
     md_path.write_text("\n".join(lines))
     return md_path, csv_path
+
+
+def insight_table(results: list[EvalResult], models: list[str], worlds: list[str]) -> list[str]:
+    """What the decisions looked at (uav_policy.insight), one row per model and world, mean ± 95% CI over the
+    weight files; the deletion test's rates pooled over them, their ratio the faithfulness."""
+    lines = [
+        "### What the decisions look at (SAM: the attention they use; CNN: Grad-CAM saliency)",
+        "",
+        "Every step measured. Entropy: per query, normalised (1 = uniform). Top 10 %: the mass on the top tenth of "
+        "the nodes (0.1 = uniform). Map correlation: median correlation of each frame's map with the run's mean map "
+        "(1 = the same map whatever is seen). Deletion: the share of steps whose action changes when the top 10 % "
+        "of nodes, or as many random ones, read 'no return'; faithfulness = top / random. Near: the mass on pixels "
+        "nearer than 3 m over their share of the image (1 = no preference).",
+        "",
+        "| model | world | entropy | top 10 % | map correlation | deletion top / random | faithfulness | near |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for m in models:
+        for world in worlds:
+            got = [r.insight for r in results if r.model == m and r.world == world]
+            if not got:
+                continue
+            cell = lambda k, got=got: fmt(*mean_ci95([getattr(i, k) for i in got if not math.isnan(getattr(i, k))]), 2)  # noqa: E731
+            top, rand = (float(np.mean([getattr(i, k) for i in got])) for k in ("deletion_top", "deletion_random"))
+            faith = InsightSummary(0, 0, 0, 0, top, rand, 0).faithfulness
+            lines.append(
+                f"| D3QN-{m.upper()} | {world} | {cell('entropy')} | {cell('top_share')} | {cell('map_correlation')} "
+                f"| {top:.3f} / {rand:.3f} | {faith:.2f} | {cell('near_ratio')} |"
+            )
+    return [*lines, ""]
+
+
+def _csv_insight(row: dict, where: str) -> InsightSummary | None:
+    """The insight columns of a row, or None when the row has none (tables written before them, or not measured)."""
+    if row.get("insight_frames") in (None, ""):
+        return None
+    values = [_csv_whole(row, "insight_frames", where)]
+    for column in INSIGHT_COLUMNS[1:]:
+        try:
+            values.append(float(row.get(column) or "nan"))
+        except ValueError:
+            raise ValueError(f"{where}: {column} must be a number, got {row[column]!r}") from None
+    return InsightSummary(*values)
 
 
 RESULTS_COLUMNS = ("model", "world", "weights", "steps", "crashes", "mean_reward", "distance_m")
@@ -291,6 +357,7 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
                     _csv_whole(r, "turn_steps", where, -1),
                     _csv_whole(r, "cells_visited", where, -1),
                     _csv_whole(r, "safety_interventions", where, -1),
+                    _csv_insight(r, where),
                 )
             )
     if not results:

@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from uav_common.launching import Processes, params_args, stop_signals
+from uav_common.launching import Processes, params_args, ros_log_dir, stop_signals
 from uav_common.settings import refuse_retired_flags
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 from uav_policy.push import write_key
@@ -54,6 +54,12 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=30000, help="environment steps budget (default: 30000)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
+    ap.add_argument(
+        "--log-dir",
+        default=None,
+        help="node logs (default: the ROS log folder, $ROS_LOG_DIR or ~/.ros/log, train_<run folder>_<time>/): "
+        "outside the run folder, so a full or failing run disk does not cut off the trace of what went wrong",
+    )
     ap.add_argument("--params-dir", default="params", help="folder with sim.yaml, policy.yaml, trainer.yaml and recipes/")
     ap.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in the run directory")
     ap.add_argument(
@@ -68,7 +74,8 @@ def main(argv=None) -> int:
         "--sam-readout",
         choices=SAM_READOUTS,
         default="max",
-        help="SAM readout for policy_node and trainer_node: max (the paper) or flatten",
+        help="SAM readout for policy_node and trainer_node: max (the paper), flatten, attend (attention pooling) or "
+        "attend_content (keys from each cell alone)",
     )
     ap.add_argument(
         "--input-size",
@@ -105,13 +112,17 @@ def main(argv=None) -> int:
     size = [] if a.input_size is None else [a.input_size]
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
-    logs = run_dir / "logs"
+    logs = Path(a.log_dir) if a.log_dir else ros_log_dir() / f"train_{run_dir.resolve().name}_{time.strftime('%Y%m%d-%H%M%S')}"
     started = time.time() - 1.0  # files written from here on are this run's (1 s for coarse file-system clocks)
     # A new key for each run, in the run folder (mode 0600): only this run's trainer can push to its policy.
     try:
         key = write_key(run_dir / "push.key")
     except OSError as e:
         ap.error(f"--run-dir {run_dir}: cannot write there ({e.strerror or e})")
+    try:
+        logs.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f"--log-dir {logs}: cannot write there ({e.strerror or e})")
     procs = Processes(log_dir=logs)
     p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731

@@ -80,7 +80,10 @@ class TrainerConfig:
         29,
     )
     sam_readout: str = setting(
-        "max", "SAM readout: max pools the nodes (the paper) or flatten keeps their places; policy_node's", choices=SAM_READOUTS
+        "max",
+        "SAM readout: max pools the nodes (the paper), flatten keeps their places, attend pools them by attention, "
+        "attend_content with keys from each cell alone; policy_node's",
+        choices=SAM_READOUTS,
     )
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
     frames: int = setting(

@@ -1,0 +1,244 @@
+"""What a decision looks at, and whether that explains it: explanations over the network's grid cells,
+measured (PyTorch and numpy, no ROS).
+
+An explanation is one distribution per frame over the nodes (the grid cells of the conv trunk, row-major):
+- SAM: the attention the decision uses (`decision_attention`), the attention each node receives;
+- CNN: Grad-CAM on the trunk's last conv layer for the chosen action (`grad_cam`), named saliency.
+
+Measured per frame and summarised by `Insight` (policy_node's /diagnostics, evaluate's tables):
+- sharpness: the mean normalised entropy of each query's weights (1 = uniform, 0 = one node) and the share of
+  the mass on the top 10 % of nodes;
+- variation: the median correlation of each frame's map with the mean map over the frames (1 = the same map
+  whatever is seen; a map that does not vary at all counts as 1);
+- faithfulness, a deletion test: how often the greedy action changes when the image regions of the top-k
+  explained nodes are masked to "no return", against masking k random nodes; the ratio of the two rates;
+- grounding: the explanation's mass on pixels nearer than NEAR_M against their share of the image (1 = no
+  preference; above 1 = looks at what is near).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+NEAR_M = 3.0  # grounding: "near" is nearer than this
+TOP_FRACTION = 0.1  # sharpness and the deletion test: the top tenth of the nodes
+RANDOM_DRAWS = 4  # the deletion test's random masks per frame
+
+
+def _rows(weights: np.ndarray) -> np.ndarray:
+    """(..., nodes) -> (rows, nodes), each row a distribution."""
+    w = np.asarray(weights, dtype=np.float64)
+    if w.ndim < 1 or w.shape[-1] < 2:
+        raise ValueError(f"an explanation needs at least 2 nodes on its last axis, got shape {w.shape}")
+    return w.reshape(-1, w.shape[-1])
+
+
+def received(weights: np.ndarray) -> np.ndarray:
+    """The mass each node receives, (nodes,), summing to 1: the rows of (..., nodes) averaged."""
+    r = _rows(weights).mean(axis=0)
+    total = r.sum()
+    return r / total if total > 0 else np.full_like(r, 1.0 / r.size)
+
+
+def normalised_entropy(weights: np.ndarray) -> float:
+    """Mean over rows (heads x queries) of H(row) / log(nodes): 1 for uniform rows, 0 for one-hot rows."""
+    rows = _rows(weights)
+    p = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
+    h = -(p * np.log(np.where(p > 0, p, 1.0))).sum(axis=1)
+    return float(h.mean() / math.log(rows.shape[1]))
+
+
+def top_count(nodes: int) -> int:
+    return max(1, math.ceil(TOP_FRACTION * nodes))
+
+
+def top_share(dist: np.ndarray) -> float:
+    """The share of the mass on the top 10 % of nodes (0.1 for a uniform map)."""
+    d = received(dist)
+    return float(np.sort(d)[::-1][: top_count(d.size)].sum())
+
+
+def map_correlation(maps: np.ndarray) -> float:
+    """The median over frames of each map's Pearson correlation with the mean map; a map, or a mean map,
+    that does not vary over the nodes counts as 1 (it says nothing about the frame)."""
+    m = np.asarray(maps, dtype=np.float64)
+    if m.ndim != 2 or len(m) == 0:
+        raise ValueError(f"maps must be (frames, nodes), got {m.shape}")
+    mean = m.mean(axis=0)
+    dm = mean - mean.mean()
+    dx = m - m.mean(axis=1, keepdims=True)
+    den = np.linalg.norm(dx, axis=1) * np.linalg.norm(dm)
+    flat = den < 1e-12 * max(1.0, float(np.abs(m).max()))
+    corr = np.where(flat, 1.0, (dx @ dm) / np.where(flat, 1.0, den))
+    return float(np.median(corr))
+
+
+def node_slices(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> list[tuple[slice, slice]]:
+    """The image region each node sees (row-major), the grid laid evenly over the image."""
+    gh, gw = grid_hw
+    h, w = image_hw
+    return [(slice(r * h // gh, (r + 1) * h // gh), slice(c * w // gw, (c + 1) * w // gw)) for r in range(gh) for c in range(gw)]
+
+
+def near_ratio(dist: np.ndarray, depth_m: np.ndarray, grid_hw: tuple[int, int], near_m: float = NEAR_M) -> float | None:
+    """The mass on pixels nearer than near_m over their share of the image; None when nothing is near."""
+    d = received(dist)
+    near = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=np.inf) < near_m
+    share = float(near.mean())
+    if share == 0.0:
+        return None
+    per_node = np.array([near[rs, cs].mean() for rs, cs in node_slices(grid_hw, near.shape)])
+    return float((d * per_node).sum() / share)
+
+
+def masked_states(
+    state: np.ndarray, nodes: list[np.ndarray], grid_hw: tuple[int, int]
+) -> np.ndarray:  # (len(nodes), frames, H, W)
+    """Copies of `state` (frames, H, W), each with the image regions of one set of nodes set to "no return"
+    (+inf) in every frame."""
+    regions = node_slices(grid_hw, state.shape[-2:])
+    out = np.repeat(np.asarray(state, dtype=np.float32)[None], len(nodes), axis=0)
+    for i, chosen in enumerate(nodes):
+        for n in chosen:
+            rs, cs = regions[int(n)]
+            out[i, :, rs, cs] = np.inf
+    return out
+
+
+@torch.no_grad()
+def deletion_test(
+    net: torch.nn.Module, state: np.ndarray, dist: np.ndarray, action: int, grid_hw, rng: np.random.Generator
+) -> tuple[bool, float]:
+    """(does masking the top-k explained nodes change the greedy action, the share of RANDOM_DRAWS masks of
+    k random nodes that change it), k = the top 10 % of the nodes."""
+    d = received(dist)
+    k = top_count(d.size)
+    shuffled = rng.permutation(d.size)  # nodes of equal mass are taken in random order, not by index
+    top = shuffled[np.argsort(-d[shuffled], kind="stable")[:k]]
+    sets = [top] + [rng.choice(d.size, size=k, replace=False) for _ in range(RANDOM_DRAWS)]
+    x = torch.from_numpy(masked_states(state, sets, grid_hw))
+    device = next(net.parameters()).device
+    q, _ = net(x.to(device))
+    changed = q.argmax(dim=1).cpu().numpy() != action
+    return bool(changed[0]), float(changed[1:].mean())
+
+
+def grad_cam(net: torch.nn.Module, state: np.ndarray, action: int) -> np.ndarray:
+    """Grad-CAM (Selvaraju et al. 2017) on the conv trunk's last layer for the decision: the target is `action`'s
+    margin over the best other action (Q_a - max Q_b), what makes it win; Q_a alone gave all-negative maps with the
+    packaged CNN. (nodes,) summing to 1, uniform when no cell raises the margin. A QEnsemble: the mean of its
+    members' maps."""
+    members = list(getattr(net, "members", [net]))
+    device = next(net.parameters()).device
+    x = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)).unsqueeze(0).to(device)
+    maps = []
+    with torch.enable_grad():
+        for m in members:
+            fmap = m.trunk(x).detach().requires_grad_(True)
+            q, _ = m.from_features(fmap)
+            others = torch.cat([q[0, :action], q[0, action + 1 :]])
+            (grad,) = torch.autograd.grad(q[0, action] - others.max(), fmap)
+            cam = torch.relu((grad.mean(dim=(2, 3), keepdim=True) * fmap).sum(dim=1))[0].flatten()
+            maps.append(received(cam.detach().cpu().numpy()))
+    return np.mean(maps, axis=0)
+
+
+def explanation(net: torch.nn.Module, state: np.ndarray, action: int, weights: np.ndarray | None) -> np.ndarray:
+    """The rows (heads x queries, nodes) the decision is explained by: SAM's attention weights as the network
+    returns them, else Grad-CAM as one row."""
+    if weights is not None:
+        return _rows(weights)
+    return grad_cam(net, state, action)[None]
+
+
+@dataclasses.dataclass
+class InsightSummary:
+    frames: int
+    entropy: float  # mean normalised entropy per query
+    top_share: float  # mass on the top 10 % of nodes
+    map_correlation: float  # median correlation with the mean map
+    deletion_top: float  # share of frames whose action changes with the top-k nodes masked
+    deletion_random: float  # ... with k random nodes masked
+    near_ratio: float  # mass on near pixels over their share (mean over frames with something near); nan if none
+
+    @property
+    def faithfulness(self) -> float:
+        """deletion_top / deletion_random (inf when only the top-k masks change the action; nan when none do)."""
+        if self.deletion_random > 0:
+            return self.deletion_top / self.deletion_random
+        return math.inf if self.deletion_top > 0 else math.nan
+
+    FIELDS = ("entropy", "top_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
+
+    @staticmethod
+    def from_values(values: dict) -> InsightSummary | None:
+        """The summary from its values() (policy_node's /diagnostics); None when they hold none."""
+        if "insight_frames" not in values:
+            return None
+        num = lambda k: math.nan if values[k] in ("-", "") else float(values[k])  # noqa: E731
+        keys = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
+        return InsightSummary(int(values["insight_frames"]), *(num(f"insight_{k}") for k in keys))
+
+    @staticmethod
+    def pool(summaries: list[InsightSummary]) -> InsightSummary | None:
+        """Several runs' summaries as one: each measure averaged, weighted by the frames measured (nan-aware)."""
+        got = [s for s in summaries if s is not None and s.frames > 0]
+        if len(got) != len(summaries) or not got:
+            return None
+        frames = np.array([s.frames for s in got], dtype=float)
+
+        def mean(field: str) -> float:
+            v = np.array([getattr(s, field) for s in got], dtype=float)
+            ok = ~np.isnan(v)
+            return float((v[ok] * frames[ok]).sum() / frames[ok].sum()) if ok.any() else math.nan
+
+        return InsightSummary(int(frames.sum()), *(mean(f) for f in InsightSummary.FIELDS))
+
+    def values(self) -> dict[str, str]:
+        f = lambda v: "-" if math.isnan(v) else f"{v:.3f}"  # noqa: E731
+        return {
+            "insight_frames": str(self.frames),
+            "insight_entropy": f(self.entropy),
+            "insight_top10_share": f(self.top_share),
+            "insight_map_correlation": f(self.map_correlation),
+            "insight_deletion_top": f(self.deletion_top),
+            "insight_deletion_random": f(self.deletion_random),
+            "insight_faithfulness": "inf" if math.isinf(self.faithfulness) else f(self.faithfulness),
+            "insight_near_ratio": f(self.near_ratio),
+        }
+
+
+class Insight:
+    """The measures over the last `window` frames observed (every frame when window is None)."""
+
+    def __init__(self, grid_hw: tuple[int, int], window: int | None = None, seed: int = 0):
+        self.grid_hw = grid_hw
+        self.rng = np.random.default_rng(seed)
+        self.frames = collections.deque(maxlen=window)  # (map, entropy, top share, top changed, random changed, near)
+
+    def observe(self, net, state: np.ndarray, action: int, rows: np.ndarray) -> None:
+        """Measure one decision: `state` (frames, H, W) in metres, its greedy `action`, and the `explanation` of it."""
+        dist = received(rows)
+        top, rand = deletion_test(net, state, dist, action, self.grid_hw, self.rng)
+        near = near_ratio(dist, state[-1], self.grid_hw)
+        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near))
+
+    def summary(self) -> InsightSummary | None:
+        if not self.frames:
+            return None
+        maps, ent, share, top, rand, near = zip(*self.frames, strict=True)
+        near = [n for n in near if n is not None]
+        return InsightSummary(
+            len(maps),
+            float(np.mean(ent)),
+            float(np.mean(share)),
+            map_correlation(np.stack(maps)),
+            float(np.mean(top)),
+            float(np.mean(rand)),
+            float(np.mean(near)) if near else math.nan,
+        )

@@ -1,0 +1,99 @@
+"""The measures of what a decision looks at (uav_policy.insight), on constructed inputs."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from uav_policy import insight
+from uav_policy.insight import Insight, InsightSummary
+
+
+def test_uniform_attention_has_entropy_one_and_no_variation():
+    uniform = np.full((3, 64, 64), 1 / 64)
+    assert insight.normalised_entropy(uniform) == pytest.approx(1.0)
+    assert insight.top_share(uniform) == pytest.approx(7 / 64), "the top tenth (7 of 64 nodes) holds its share"
+    assert insight.map_correlation(np.stack([insight.received(uniform)] * 10)) == 1.0, "a map that never varies"
+
+
+def test_one_hot_attention_has_entropy_zero_and_all_mass_on_top():
+    w = np.zeros((2, 64, 64))
+    w[:, :, 5] = 1.0
+    assert insight.normalised_entropy(w) == pytest.approx(0.0, abs=1e-9)
+    assert insight.top_share(w) == pytest.approx(1.0)
+
+
+def test_maps_that_follow_the_scene_correlate_little_with_their_mean():
+    rng = np.random.default_rng(0)
+    one_hots = np.eye(64)[rng.integers(0, 64, 200)]  # each frame looks somewhere else
+    assert insight.map_correlation(one_hots) < 0.2
+    fixed = np.tile(np.linspace(1, 2, 64), (50, 1)) + 0.01 * rng.random((50, 64))  # a fixed gradient, whatever is seen
+    assert insight.map_correlation(fixed) > 0.95
+
+
+def test_near_ratio_says_where_the_mass_is_against_what_is_near():
+    depth = np.full((64, 64), 8.0, np.float32)
+    depth[:8, :8] = 1.0  # an obstacle at 1 m in the top-left cell, 1/64 of the image
+    on = np.zeros(64)
+    on[0] = 1.0
+    assert insight.near_ratio(on, depth, (8, 8)) == pytest.approx(64.0)
+    assert insight.near_ratio(np.full(64, 1 / 64), depth, (8, 8)) == pytest.approx(1.0)
+    assert insight.near_ratio(on, np.full((64, 64), np.inf, np.float32), (8, 8)) is None, "nothing near: undefined"
+
+
+class OneRegionNet(torch.nn.Module):
+    """Turns (action 1) when anything in the top-left 8x8 pixels is nearer than 2 m, else flies straight (0)."""
+
+    def __init__(self):
+        super().__init__()
+        self.dummy = torch.nn.Parameter(torch.zeros(1))
+
+    def forward(self, x):
+        near = (x[:, :, :8, :8] < 2.0).flatten(1).any(dim=1).float()
+        return torch.stack([1 - near, near, 0 * near, 0 * near], dim=1), None
+
+
+def test_a_decision_that_depends_on_one_region_is_faithful_to_an_explanation_of_that_region():
+    net, rng = OneRegionNet(), np.random.default_rng(1)
+    faithful, unfaithful = Insight((8, 8)), Insight((8, 8))
+    right, wrong = np.zeros((1, 64)), np.zeros((1, 64))
+    right[0, 0], wrong[0, 56:] = 1.0, 1 / 8  # the region, or the bottom row
+    for _ in range(200):
+        state = rng.uniform(3.0, 9.0, (5, 64, 64)).astype(np.float32)
+        state[:, :8, :8] = 1.0  # the obstacle the decision turns for
+        faithful.observe(net, state, 1, right)
+        unfaithful.observe(net, state, 1, wrong)
+    good, bad = faithful.summary(), unfaithful.summary()
+    assert good.deletion_top == 1.0 and bad.deletion_top == 0.0
+    assert 0.02 < good.deletion_random < 0.2, "7 random nodes of 64 hit the region about 1 time in 9"
+    assert good.faithfulness >= 2 and bad.faithfulness < 1
+    assert good.near_ratio > 10 and bad.near_ratio == 0.0 and good.frames == 200
+
+
+def test_grad_cam_is_a_distribution_over_the_cells_and_follows_the_input():
+    from uav_policy import weights as wio
+
+    cnn = wio.load_files([str(wio.packaged_weights("cnn")[0])], "cnn")
+    maps = []
+    for side in (slice(8, 24), slice(40, 56)):  # a pole left, then right, 1.5 m ahead in an open room
+        state = np.full((5, 64, 64), 8.0, np.float32)
+        state[:, 16:48, side] = 1.5
+        q, _ = cnn(torch.from_numpy(state)[None])
+        maps.append(insight.grad_cam(cnn, state, int(q.argmax())))
+    for m in maps:
+        assert m.shape == (64,) and m.sum() == pytest.approx(1.0) and (m >= 0).all()
+    assert insight.normalised_entropy(maps[0]) < 0.99, "not uniform"
+    assert not np.allclose(maps[0], maps[1]), "another scene, another map"
+
+
+def test_summaries_pool_by_frames_and_survive_diagnostics():
+    a = InsightSummary(100, 0.5, 0.3, 0.4, 0.6, 0.2, 2.0)
+    b = InsightSummary(300, 0.9, 0.1, 0.8, 0.2, 0.2, math.nan)
+    p = InsightSummary.pool([a, b])
+    assert p.frames == 400 and p.entropy == pytest.approx(0.8) and p.near_ratio == 2.0
+    assert p.faithfulness == pytest.approx(0.3 / 0.2)
+    back = InsightSummary.from_values(a.values())
+    assert back == a and InsightSummary.from_values({}) is None
+    assert InsightSummary(10, 1, 0.1, 1, 0.5, 0.0, 1).values()["insight_faithfulness"] == "inf"
+    assert InsightSummary.pool([a, None]) is None, "a run not measured leaves the pool unmeasured"
