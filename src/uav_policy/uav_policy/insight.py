@@ -2,7 +2,7 @@
 measured (PyTorch and numpy, no ROS).
 
 An explanation is one distribution per frame over the nodes (the grid cells of the conv trunk, row-major):
-- SAM: the attention the decision uses (`decision_attention`), the attention each node receives;
+- SAM: the attention the decision uses, as the network returns it, averaged into what each node receives (`received`);
 - CNN: Grad-CAM on the trunk's last conv layer for the chosen action (`grad_cam`), named saliency.
 
 Measured per frame and summarised by `Insight` (policy_node's /diagnostics, evaluate's tables):
@@ -174,6 +174,8 @@ class InsightSummary:
         return math.inf if self.deletion_top > 0 else math.nan
 
     FIELDS = ("entropy", "top_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
+    # Their names in values() (after "insight_") and in evaluate's results.csv, in FIELDS' order.
+    NAMES = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
 
     @staticmethod
     def from_values(values: dict) -> InsightSummary | None:
@@ -181,8 +183,7 @@ class InsightSummary:
         if "insight_frames" not in values:
             return None
         num = lambda k: math.nan if values[k] in ("-", "") else float(values[k])  # noqa: E731
-        keys = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
-        return InsightSummary(int(values["insight_frames"]), *(num(f"insight_{k}") for k in keys))
+        return InsightSummary(int(values["insight_frames"]), *(num(f"insight_{k}") for k in InsightSummary.NAMES))
 
     @staticmethod
     def pool(summaries: list[InsightSummary]) -> InsightSummary | None:
@@ -201,16 +202,10 @@ class InsightSummary:
 
     def values(self) -> dict[str, str]:
         f = lambda v: "-" if math.isnan(v) else f"{v:.3f}"  # noqa: E731
-        return {
-            "insight_frames": str(self.frames),
-            "insight_entropy": f(self.entropy),
-            "insight_top10_share": f(self.top_share),
-            "insight_map_correlation": f(self.map_correlation),
-            "insight_deletion_top": f(self.deletion_top),
-            "insight_deletion_random": f(self.deletion_random),
-            "insight_faithfulness": "inf" if math.isinf(self.faithfulness) else f(self.faithfulness),
-            "insight_near_ratio": f(self.near_ratio),
-        }
+        out = {"insight_frames": str(self.frames)}
+        out.update({f"insight_{n}": f(getattr(self, k)) for k, n in zip(self.FIELDS, self.NAMES, strict=True)})
+        out["insight_faithfulness"] = "inf" if math.isinf(self.faithfulness) else f(self.faithfulness)
+        return out
 
 
 class Insight:

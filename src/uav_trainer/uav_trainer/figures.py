@@ -48,7 +48,7 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     out = []
     try:
         for _ in range(steps):
-            state = flight.env.state.copy()
+            state = flight.env.state
             s = flight.step(0.0)
             rows = explanation(net, state, s.action, s.attention)
             amap = attention_map(rows, net.grid_hw, s.before.depth_m.shape)

@@ -435,7 +435,7 @@ def evaluate_inprocess(
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
-            state = flight.env.state.copy()
+            state = flight.env.state  # a new array every step: the step below leaves it as it is
             s = flight.step(0.0)
             if insight is not None:
                 insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention))

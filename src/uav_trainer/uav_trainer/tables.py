@@ -14,15 +14,7 @@ from uav_policy.insight import InsightSummary
 from .flights import TURN_DEG, EvalResult
 
 # The insight columns of results.csv, in InsightSummary's order (frames first).
-INSIGHT_COLUMNS = (
-    "insight_frames",
-    "entropy",
-    "top10_share",
-    "map_correlation",
-    "deletion_top",
-    "deletion_random",
-    "near_ratio",
-)
+INSIGHT_COLUMNS = ("insight_frames", *InsightSummary.NAMES)
 
 PAPER = {  # Table 1 crashes / Table 2 mean reward, per 1000 test steps
     ("sam", "basic"): (0, 2.406),
