@@ -8,4 +8,4 @@ set +u  # colcon's setup.bash reads unset variables
 set -u
 ruff check src tests benchmarks scripts
 ruff format --check src tests benchmarks scripts
-python -m pytest tests "$@"
+python -m pytest tests --durations=15 "$@"

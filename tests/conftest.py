@@ -135,7 +135,32 @@ def ros(tmp_path):
 
 
 def run_to_exit(pkg: str, exe: str, *ros_args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess:
-    """Run an installed node expected to exit by itself (e.g. on a bad parameter)."""
+    """Run an installed node expected to exit by itself (e.g. on a bad parameter). Each start loads
+    Python, rclpy and torch (seconds): test each node's exit path once this way, its many bad
+    parameters with start_up_error."""
     env = dict(os.environ, ROS_DOMAIN_ID="99", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     cmd = [str(executable(pkg, exe))] + (["--ros-args", *ros_args] if ros_args else [])
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout_s)
+
+
+def start_up_error(node_class, *ros_args: str) -> str:
+    """The ParameterError `node_class` fails with at start-up under these --ros-args (what its process
+    prints after "[FATAL]" before exiting 2), with the node built in this process and its own context."""
+    import rclpy
+    import torch
+
+    from uav_common.ros_params import ParameterError
+
+    context = rclpy.Context()
+    rclpy.init(args=["test", "--ros-args", *ros_args], context=context, domain_id=99)
+    threads = torch.get_num_threads()  # a node sets its own: keep this process's
+    try:
+        try:
+            node = node_class(context=context)
+        except ParameterError as e:
+            return str(e)
+        node.destroy_node()
+        pytest.fail(f"{node_class.__name__} started with {ros_args}")
+    finally:
+        torch.set_num_threads(threads)
+        context.try_shutdown()

@@ -6,7 +6,7 @@ from uav_common.actions import PAPER_ACTIONS, match_action
 from uav_common.frame_stack import FrameStack
 from uav_policy.agent import Agent
 from uav_policy.attention import attention_map, overlay
-from uav_policy.networks import NetConfig, QEnsemble, build_network, normalise_depth, parameter_count
+from uav_policy.networks import NetConfig, QEnsemble, build_network, forward_flops, normalise_depth, parameter_count
 
 
 def depth_batch(b=3, seed=0):
@@ -203,3 +203,16 @@ def test_actions_round_trip_from_twist():
     for i, a in enumerate(PAPER_ACTIONS):
         assert match_action(PAPER_ACTIONS, a.linear_x_mps, a.yaw_rate_radps(0.5), 0.5) == i
     assert match_action(PAPER_ACTIONS, 1.5, 0.0, 0.5) is None
+
+
+def test_forward_flops_price_an_architecture_without_building_it():
+    """Counted on the meta device: the cost grows with the nodes squared (attention) and with the layers; the
+    conv trunk's first layer alone is 64 x 32 x 32 outputs x 5 x 4 x 4 inputs x 2 (multiply and add)."""
+    small = forward_flops(NetConfig(model="sam"))
+    assert forward_flops(NetConfig(model="cnn", conv_channels=(16,), cnn_hidden=1, head_hidden=1)) > 2 * 16 * 32 * 32 * 5 * 16
+    nodes_x4 = forward_flops(NetConfig(model="sam", conv_channels=(16, 32)))  # 16 x 16 nodes, not 8 x 8
+    assert 2 * small < nodes_x4 < 10 * small
+    heavy = NetConfig(model="sam", conv_channels=(16,), d_model=384, heads=6, relational_blocks=2, mlp_hidden=96)
+    assert forward_flops(heavy) > 400 * small
+    with pytest.raises(ValueError):
+        forward_flops(NetConfig(model="sam", d_model=50))  # not divisible by the heads: refused, as build_network does

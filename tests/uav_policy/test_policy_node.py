@@ -15,10 +15,11 @@ from safetensors.torch import save as st_save
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
-from conftest import deep_qos, run_to_exit
+from conftest import deep_qos, run_to_exit, start_up_error
 from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
+from uav_policy.policy_node import PolicyNode
 from uav_policy.push import load_key, push_request, write_key
 
 SAM = NetConfig(model="sam")
@@ -180,6 +181,9 @@ def send_push(ros, request, timeout_s=30.0):
     return fut.result().results[0]
 
 
+HEAVY = NetConfig(model="sam", conv_channels=(16,), d_model=384, heads=6, relational_blocks=2, mlp_hidden=96)
+
+
 def forcing_action(index: int, camera_hfov_deg: float | None = None, cfg: NetConfig = SAM, margin: float = 5.0) -> bytes:
     """Weights whose advantage stream always prefers `index` (by `margin` over the other actions)."""
     net = build_network(cfg, seed=0)
@@ -251,12 +255,17 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
         "non-finite": st_save(dict(tensors, **{name: torch.full_like(tensors[name], float("inf"))}), metadata=meta),
         "other architecture": forcing_action_cnn(),
         "hostile camera entry": st_save(tensors, metadata=dict(meta, camera_hfov_deg="__import__('os')")),
+        # 1,024 nodes, 6 heads, 2 blocks: about 500 times the flown network's operations a frame (6 GFLOP).
+        "over the control period": wio.to_bytes(build_network(HEAVY, seed=0), HEAVY),
     }
+    reasons = {}
     for label, blob in bad_pushes.items():
         before = len(w.actions)
         r = call_push(ros, blob)
         assert not r.successful and r.reason, f"{label} push was accepted"
+        reasons[label] = r.reason
         assert ros.spin_until(lambda b=before: len(w.actions) > b + 5, 10), f"control stalled after the {label} push"
+    assert "control period (control_rate_hz)" in reasons["over the control period"], reasons
     assert proc.poll() is None
     assert any(m.twist.linear.x != 2.0 for m in w.actions[-20:]), "the random net should not always pick a3"
     r = call_push(ros, good)
@@ -281,23 +290,24 @@ def forcing_action_cnn() -> bytes:
 
 
 def test_policy_start_up_errors(tmp_path):
+    # The process's exit path once; the other bad parameters with the node built in this process.
     r = run_to_exit("uav_policy", "policy_node", "-p", "model:=transformer")
-    assert r.returncode == 2 and "parameter 'model'" in r.stderr
-    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={tmp_path / 'missing.safetensors'}")
-    assert r.returncode == 2 and "parameter 'weights'" in r.stderr and "cannot read" in r.stderr
+    assert r.returncode == 2 and "[FATAL] parameter 'model'" in r.stderr and "Traceback" not in r.stderr
+    err = start_up_error(PolicyNode, "-p", f"weights:={tmp_path / 'missing.safetensors'}")
+    assert "parameter 'weights'" in err and "cannot read" in err
     cnn = tmp_path / "cnn.safetensors"
     cnn.write_bytes(forcing_action_cnn())
-    r = run_to_exit("uav_policy", "policy_node", "-p", "model:=sam", "-p", f"weights:={cnn}")
-    assert r.returncode == 2 and "model 'cnn'" in r.stderr and "runs model 'sam'" in r.stderr
+    err = start_up_error(PolicyNode, "-p", "model:=sam", "-p", f"weights:={cnn}")
+    assert "model 'cnn'" in err and "runs model 'sam'" in err
     big, cfg84 = tmp_path / "sam84.safetensors", NetConfig(model="sam", height=84, width=84)
     wio.save_file(build_network(cfg84, seed=0), cfg84, big)
-    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={big}")
-    assert r.returncode == 2 and "parameter 'weights'" in r.stderr and "set input_height:=84 input_width:=84" in r.stderr
+    err = start_up_error(PolicyNode, "-p", f"weights:={big}")
+    assert "parameter 'weights'" in err and "set input_height:=84 input_width:=84" in err
     deep, cfg10 = tmp_path / "sam10.safetensors", NetConfig(model="sam", frames=10)
     wio.save_file(build_network(cfg10, seed=0), cfg10, deep)
-    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={deep}")
-    assert r.returncode == 2 and "the file stacks 10 frames: set frame_stack:=10" in r.stderr
-    assert "input_height" not in r.stderr.split("parameter 'weights'")[1]
+    err = start_up_error(PolicyNode, "-p", f"weights:={deep}")
+    assert "the file stacks 10 frames: set frame_stack:=10" in err
+    assert "input_height" not in err.split("parameter 'weights'")[1]
     # A list of files (an ensemble) must share the model, the layer sizes and the camera.
     sam90, sam120 = tmp_path / "sam90.safetensors", tmp_path / "sam120.safetensors"
     sam90.write_bytes(forcing_action(0, camera_hfov_deg=90.0))
@@ -308,16 +318,16 @@ def test_policy_start_up_errors(tmp_path):
         ([sam90, sam120], "different cameras (90 deg, 120 deg)"),
         ([sam120, tmp_path / "missing.safetensors"], "cannot read"),
     ):
-        r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={','.join(map(str, files))}")
-        assert r.returncode == 2 and "parameter 'weights'" in r.stderr and says in r.stderr, (files, r.stderr[-500:])
-    r = run_to_exit("uav_policy", "policy_node", "-p", f"weights:={sam90},,{sam90}")
-    assert r.returncode == 2 and "parameter 'weights': an empty file name in the list" in r.stderr
-    r = run_to_exit("uav_policy", "policy_node", "-p", "sam_readout:=mean")
-    assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
-    r = run_to_exit("uav_policy", "policy_node", "-p", "ensemble_rule:=median")
-    assert r.returncode == 2 and "parameter 'ensemble_rule' was removed" in r.stderr
-    r = run_to_exit("uav_policy", "policy_node", "-p", "epsilon:=1.5")
-    assert r.returncode == 2 and "epsilon" in r.stderr
+        err = start_up_error(PolicyNode, "-p", f"weights:={','.join(map(str, files))}")
+        assert "parameter 'weights'" in err and says in err, (files, err[-500:])
+    err = start_up_error(PolicyNode, "-p", f"weights:={sam90},,{sam90}")
+    assert "parameter 'weights': an empty file name in the list" in err
+    err = start_up_error(PolicyNode, "-p", "sam_readout:=mean")
+    assert "parameter 'sam_readout'" in err
+    err = start_up_error(PolicyNode, "-p", "ensemble_rule:=median")
+    assert "parameter 'ensemble_rule' was removed" in err
+    err = start_up_error(PolicyNode, "-p", "epsilon:=1.5")
+    assert "epsilon" in err
 
 
 def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):

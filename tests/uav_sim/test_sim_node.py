@@ -11,8 +11,9 @@ from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Range
 
-from conftest import deep_qos, run_to_exit
+from conftest import deep_qos, run_to_exit, start_up_error
 from uav_common import contract
+from uav_sim.sim_node import SimNode
 
 
 class Recorder:
@@ -130,9 +131,10 @@ def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
     assert abs(odom.pose.pose.position.x - (-6.0)) < 1e-6 and abs(odom.pose.pose.position.y) < 1e-6
 
 
-def test_time_limit_ends_episodes_with_a_nan_outcome(ros):
+def test_time_limit_ends_episodes_with_a_nan_outcome_and_the_step_budget_holds_the_last_frame(ros):
     rec = Recorder(ros)
-    proc = ros.start("uav_sim", "sim_node", "-p", "max_episode_steps:=3", "-p", "lockstep_republish_s:=0.3")
+    budget = ("-p", "step_budget:=7")
+    proc = ros.start("uav_sim", "sim_node", "-p", "max_episode_steps:=3", "-p", "lockstep_republish_s:=0.3", *budget)
     assert rec.ready(ros), ros.log_of(proc)
     for _ in range(7):  # basic: 14 m of open room ahead; 0.5 m per step
         n = len(rec.distinct_frames())
@@ -146,6 +148,10 @@ def test_time_limit_ends_episodes_with_a_nan_outcome(ros):
     assert not any(contract.outcome_collided(by_stamp[s]) for s in stamps)
     assert [odom[s] for s in stamps] == pytest.approx([-6.0, -5.5, -5.0, -6.0, -5.5, -5.0, -6.0, -5.5])
     assert "time limit: episode 0 ended after 3 steps" in ros.log_of(proc)
+    rec.cmd.publish(twist(vx=1.0))  # one past the budget: taken, not flown
+    assert ros.spin_until(lambda: "step budget of 7 steps flown: holding the last frame" in ros.log_of(proc), 10)
+    ros.spin_for(0.5)  # a republish of the held frame may arrive: it carries the same stamp
+    assert len(rec.distinct_frames()) == 8
 
 
 def test_random_each_episode_flies_a_new_layout_after_every_crash(ros):
@@ -251,20 +257,22 @@ def test_realtime_watchdog_stops_the_vehicle(ros):
 
 
 def test_bad_parameters_fail_at_start_with_a_clear_message(tmp_path):
+    # The process's exit path once; the other bad parameters with the node built in this process.
     r = run_to_exit("uav_sim", "sim_node", "-p", "world:=atlantis")
-    assert r.returncode == 2 and "parameter 'world'" in r.stderr and "atlantis" in r.stderr
+    assert r.returncode == 2 and "[FATAL] parameter 'world'" in r.stderr and "atlantis" in r.stderr
+    assert "Traceback" not in r.stderr
     bad = tmp_path / "bad.yaml"
     bad.write_text("format: uav_sim_world/1\nroom: {length_m: -3}\n")
-    r = run_to_exit("uav_sim", "sim_node", "-p", f"world:={bad}")
-    assert r.returncode == 2 and "length_m" in r.stderr
-    r = run_to_exit("uav_sim", "sim_node", "-p", "mode:=warp")
-    assert r.returncode == 2 and "parameter 'mode'" in r.stderr
-    r = run_to_exit("uav_sim", "sim_node", "-p", "max_range_m:=1000.0")
-    assert r.returncode == 2 and "max_range_m" in r.stderr
-    r = run_to_exit("uav_sim", "sim_node", "-p", "max_episode_steps:=-1")
-    assert r.returncode == 2 and "max_episode_steps" in r.stderr
-    r = run_to_exit("uav_sim", "sim_node", "-p", "random_start_fraction:=1.5")
-    assert r.returncode == 2 and "random_start_fraction" in r.stderr
+    err = start_up_error(SimNode, "-p", f"world:={bad}")
+    assert "length_m" in err
+    err = start_up_error(SimNode, "-p", "mode:=warp")
+    assert "parameter 'mode'" in err
+    err = start_up_error(SimNode, "-p", "max_range_m:=1000.0")
+    assert "max_range_m" in err
+    err = start_up_error(SimNode, "-p", "max_episode_steps:=-1")
+    assert "max_episode_steps" in err
+    err = start_up_error(SimNode, "-p", "random_start_fraction:=1.5")
+    assert "random_start_fraction" in err
 
 
 def test_params_file_is_accepted(ros):
@@ -305,8 +313,8 @@ def test_mix_world_every_flies_the_mixed_world_between_layouts(ros):
     ],
 )
 def test_bad_mix_world_parameters_fail_at_start_up(args, message):
-    p = run_to_exit("uav_sim", "sim_node", *[x for a in args for x in ("-p", a)])
-    assert p.returncode == 2 and message in p.stderr, p.stderr
+    err = start_up_error(SimNode, *[x for a in args for x in ("-p", a)])
+    assert message in err, err
 
 
 def test_world_markers_match_the_world_file_and_frames_carry_the_namespace(ros):

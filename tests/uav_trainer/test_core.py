@@ -50,60 +50,77 @@ def test_replay_wraparound_never_mixes_overwritten_history():
             assert np.all(np.diff(seq) == 1), f"stack {seq} is not consecutive"
 
 
-def filled_memory(capacity: int, steps: int) -> ReplayMemory:
-    mem = ReplayMemory(capacity=capacity, frame_shape=(4, 4), frames=5, seed=3)
+def journaled(mem: ReplayMemory, every: int, steps: int, prune: bool = True) -> list:
+    """Fill `mem` to `steps` frames, taking a journal segment every `every` writes and at the end, as
+    checkpoints do; segments the memory has overwritten since are dropped (`prune`), as
+    checkpoint.prune_journal does."""
+    segments, journaled = [], 0
     mem.add_first(frame(0))
     for v in range(1, steps):
         mem.add_transition(v % 4, float(v), v % 7 == 6, frame(v))
-    return mem
+        if mem.writes % every == 0 or v == steps - 1:
+            segments.append(mem.segment(journaled))
+            journaled = mem.writes
+            segments = [g for g in segments if g["span"][1] > mem.writes - mem.capacity or not prune]
+    return segments
+
+
+def same_batches(a: ReplayMemory, b: ReplayMemory) -> None:
+    assert (a.cursor, a.count, a.writes, len(a)) == (b.cursor, b.count, b.writes, len(b))
+    for _ in range(3):
+        x, y = a.sample(16), b.sample(16)
+        assert x.keys() == y.keys()
+        for k in x:
+            np.testing.assert_array_equal(x[k], y[k], err_msg=k)
 
 
 @pytest.mark.parametrize("steps", [6, 30])  # partly filled; wrapped around
-def test_replay_state_round_trip_samples_the_same_batches(steps):
-    mem = filled_memory(10, steps)
-    state = mem.state()
-    assert state["frame"].shape == (min(steps, 10), 4, 4)  # only filled slots are written
+def test_the_replay_journal_rebuilds_the_memory_that_samples_the_same_batches(steps):
+    mem = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
+    segments = journaled(mem, 4, steps)
+    assert sum(len(g["action"]) for g in segments) <= steps + len(segments)  # each frame once (and one overlap)
     copy = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
-    copy.load_state(state, n_actions=4)
-    assert (copy.cursor, copy.count, copy.transitions_added) == (mem.cursor, mem.count, mem.transitions_added)
-    for _ in range(3):
-        a, b = mem.sample(16), copy.sample(16)
-        assert a.keys() == b.keys()
-        for k in a:
-            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
-    # A memory saved by the prioritized replay that was retired still loads (its extra arrays ignored).
-    old = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
-    n = state["action"].shape[0]
-    old.load_state({**state, "priority": np.ones(n), "writes": np.ones(n, np.int64), "max_priority": np.ones(1)}, 4)
-    assert old.count == mem.count
+    copy.load_segments(segments, mem.writes, n_actions=4)
+    same_batches(mem, copy)
+    # As it was at an earlier write (the journal ran on past a checkpoint that did not become latest).
+    upto = steps - 3
+    earlier = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
+    journaled(earlier, 4, upto)
+    copy = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
+    copy.load_segments(journaled(ReplayMemory(10, (4, 4), 5), 4, steps, prune=False), upto, n_actions=4)
+    same_batches(earlier, copy)
 
 
-def test_replay_state_that_does_not_fit_or_holds_impossible_values_is_refused_and_changes_nothing():
-    mem = filled_memory(10, 30)
+def test_a_replay_journal_that_does_not_fit_holds_impossible_values_or_a_gap_is_refused_and_changes_nothing():
+    mem = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5, seed=3)
+    segments = journaled(mem, 4, 30)
+    last = segments[-1]
+    n = len(last["action"])
 
     def spoiled(**kw):
-        st = mem.state()
-        st.update(kw)
-        return st
+        return segments[:-1] + [{**last, **kw}]
 
     bad = [
-        (ReplayMemory(capacity=12, frame_shape=(4, 4), frames=5), mem.state(), "capacity"),
-        (ReplayMemory(capacity=10, frame_shape=(4, 5), frames=5), mem.state(), "capacity"),
-        (None, spoiled(action=np.full(10, 4, dtype=np.int64)), "actions outside"),
-        (None, spoiled(frame=np.full((10, 4, 4), np.nan, dtype=np.float16)), "NaN"),
-        (None, spoiled(reward=np.ones(9, dtype=np.float32)), "'reward'"),
-        (None, spoiled(reward=np.full(10, np.inf, dtype=np.float32)), "non-finite"),
-        (None, spoiled(header=np.array([10, 5, 4, 4, 10, 10, 29], dtype=np.int64)), "counters"),
-        (None, {k: v for k, v in mem.state().items() if k != "header"}, "header"),
+        (ReplayMemory(capacity=12, frame_shape=(4, 4), frames=5), segments, "capacity"),
+        (ReplayMemory(capacity=10, frame_shape=(4, 5), frames=5), segments, "capacity"),
+        (None, spoiled(action=np.full(n, 4, dtype=np.int64)), "actions outside"),
+        (None, spoiled(frame=np.full((n, 4, 4), np.nan, dtype=np.float16)), "NaN"),
+        (None, spoiled(reward=np.ones(n - 1, dtype=np.float32)), "'reward'"),
+        (None, spoiled(reward=np.full(n, np.inf, dtype=np.float32)), "non-finite"),
+        (None, spoiled(span=np.array([5, 2], dtype=np.int64)), "span"),
+        (None, segments[:1] + segments[2:], "misses writes"),
+        (None, segments[-1:], "starts at write"),
     ]
-    for target, state, words in bad:
+    for target, segs, words in bad:
         if target is None:  # (an empty memory is falsy: it has no transitions)
             target = ReplayMemory(capacity=10, frame_shape=(4, 4), frames=5)
-        before = target.state()
+            target.load_segments(journaled(ReplayMemory(10, (4, 4), 5), 3, 8), 8, n_actions=4)
+        before = {k: getattr(target, k).copy() for k in ReplayMemory.SLOT_ARRAYS}
+        counters = (target.cursor, target.count, target.writes)
         with pytest.raises(ValueError, match=words):
-            target.load_state(state, n_actions=4)
-        after = target.state()
-        assert all(np.array_equal(before[k], after[k]) for k in before)
+            target.load_segments(segs, 30, n_actions=4)
+        assert all(np.array_equal(before[k], getattr(target, k)) for k in before)
+        assert (target.cursor, target.count, target.writes) == counters
 
 
 def test_double_dqn_target_hand_computed():

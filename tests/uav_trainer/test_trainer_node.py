@@ -8,11 +8,12 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 
-from conftest import ROOT, deep_qos, executable, run_to_exit
+from conftest import ROOT, deep_qos, executable, start_up_error
 from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_trainer.flights import ENSEMBLE_SEP, evaluate_once
+from uav_trainer.trainer_node import TrainerNode
 from uav_trainer.training import snapshot_steps
 
 SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
@@ -46,7 +47,7 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     policy = ros.start("uav_policy", "policy_node", *pushes_signed_in(run_dir))
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
-    ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 2000, 300)
+    ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 1000, 300)
     assert ok, ros.log_of(trainer)[-2000:]
     ros.stop(policy)  # the lockstep loop halts; let the trainer drain what is in flight
     ros.spin_for(2.0)
@@ -251,8 +252,8 @@ def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_nam
         (("-p", "save_weights_every_steps:=100"), "'save_weights_every_steps' was removed: use 'snapshots'"),
         (("-p", "lockstep_learning:=false"), "'lockstep_learning' was removed: trainer_node always learns in lockstep"),
     ):
-        r = run_to_exit("uav_trainer", "trainer_node", *args)
-        assert r.returncode == 2 and what in r.stderr, (args, r.stderr[-500:])
+        err = start_up_error(TrainerNode, *args)
+        assert what in err, (args, err[-500:])
 
 
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
@@ -268,27 +269,27 @@ def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_s
 
 
 def test_trainer_rejects_bad_parameters():
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "replay_ratio:=-1.0")
-    assert r.returncode == 2 and "replay_ratio" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "model:=rnn")
-    assert r.returncode == 2 and "parameter 'model'" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "sam_readout:=avg")
-    assert r.returncode == 2 and "parameter 'sam_readout'" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "action_linear_x_mps:=[1.0, 2.0]")
-    assert r.returncode == 2 and "action" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "d_model:=50")
-    assert r.returncode == 2 and "parameter 'd_model' (50) must be divisible by 'heads' (3)" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "conv_channels:=[16, 32, 32, 32, 32, 32, 32]")
-    assert r.returncode == 2 and "parameter 'conv_channels'=[16, 32, 32, 32, 32, 32, 32]: 7 conv layers" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "conv_channels:=16")
-    assert r.returncode == 2 and "parameter 'conv_channels'" in r.stderr and "INTEGER_ARRAY" in r.stderr
+    err = start_up_error(TrainerNode, "-p", "replay_ratio:=-1.0")
+    assert "replay_ratio" in err
+    err = start_up_error(TrainerNode, "-p", "model:=rnn")
+    assert "parameter 'model'" in err
+    err = start_up_error(TrainerNode, "-p", "sam_readout:=avg")
+    assert "parameter 'sam_readout'" in err
+    err = start_up_error(TrainerNode, "-p", "action_linear_x_mps:=[1.0, 2.0]")
+    assert "action" in err
+    err = start_up_error(TrainerNode, "-p", "d_model:=50")
+    assert "parameter 'd_model' (50) must be divisible by 'heads' (3)" in err
+    err = start_up_error(TrainerNode, "-p", "conv_channels:=[16, 32, 32, 32, 32, 32, 32]")
+    assert "parameter 'conv_channels'=[16, 32, 32, 32, 32, 32, 32]: 7 conv layers" in err
+    err = start_up_error(TrainerNode, "-p", "conv_channels:=16")
+    assert "parameter 'conv_channels'" in err and "INTEGER_ARRAY" in err
     for retired in ("n_step:=3", "priority_alpha:=0.6", "augment_shift_px:=2", "ema_decay:=0.99", "clearance_m:=1.0"):
-        r = run_to_exit("uav_trainer", "trainer_node", "-p", retired)
-        assert r.returncode == 2 and f"parameter '{retired.split(':=')[0]}' was removed" in r.stderr, r.stderr[-500:]
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "relational_blocks:=0")
-    assert r.returncode == 2 and "relational_blocks" in r.stderr
-    r = run_to_exit("uav_trainer", "trainer_node", "-p", "model:=cnn", "-p", "mlp_hidden:=192")
-    assert r.returncode == 2 and "['mlp_hidden'] size SAM's relational module; model 'cnn' has none" in r.stderr
+        err = start_up_error(TrainerNode, "-p", retired)
+        assert f"parameter '{retired.split(':=')[0]}' was removed" in err, err[-500:]
+    err = start_up_error(TrainerNode, "-p", "relational_blocks:=0")
+    assert "relational_blocks" in err
+    err = start_up_error(TrainerNode, "-p", "model:=cnn", "-p", "mlp_hidden:=192")
+    assert "['mlp_hidden'] size SAM's relational module; model 'cnn' has none" in err
 
 
 def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):

@@ -1,9 +1,11 @@
 import dataclasses
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
+import safetensors.numpy
 import torch
 
 from conftest import run_to_exit
@@ -69,9 +71,10 @@ def test_training_writes_outputs_and_resumes(tmp_path):
     assert again.epsilon() == t.epsilon()
     for a, b in zip(t.learner.online.parameters(), again.learner.online.parameters(), strict=True):
         torch.testing.assert_close(a, b)
-    # The fresh replay must refill before learning continues.
-    feed(again, 40, seed=1)
-    assert not again.can_learn()
+    # Every checkpoint journals the replay memory: it is back, and learning goes on at once.
+    assert len(again.replay) == len(t.replay) and not again.can_learn()  # 35 updates for 120 steps: all made
+    feed(again, 2, seed=1)
+    assert again.can_learn()
     again.close()
     # Every start records the machine: a seeded run is bit-exact only on the same kind of processor.
     starts = [json.loads(line) for line in (tmp_path / "machine.jsonl").read_text().splitlines()]
@@ -80,13 +83,21 @@ def test_training_writes_outputs_and_resumes(tmp_path):
     assert starts[1]["processor"] and starts[1]["torch_threads"] == torch.get_num_threads()
 
 
+def journal(t: Training) -> list:
+    return sorted((t.checkpoint_dir / checkpoint.JOURNAL_DIR).glob("seg-*.safetensors"))
+
+
 def test_a_stop_keeps_the_replay_memory_and_a_resume_learns_on_at_once(tmp_path):
     t = Training(small_cfg(), tmp_path, log=lambda s: None)
-    feed(t, 120)
-    while t.learn_once():
-        pass
+    for k in range(6):  # a checkpoint every 10 updates, each with the frames since the one before
+        feed(t, 20, seed=10 + k)
+        while t.learn_once():
+            pass
     path = t.save_checkpoint(final=True)
-    assert (path / checkpoint.REPLAY_FILE).is_file()
+    assert len(journal(t)) >= 3 and not (path / checkpoint.SEGMENT_FILE).exists()
+    spans = [tuple(int(v) for v in safetensors.numpy.load_file(str(f))["span"]) for f in journal(t)]
+    assert spans[0][0] == 0 and spans[-1][1] == t.replay.writes == 6 * 21
+    assert all(b[0] == a[1] - 1 for a, b in zip(spans, spans[1:], strict=False)), spans  # each frame once, and the one before
     t.close()
     logs = []
     again = Training(small_cfg(), tmp_path, log=logs.append, resume=True)
@@ -101,27 +112,69 @@ def test_a_stop_keeps_the_replay_memory_and_a_resume_learns_on_at_once(tmp_path)
     while again.learn_once():
         done += 1
     assert done == 5 and again.learner.updates == 40
-    # A newer checkpoint removes the older one's replay file (400 MiB when full), keeping the checkpoint.
-    newer = again.save_checkpoint()
-    assert not (path / checkpoint.REPLAY_FILE).exists() and (path / "state.safetensors").is_file()
-    assert not (newer / checkpoint.REPLAY_FILE).exists()
     again.close()
 
 
-def test_the_replay_memory_is_not_written_after_the_budget_or_when_switched_off_and_a_bad_one_is_skipped(tmp_path):
+def test_a_killed_run_resumes_from_the_journal_and_learns_on_at_once(tmp_path):
+    """SIGKILL: no final checkpoint. The last periodic one (every 10 updates here, at least every 120 s in
+    a run) and its journal bring back the memory it had seen; only the steps after it are lost."""
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(t, 120)
+    while t.learn_once():
+        pass
+    kept = checkpoint.latest(t.checkpoint_dir)
+    assert t.learner.updates == 35 and kept.name.startswith("ckpt-000000030")
+    at_checkpoint = checkpoint.read_meta(kept)[0]["counters"]["replay_writes"]
+    feed(t, 7, seed=2)  # lost with the process
+    logs = []
+    again = Training(small_cfg(), tmp_path, log=logs.append, resume=True)
+    assert again.replay.writes == at_checkpoint and again.env_steps == at_checkpoint - 1
+    assert any(f"replay memory restored: {len(again.replay)} transitions" in line for line in logs), logs
+    assert again.learner.updates == 30 and again.can_learn()  # no refill: learning goes on at once
+    feed(again, 10, seed=1)
+    done = 0
+    while again.learn_once():
+        done += 1
+    assert done == 5 + 5, "the replay ratio from the checkpoint on: 30 + 0.5 x (110 - 50 + 10) - 30"
+    again.close()
+
+
+def test_a_fresh_run_beside_an_earlier_runs_checkpoints_keeps_its_own(tmp_path):
+    """An earlier run's checkpoints in the folder (a start without resume) may be named higher: the newest
+    checkpoint is kept all the same, `latest` names it and its replay segment joins the journal."""
+    for n in (7, 8, 9):
+        (tmp_path / "checkpoints" / f"ckpt-00000999{n}-000099999").mkdir(parents=True)
+    t = Training(small_cfg(), tmp_path, log=lambda s: None)
+    feed(t, 60)
+    t.learn_once()
+    path = t.save_checkpoint()
+    assert checkpoint.latest(t.checkpoint_dir) == path and (path / "state.safetensors").is_file()
+    assert [f.name for f in journal(t)] == ["seg-000000000000-000000000061.safetensors"]
+    assert len(list(t.checkpoint_dir.glob("ckpt-*"))) == checkpoint.KEEP
+    t.close()
+
+
+def test_the_replay_journal_goes_after_the_budget_or_when_switched_off_and_a_bad_one_is_dropped(tmp_path):
     for name, cfg in (("budget", small_cfg(total_steps=100)), ("off", small_cfg(save_replay=False))):
         t = Training(cfg, tmp_path / name, log=lambda s: None)
         feed(t, 120)
-        assert not (t.save_checkpoint(final=True) / checkpoint.REPLAY_FILE).exists(), name
+        while t.learn_once():
+            pass
+        t.save_checkpoint(final=True)
+        assert not journal(t), name
         t.close()
     t = Training(small_cfg(), tmp_path / "bad", log=lambda s: None)
     feed(t, 120)
-    (t.save_checkpoint(final=True) / checkpoint.REPLAY_FILE).write_bytes(b"\xff" * 64)  # corrupt on disk
+    while t.learn_once():
+        pass
+    t.save_checkpoint(final=True)
+    journal(t)[0].write_bytes(b"\xff" * 64)  # corrupt on disk
     t.close()
     logs = []
     again = Training(small_cfg(), tmp_path / "bad", log=logs.append, resume=True)
     assert any("replay memory not restored" in line and "unreadable" in line for line in logs), logs
     assert len(again.replay) == 0 and again.env_steps == 120  # the checkpoint itself is still resumed
+    assert not journal(again), "a broken journal is dropped: the refilled memory journals afresh"
     again.close()
 
 
@@ -511,19 +564,23 @@ def test_a_checkpoint_the_disk_refuses_keeps_the_last_one_and_training_goes_on(t
 
 
 def test_a_final_checkpoint_whose_replay_does_not_fit_is_written_without_it(tmp_path, monkeypatch):
-    import safetensors.numpy
-
     logs = []
     t = Training(small_cfg(), tmp_path, log=logs.append)
     feed(t, 120)
     while t.learn_once():
         pass
-    monkeypatch.setattr(safetensors.numpy, "save_file", no_space)  # the replay arrays are what does not fit
+    feed(t, 5, seed=3)  # frames the periodic checkpoints have not journaled
+    monkeypatch.setattr(safetensors.numpy, "save_file", no_space)  # the replay segment is what does not fit
     path = t.save_checkpoint(final=True)
-    assert path is not None and (path / "state.safetensors").is_file() and not (path / checkpoint.REPLAY_FILE).exists()
+    assert path is not None and (path / "state.safetensors").is_file() and not (path / checkpoint.SEGMENT_FILE).exists()
     assert checkpoint.latest(t.checkpoint_dir) == path and t.checkpoint_failures == 0
     assert any("writing it without" in line for line in logs), logs
+    monkeypatch.undo()
+    t.save_checkpoint()  # space again: this one carries the frames the refused segment held
     t.close()
+    again = Training(small_cfg(), tmp_path, log=logs.append, resume=True)
+    assert again.replay.writes == t.replay.writes and len(again.replay) == len(t.replay) > 0
+    again.close()
 
 
 def test_a_checkpoint_comes_by_time_too_and_stale_unfinished_ones_are_removed_at_start(tmp_path):
@@ -548,15 +605,16 @@ def test_an_unwritable_run_folder_is_refused_in_one_line(tmp_path):
 
 
 def test_a_resume_with_too_few_stored_transitions_refills_without_a_burst_of_updates(tmp_path):
-    """A memory smaller than learning_starts (here collected since an earlier crash lost the rest) is refilled,
-    then learning goes on at replay_ratio: no burst of the updates the pause did not make, which would have
-    stalled lockstep acting."""
+    """A memory smaller than learning_starts (here collected since a crash that lost the journal too) is
+    refilled, then learning goes on at replay_ratio: no burst of the updates the pause did not make, which
+    would have stalled lockstep acting."""
     a = Training(small_cfg(), tmp_path, log=lambda s: None)
     feed(a, 120)
     while a.learn_once():
         pass
-    a.save_checkpoint()  # periodic: without the memory (a crash after it loses the memory)
+    a.save_checkpoint()
     a.close()
+    shutil.rmtree(a.checkpoint_dir / checkpoint.JOURNAL_DIR)  # lost with the crash
     b = Training(small_cfg(), tmp_path, log=lambda s: None, resume=True)
     feed(b, 20, seed=1)
     b.save_checkpoint(final=True)  # a stop: its memory holds only the 20 transitions since the crash

@@ -30,6 +30,7 @@ side (B, members x heads, nodes, nodes).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 
@@ -338,6 +339,20 @@ def build_network(cfg: NetConfig, seed: int | None = None) -> nn.Module:
     finally:
         if seed is not None:
             torch.random.set_rng_state(gen_state)
+
+
+@functools.lru_cache(maxsize=64)
+def forward_flops(cfg: NetConfig) -> int:
+    """Floating-point operations of one forward pass on one state, counted on the meta device: nothing of
+    the network is allocated, so an architecture is priced before it is built (a pushed one, say)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    cfg.validate()
+    with torch.device("meta"):
+        net = D3QNSam(cfg) if cfg.model == "sam" else D3QNCnn(cfg)
+        with FlopCounterMode(display=False) as counter:
+            net(torch.zeros(1, cfg.frames, cfg.height, cfg.width))
+    return int(counter.get_total_flops())
 
 
 def parameter_count(net: nn.Module) -> int:

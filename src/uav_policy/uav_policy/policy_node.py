@@ -44,7 +44,7 @@ from .agent import Agent, resolve_device
 from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
 from .insight import Insight, explanation
-from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
+from .networks import SIZE_FIELDS, NetConfig, QEnsemble, forward_flops, parameter_count
 from .push import ReleaseGate, load_key, read_push, verify
 from .safety import SafetyLayer
 
@@ -52,8 +52,8 @@ CAMERA_INFO_WAIT_S = 2.0  # how long frames wait for their first CameraInfo (see
 
 
 class PolicyNode(Node):
-    def __init__(self):
-        super().__init__("policy_node")
+    def __init__(self, **node_options):  # e.g. context=: built in a test's own context
+        super().__init__("policy_node", **node_options)
         st = declare_settings(self, PolicySettings, RETIRED)
         model, seed = st.model, st.seed
         self.epsilon = st.epsilon
@@ -110,6 +110,7 @@ class PolicyNode(Node):
         self.frame_timeout_s = st.safety.frame_timeout_s
         self.control_period_s = 1.0 / st.control_rate_hz
         self.agent = Agent(net, self.cfg, device, seed)
+        self.seconds_per_flop = self._seconds_per_flop() if st.accept_pushes else 0.0
 
         q = contract.STREAM_QOS
         self.pub_cmd = self.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
@@ -581,6 +582,7 @@ class PolicyNode(Node):
                 raise ValueError(result.reason)
             blob = push.weights
             if blob is not None:
+                self._check_cost(blob)
                 # The trainer owns the layer sizes: a push may bring others (the interface must match).
                 load = lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True)  # noqa: E731
                 # A release is awaited by the frame it releases, so it loads here (a few ms): a worker thread's
@@ -606,6 +608,32 @@ class PolicyNode(Node):
                 self._act(joined["frame"], joined["outcome"], time.perf_counter())
         response.results = [result]
         return response
+
+    def _seconds_per_flop(self) -> float:
+        """This machine's inference time per floating-point operation, timed on the network flown at start
+        (the best of five passes): what prices a pushed architecture against the control period."""
+        net = self.agent.net
+        members = len(net.members) if isinstance(net, QEnsemble) else 1
+        state = np.zeros((self.cfg.frames, self.cfg.height, self.cfg.width), np.float32)
+        self.agent.q_values(state)  # warm-up
+        best = math.inf
+        for _ in range(5):
+            t0 = time.perf_counter()
+            self.agent.q_values(state)
+            best = min(best, time.perf_counter() - t0)
+        return best / (members * forward_flops(net.cfg))
+
+    def _check_cost(self, blob: bytes) -> None:
+        """Refuse (ValueError) weights whose architecture would not answer within the control period here,
+        priced from the blob's header before anything of the network is built."""
+        cfg = wio.with_sizes_of(self.cfg, wio.read_header_config(blob))
+        flops = forward_flops(cfg)
+        seconds = flops * self.seconds_per_flop
+        if seconds > self.control_period_s:
+            raise ValueError(
+                f"the pushed architecture ({flops / 1e6:.0f} MFLOP a frame) would take about {1e3 * seconds:.0f} ms a "
+                f"frame here, more than the {1e3 * self.control_period_s:.0f} ms control period (control_rate_hz)"
+            )
 
     def _swap_in(self, net: torch.nn.Module, blob: bytes) -> None:
         replaced = self.agent.net

@@ -67,6 +67,13 @@ class SimNodeSettings:
         0,
         100,
     )
+    step_budget: int = setting(
+        0,
+        "lockstep: steps flown before the simulator holds its last frame and takes no more commands (evaluate sets "
+        "it: a measurement of N steps flies exactly N); 0 = no limit",
+        0,
+        10**9,
+    )
     camera_frame_id: str = setting(
         "camera_depth_optical_frame", "frame of depth and camera_info (REP 118); prefixed with the namespace"
     )
@@ -82,14 +89,15 @@ class SimNodeSettings:
 
 
 class SimNode(Node):
-    def __init__(self):
-        super().__init__("sim_node")
+    def __init__(self, **node_options):  # e.g. context=: built in a test's own context
+        super().__init__("sim_node", **node_options)
         st = declare_settings(self, SimNodeSettings, REMOVED)
         cfg = st.sim
         self.mode = st.mode
         self.watchdog_s = st.watchdog_timeout_s
         self.republish_s = st.lockstep_republish_s
         self.wait_for_subscribers = st.wait_for_subscribers
+        self.step_budget = st.step_budget
         ns = self.get_namespace()
         self.frame_id, self.odom_frame, self.base_frame = (
             contract.vehicle_frame(ns, f) for f in (st.camera_frame_id, st.odom_frame_id, st.base_frame_id)
@@ -129,7 +137,7 @@ class SimNode(Node):
 
         self.rejected = 0
         self.commands_lost = 0  # gaps in the publisher's sequence numbers (one publisher on cmd_vel)
-        self.commands_ignored = 0  # came while the first frame was held (wait_for_subscribers)
+        self.commands_ignored = 0  # came while the first frame was held (wait_for_subscribers) or after step_budget
         self.brushes = 0
         self.cmd = HOVER
         self.executed = HOVER
@@ -179,6 +187,10 @@ class SimNode(Node):
             return
         self.last_cmd_wall = time.monotonic()
         if self.mode == "lockstep":
+            if self.step_budget and self.sim.total_steps >= self.step_budget:
+                self.commands_ignored += 1
+                self.get_logger().info(f"step budget of {self.step_budget} steps flown: holding the last frame", once=True)
+                return
             self.advance(cmd)
         else:
             self.cmd = cmd

@@ -1,11 +1,12 @@
 """Atomic checkpoints: weights, target, Adam state, counters and RNG states; safetensors + JSON, no pickle.
 
-Layout under `dir`: ckpt-<updates>/{state.safetensors, meta.json[, replay.safetensors]} and a
-`latest` file naming the newest complete one. The replay memory is written only when asked (the
-trainers do at a stop before the step budget), since it is large: 8 KiB per 64 x 64 frame; a
-newer checkpoint removes an older one's.
-A checkpoint directory is renamed into place only when complete, and `latest` is replaced
-atomically after it, so a crash mid-write never corrupts a resume.
+Layout under `dir`: ckpt-<updates>-<steps>/{state.safetensors, meta.json}, a `latest` file naming the
+newest complete one, and replay/: the replay memory's journal. The memory is large (8 KiB per 64 x 64
+frame), so a checkpoint carries only the segment written since the one before (ReplayMemory.segment),
+which joins the journal once the checkpoint is `latest`; segments the memory has since overwritten are
+removed. A checkpoint directory is renamed into place only when complete, and `latest` is replaced
+atomically after it, so a crash mid-write never corrupts a resume, and the journal never holds a write
+the latest checkpoint has not seen.
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tens
     return tensors, groups
 
 
-REPLAY_FILE = "replay.safetensors"
+SEGMENT_FILE = "replay_segment.safetensors"  # in a checkpoint until it joins the journal
+JOURNAL_DIR = "replay"
 
 
 def save(
@@ -47,10 +49,10 @@ def save(
     learner: Learner,
     counters: dict,
     extra_rng: dict,
-    replay: dict[str, np.ndarray] | None = None,
+    segment: dict[str, np.ndarray] | None = None,
 ) -> Path:
-    """Write a checkpoint named after the update count, with `replay` (ReplayMemory.state()) when
-    given; returns its directory."""
+    """Write a checkpoint named after the update count, with the replay journal's `segment`
+    (ReplayMemory.segment) when given; returns its directory."""
     root = Path(dir_)
     root.mkdir(parents=True, exist_ok=True)
     name = f"ckpt-{learner.updates:09d}-{counters.get('env_steps', 0):09d}"
@@ -60,7 +62,7 @@ def save(
         shutil.rmtree(tmp)
     tmp.mkdir()
     try:
-        _write(tmp, learner, counters, extra_rng, replay)
+        _write(tmp, learner, counters, extra_rng, segment)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # a failed write (a full disk) leaves nothing behind
         raise
@@ -68,12 +70,63 @@ def save(
         shutil.rmtree(final)
     os.replace(tmp, final)
     write_atomic(root / "latest", name.encode())
-    for old in sorted(p for p in root.glob("ckpt-*") if p.is_dir())[:-KEEP]:
+    # The newest by name, this one always kept (an earlier run's in the same folder may be named higher).
+    for old in sorted(p for p in root.glob("ckpt-*") if p.is_dir() and p != final)[: -(KEEP - 1)]:
         shutil.rmtree(old, ignore_errors=True)
-    for older in root.glob(f"ckpt-*/{REPLAY_FILE}"):  # only the newest checkpoint's memory can be resumed with
-        if older.parent != final:
-            older.unlink(missing_ok=True)
+    if segment is not None:
+        _to_journal(root, final / SEGMENT_FILE, segment["span"])
     return final
+
+
+def _segment_name(span: tuple[int, int]) -> str:
+    return f"seg-{span[0]:012d}-{span[1]:012d}.safetensors"
+
+
+def _to_journal(root: Path, seg: Path, span) -> None:
+    """Move a checkpoint's replay segment into the journal (once the checkpoint is `latest`)."""
+    journal = root / JOURNAL_DIR
+    journal.mkdir(exist_ok=True)
+    os.replace(seg, journal / _segment_name((int(span[0]), int(span[1]))))
+
+
+def prune_journal(dir_: str | os.PathLike, before: int) -> int:
+    """Remove the journal's segments that end at or before write `before` (overwritten since); how many."""
+    gone = 0
+    for f in (Path(dir_) / JOURNAL_DIR).glob("seg-*.safetensors"):
+        try:
+            end = int(f.stem.split("-")[2])
+        except (IndexError, ValueError):
+            continue
+        if end <= before:
+            f.unlink(missing_ok=True)
+            gone += 1
+    return gone
+
+
+def drop_journal(dir_: str | os.PathLike) -> int:
+    """Remove the whole replay journal; the bytes it held."""
+    journal = Path(dir_) / JOURNAL_DIR
+    size = sum(f.stat().st_size for f in journal.glob("*") if f.is_file())
+    shutil.rmtree(journal, ignore_errors=True)
+    return size
+
+
+def journal_segments(dir_: str | os.PathLike, ckpt: Path) -> list[dict[str, np.ndarray]]:
+    """The replay journal's segments; a segment still inside the latest checkpoint `ckpt` (a run killed
+    between writing it and moving it) joins the journal first. Raises ValueError for a file safetensors
+    cannot read (no pickle is involved)."""
+    root = Path(dir_)
+    out = []
+    pending = ckpt / SEGMENT_FILE
+    files = sorted((root / JOURNAL_DIR).glob("seg-*.safetensors")) + ([pending] if pending.is_file() else [])
+    for f in files:
+        try:
+            out.append(safetensors.numpy.load_file(str(f)))
+        except Exception as e:  # safetensors raises its own error types for a truncated or bad header
+            raise ValueError(f"{f}: unreadable ({e})") from e
+    if pending.is_file() and getattr(out[-1].get("span"), "shape", None) == (2,):
+        _to_journal(root, pending, out[-1]["span"])
+    return out
 
 
 def remove_stale(dir_: str | os.PathLike) -> int:
@@ -95,7 +148,7 @@ def _io(save, tensors: dict, path: Path) -> None:
         raise OSError(errno.EIO, f"{path.name}: {e}") from e
 
 
-def _write(tmp: Path, learner: Learner, counters: dict, extra_rng: dict, replay) -> None:
+def _write(tmp: Path, learner: Learner, counters: dict, extra_rng: dict, segment) -> None:
     tensors = {f"online.{k}": v.detach().cpu().contiguous() for k, v in learner.online.state_dict().items()}
     tensors.update({f"target.{k}": v.detach().cpu().contiguous() for k, v in learner.target.state_dict().items()})
     opt_tensors, groups = _optimizer_tensors(learner.optimizer)
@@ -112,8 +165,8 @@ def _write(tmp: Path, learner: Learner, counters: dict, extra_rng: dict, replay)
         "rng": extra_rng,
     }
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    if replay is not None:
-        _io(safetensors.numpy.save_file, replay, tmp / REPLAY_FILE)
+    if segment is not None:
+        _io(safetensors.numpy.save_file, segment, tmp / SEGMENT_FILE)
     for f in tmp.iterdir():
         with open(f, "rb") as fh:
             os.fsync(fh.fileno())
@@ -162,18 +215,6 @@ def load(path: Path, learner: Learner) -> dict:
     learner.updates = int(meta["updates"])
     torch.random.set_rng_state(tensors["rng.torch"])
     return meta
-
-
-def load_replay(path: Path) -> dict[str, np.ndarray] | None:
-    """The replay arrays saved with checkpoint `path`, or None if it has none. Raises ValueError for a
-    file safetensors cannot read (no pickle is involved)."""
-    f = path / REPLAY_FILE
-    if not f.is_file():
-        return None
-    try:
-        return safetensors.numpy.load_file(str(f))
-    except Exception as e:  # safetensors raises its own error types for a truncated or bad header
-        raise ValueError(f"{f}: unreadable ({e})") from e
 
 
 def rng_state(rng: np.random.Generator) -> dict:

@@ -303,7 +303,13 @@ def evaluate_once(
             "sim_node",
             params_args(params_dir, "sim")
             + pargs(
-                [f"world:={world}", f"seed:={seed}", f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}", *sim_args]
+                [
+                    f"world:={world}",
+                    f"seed:={seed}",
+                    f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}",
+                    f"step_budget:={steps}",  # exactly the steps measured, so /diagnostics covers no step more
+                    *sim_args,
+                ]
                 + sim_extra
             ),
         )

@@ -6,8 +6,9 @@ for slot i is frames i-N+1..i, where every frame before the latest episode start
 window is replaced by that start frame - exactly what the policy's FrameStack does at reset.
 The next state of transition i is the stack at slot i+1; `done` masks it after a collision.
 
-`state()` and `load_state()` carry the memory across a stop and resume (trainer checkpoints keep it
-in replay.safetensors); only the filled slots are written.
+The memory is journaled, not saved whole: `segment(since)` holds the slots written since write `since`
+(each checkpoint writes one, a few MiB), and `load_segments` rebuilds the memory from them as it was after
+a given write, the slots where they were. So a resume after a stop or a crash learns on at once.
 """
 
 from __future__ import annotations
@@ -28,11 +29,10 @@ class ReplayMemory:
         self.has_transition = np.zeros(capacity, dtype=bool)
         self.cursor = 0  # next slot to write
         self.count = 0  # frames stored (<= capacity)
-        self.transitions_added = 0
+        self.writes = 0  # frames written since the memory began (slot = write % capacity)
         self.rng = np.random.default_rng(seed)
 
-    # Arrays saved per slot, with their dtypes; `state()` adds `header`. (Memories saved with the
-    # prioritized replay that was retired also hold `priority`, `writes` and `max_priority`: ignored.)
+    # Arrays journaled per slot, with their dtypes; a segment adds `span` and `geometry`.
     SLOT_ARRAYS = {
         "frame": np.float16,
         "start": np.bool_,
@@ -42,47 +42,75 @@ class ReplayMemory:
         "has_transition": np.bool_,
     }
 
-    def state(self) -> dict[str, np.ndarray]:
-        """Copies of the filled slots and the counters, as arrays (for safetensors)."""
-        n = self.count
-        out = {name: getattr(self, name)[:n].copy() for name in self.SLOT_ARRAYS}
-        out["header"] = np.array(
-            [self.capacity, self.frames, *self.frame.shape[1:], self.cursor, self.count, self.transitions_added], dtype=np.int64
-        )
+    def _geometry(self) -> tuple[int, int, int, int]:
+        return (self.capacity, self.frames, *self.frame.shape[1:])
+
+    def segment(self, since: int) -> dict[str, np.ndarray]:
+        """Copies of the slots written from write `since` on (and of the one before: the frame after it
+        completed its transition), as arrays for safetensors; `span` is [first write, end)."""
+        first = max(since - 1, self.writes - self.count, 0)
+        slots = np.arange(first, self.writes) % self.capacity
+        out = {name: getattr(self, name)[slots] for name in self.SLOT_ARRAYS}
+        out["span"] = np.array([first, self.writes], dtype=np.int64)
+        out["geometry"] = np.array(self._geometry(), dtype=np.int64)
         return out
 
-    def load_state(self, state: dict[str, np.ndarray], n_actions: int) -> None:
-        """Restore what `state()` returned. Raises ValueError, leaving this memory unchanged, when the
-        arrays do not fit this memory (another capacity, frame size or stack depth) or hold values
-        no run could have written (actions outside [0, n_actions), NaN or negative depths, ...)."""
-        header = state.get("header")
-        if header is None or header.dtype != np.int64 or header.shape != (7,):
-            raise ValueError("replay state has no valid header")
-        capacity, frames, h, w, cursor, count, added = (int(v) for v in header)
-        mine = (self.capacity, self.frames, *self.frame.shape[1:])
-        if (capacity, frames, h, w) != mine:
-            theirs = (capacity, frames, h, w)
-            raise ValueError(f"replay state is for capacity, frames, height, width {theirs}, this memory {mine}")
-        if not 0 <= count <= capacity or not 0 <= cursor < capacity or (count < capacity and cursor != count) or added < 0:
-            raise ValueError(f"replay state has inconsistent counters: cursor {cursor}, count {count}, added {added}")
-        arrays = {}
+    def load_segments(self, segments: list[dict[str, np.ndarray]], upto: int, n_actions: int) -> None:
+        """Rebuild the memory from journal segments as it was after write `upto` (later writes are left
+        out; the newest frame's transition was not known then). Raises ValueError, leaving this memory
+        unchanged, for a segment that does not fit this memory (another capacity, frame size or stack
+        depth), holds values no run could have written (actions outside [0, n_actions), NaN or negative
+        depths, ...), or a journal with a gap."""
+        spans = []
+        for seg in segments:
+            span, geometry = seg.get("span"), seg.get("geometry")
+            if span is None or span.dtype != np.int64 or span.shape != (2,) or not 0 <= span[0] <= span[1]:
+                raise ValueError("replay segment has no valid span")
+            ok = geometry is not None and geometry.dtype == np.int64 and geometry.shape == (4,)
+            theirs = tuple(int(g) for g in geometry) if ok else None
+            if theirs != self._geometry():
+                mine = self._geometry()
+                raise ValueError(f"replay segment is for capacity, frames, height, width {theirs}, this memory {mine}")
+            self._check(seg, int(span[1] - span[0]), n_actions)
+            spans.append((int(span[0]), int(span[1])))
+        order = sorted(range(len(segments)), key=lambda i: spans[i])
+        end = spans[order[0]][0] if order else 0
+        for i in order:
+            if spans[i][0] > end:
+                raise ValueError(f"the replay journal misses writes {end} to {spans[i][0]}")
+            end = max(end, spans[i][1])
+        end = min(end, upto)
+        begin = spans[order[0]][0] if order else 0
+        if begin > 0 and end - begin < self.capacity:
+            raise ValueError(f"the replay journal starts at write {begin}, not at 0 or a full memory before {end}")
+        fresh = {name: np.zeros_like(getattr(self, name)) for name in self.SLOT_ARRAYS}
+        for i in order:
+            a, b = spans[i][0], min(spans[i][1], end)
+            if b <= a:
+                continue
+            slots = np.arange(a, b) % self.capacity
+            for name in self.SLOT_ARRAYS:
+                fresh[name][slots] = segments[i][name][: b - a]
+        if end > 0:
+            newest = (end - 1) % self.capacity
+            fresh["has_transition"][newest] = False
+            fresh["action"][newest], fresh["reward"][newest], fresh["done"][newest] = 0, 0.0, False
+        for name, a in fresh.items():
+            setattr(self, name, a)
+        self.writes, self.cursor, self.count = end, end % self.capacity, min(end, self.capacity)
+
+    def _check(self, arrays: dict[str, np.ndarray], n: int, n_actions: int) -> None:
         for name, dtype in self.SLOT_ARRAYS.items():
-            a = state.get(name)
-            want = (count, *self.frame.shape[1:]) if name == "frame" else (count,)
+            a = arrays.get(name)
+            want = (n, *self.frame.shape[1:]) if name == "frame" else (n,)
             if a is None or a.dtype != dtype or a.shape != want:
-                raise ValueError(f"replay state array {name!r} missing or not {np.dtype(dtype).name} of shape {want}")
-            arrays[name] = a
+                raise ValueError(f"replay segment array {name!r} missing or not {np.dtype(dtype).name} of shape {want}")
         if np.isnan(arrays["frame"]).any() or (arrays["frame"] < 0).any():
-            raise ValueError("replay state has NaN or negative depths")
+            raise ValueError("replay segment has NaN or negative depths")
         if ((arrays["action"] < 0) | (arrays["action"] >= n_actions)).any():
-            raise ValueError(f"replay state has actions outside [0, {n_actions})")
+            raise ValueError(f"replay segment has actions outside [0, {n_actions})")
         if not np.isfinite(arrays["reward"]).all():
-            raise ValueError("replay state has non-finite rewards")
-        for name, a in arrays.items():
-            target = getattr(self, name)
-            target[:count] = a
-            target[count:] = 0
-        self.cursor, self.count, self.transitions_added = cursor, count, added
+            raise ValueError("replay segment has non-finite rewards")
 
     def __len__(self) -> int:
         """Number of sampleable transitions."""
@@ -96,6 +124,7 @@ class ReplayMemory:
         self.has_transition[i] = False
         self.cursor = (i + 1) % self.capacity
         self.count = min(self.count + 1, self.capacity)
+        self.writes += 1
 
     def add_first(self, depth: np.ndarray) -> None:
         """A frame that starts an episode or a new chain (no transition leads into it)."""
@@ -112,7 +141,6 @@ class ReplayMemory:
         self.action[i], self.reward[i], self.done[i] = action, reward, done
         self.has_transition[i] = True
         self._write_frame(next_depth, start=done)
-        self.transitions_added += 1
 
     def _valid(self) -> np.ndarray:
         """Slots whose transition can be sampled: complete, next frame stored, full history kept."""

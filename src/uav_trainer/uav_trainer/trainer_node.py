@@ -66,8 +66,8 @@ class TrainerNodeSettings:
 
 
 class TrainerNode(Node):
-    def __init__(self):
-        super().__init__("trainer_node")
+    def __init__(self, **node_options):  # e.g. context=: built in a test's own context
+        super().__init__("trainer_node", **node_options)
         st = declare_settings(self, TrainerNodeSettings, RETIRED)
         try:
             self.actions = st.actions.table()

@@ -63,7 +63,9 @@ class TrainerConfig:
         10**9,
     )
     save_replay: bool = setting(
-        True, "A stop before the budget also writes the replay memory with the final checkpoint; a resume restores it"
+        True,
+        "Checkpoints journal the replay memory (each the frames since the one before), so a resume after a stop "
+        "or a crash learns on at once; the journal is removed once the step budget is spent",
     )
     turn_penalty: float = setting(
         0.0,
@@ -245,6 +247,7 @@ class Training:
         self.replay = ReplayMemory(
             cfg.replay_capacity, (self.net_cfg.height, self.net_cfg.width), self.net_cfg.frames, seed=cfg.seed
         )
+        self._journaled = 0  # replay writes already in the checkpoints' journal
         self.stats = EpisodeStats()
         self.env_steps = 0
         self.collisions = 0
@@ -259,6 +262,8 @@ class Training:
         self._refill = cfg.first_update_after
         if resume:
             self._resume()
+        if self.resumed_from is None:  # a fresh memory: an earlier run's journal is not its
+            checkpoint.drop_journal(self.checkpoint_dir)
         # The snapshots still to be written (a resumed run keeps those it wrote before).
         self._snapshots_due = [n for n in snapshot_steps(cfg.snapshots, cfg.total_steps) if n > self.env_steps]
         for warning in cfg.budget_warnings():
@@ -337,7 +342,7 @@ class Training:
         if "replay" in meta.get("rng", {}):
             checkpoint.set_rng_state(self.replay.rng, meta["rng"]["replay"])
         self.resumed_from = path
-        restored = self._restore_replay(path)
+        restored = self._restore_replay(path, int(c.get("replay_writes", 0)))
         if len(self.replay) < self._learning_threshold:
             # Too few transitions to learn from (none restored, or a memory collected since an earlier crash):
             # learning waits until the memory holds learning_starts, then keeps replay_ratio from there, with
@@ -349,18 +354,24 @@ class Training:
             + (f"(replay memory restored: {restored})" if restored else "(the replay memory refills before learning continues)")
         )
 
-    def _restore_replay(self, path: Path) -> str:
-        """Load the checkpoint's replay memory if it has one and it fits; a description, or "" if none was
-        restored. A bad or mismatching file is logged and skipped: the run refills instead."""
+    def _restore_replay(self, path: Path, writes: int) -> str:
+        """Rebuild the replay memory from the journal as it was at checkpoint `path` (`writes` frames
+        written); a description, or "" if none was restored. A bad, mismatching or broken journal is
+        logged and dropped: the run refills instead, and journals afresh."""
+        if not self.cfg.save_replay or writes == 0:
+            return ""
         try:
-            state = checkpoint.load_replay(path)
-            if state is None:
+            segments = checkpoint.journal_segments(self.checkpoint_dir, path)
+            if not segments:
                 return ""
-            self.replay.load_state(state, self.net_cfg.actions)
+            self.replay.load_segments(segments, writes, self.net_cfg.actions)
         except ValueError as e:
             self.log(f"replay memory not restored: {e}")
+            checkpoint.drop_journal(self.checkpoint_dir)
             return ""
-        return f"{len(self.replay)} transitions"
+        self._journaled = self.replay.writes
+        lost = writes - self.replay.writes
+        return f"{len(self.replay)} transitions" + (f"; the {lost} frames after the journal's end are lost" if lost else "")
 
     # -- acting side --------------------------------------------------------------------
     def epsilon(self) -> float:
@@ -479,35 +490,47 @@ class Training:
             "episodes": self.stats.episodes,
             "collisions": self.collisions,
             "updates": self.learner.updates,
+            "replay_writes": self.replay.writes,
         }
 
     def save_checkpoint(self, final: bool = False) -> Path | None:
-        """A checkpoint, the policy weights and the curves. `final` (a stop) also writes the replay
-        memory when save_replay is on and the step budget is not used up, so a resume carries on.
+        """A checkpoint, the policy weights and the curves. While the step budget lasts (and save_replay
+        is on) it carries the replay memory's frames since the previous one, joining the journal a resume
+        rebuilds the memory from; at the end of the budget the journal is removed.
 
         A write that fails (a full or read-only disk) is logged and counted (`checkpoint_failures`) and
-        the previous checkpoint stays `latest`: training goes on. A final checkpoint whose replay memory
-        does not fit is written without it."""
+        the previous checkpoint stays `latest`: training goes on. A checkpoint whose replay segment does not
+        fit is written without it (the next one carries those frames)."""
         if self.failed:
             return None
         self._checkpoint_wall = time.monotonic()
-        with_replay = final and self.cfg.save_replay and not self.budget_done
         rng = {"replay": checkpoint.rng_state(self.replay.rng)}
-        replay = self.replay.state() if with_replay else None
+        journaling = self.cfg.save_replay and not self.budget_done and self.replay.writes > self._journaled
+        segment = self.replay.segment(self._journaled) if journaling else None
         try:
-            path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, replay)
+            path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, segment)
         except OSError as e:
-            if replay is None:
+            if segment is None:
                 return self._checkpoint_failed(e)
-            self.log(f"the checkpoint with the replay memory could not be written ({e.strerror or e}): writing it without")
-            replay = None
+            self.log(f"the checkpoint with the replay segment could not be written ({e.strerror or e}): writing it without")
+            segment = None
             try:
                 path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng)
             except OSError as e2:
                 return self._checkpoint_failed(e2)
-        if replay is not None:
-            mib = sum(a.nbytes for a in replay.values()) / 2**20
-            self.log(f"replay memory saved with the checkpoint: {len(self.replay)} transitions, {mib:.0f} MiB")
+        if segment is not None:
+            self._journaled = self.replay.writes
+            checkpoint.prune_journal(self.checkpoint_dir, self.replay.writes - self.replay.capacity)
+            if final:
+                mib = sum(a.nbytes for a in segment.values()) / 2**20
+                self.log(
+                    f"replay memory saved with the checkpoint: {len(self.replay)} transitions in the journal "
+                    f"(this checkpoint wrote the last {mib:.0f} MiB)"
+                )
+        elif self.budget_done and final:
+            freed = checkpoint.drop_journal(self.checkpoint_dir)
+            if freed:
+                self.log(f"the step budget is spent: the replay journal ({freed / 2**20:.0f} MiB) is removed")
         try:
             self.save_weights(self.policy_weights_path)
             self.plot()
