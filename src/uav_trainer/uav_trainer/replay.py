@@ -27,10 +27,18 @@ class ReplayMemory:
         self.reward = np.zeros(capacity, dtype=np.float32)
         self.done = np.zeros(capacity, dtype=bool)
         self.has_transition = np.zeros(capacity, dtype=bool)
-        self.cursor = 0  # next slot to write
-        self.count = 0  # frames stored (<= capacity)
         self.writes = 0  # frames written since the memory began (slot = write % capacity)
         self.rng = np.random.default_rng(seed)
+
+    @property
+    def cursor(self) -> int:
+        """The next slot to write."""
+        return self.writes % self.capacity
+
+    @property
+    def count(self) -> int:
+        """Frames stored (at most the capacity)."""
+        return min(self.writes, self.capacity)
 
     # Arrays journaled per slot, with their dtypes; a segment adds `span` and `geometry`.
     SLOT_ARRAYS = {
@@ -97,7 +105,7 @@ class ReplayMemory:
             fresh["action"][newest], fresh["reward"][newest], fresh["done"][newest] = 0, 0.0, False
         for name, a in fresh.items():
             setattr(self, name, a)
-        self.writes, self.cursor, self.count = end, end % self.capacity, min(end, self.capacity)
+        self.writes = end
 
     def _check(self, arrays: dict[str, np.ndarray], n: int, n_actions: int) -> None:
         for name, dtype in self.SLOT_ARRAYS.items():
@@ -122,8 +130,6 @@ class ReplayMemory:
             self.frame[i] = np.nan_to_num(depth, nan=np.inf).astype(np.float16)
         self.start[i] = start
         self.has_transition[i] = False
-        self.cursor = (i + 1) % self.capacity
-        self.count = min(self.count + 1, self.capacity)
         self.writes += 1
 
     def add_first(self, depth: np.ndarray) -> None:
