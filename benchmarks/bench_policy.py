@@ -1,8 +1,8 @@
 """Policy figures in one run: inference latency (p50/p99, batch 1, CPU) for SAM and CNN, alone and as
 ensembles of 3 and 10 networks; the cost of measuring one decision (uav_policy.insight) against it;
 lockstep steps/s of sim_node <-> policy_node over ROS on their defaults
-(the packaged weights) against the same loop in-process; weight-push latency, the blob as a BYTE_ARRAY
-against as base64 text (what lockstep learning sends), measured in the same run.
+(the packaged weights) against the same loop in-process; weight-push latency; how long a hostile 200 MB
+push takes to be refused, and the loop's steps/s meanwhile against before it, measured in the same run.
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_policy.py
 """
@@ -79,12 +79,13 @@ def in_process_loop(model: str, steps: int) -> float:
     return rate
 
 
-def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) -> tuple[float, dict[bool, list[float]], int]:
+def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) -> tuple[float, list[float], int, float, float]:
+    """(lockstep steps/s over ROS, push latencies in ms, the blob's size, seconds until a 200 MB push is refused,
+    the steps/s while it was)."""
     import rclpy
-    from rcl_interfaces.srv import SetParameters
 
     from uav_common import contract
-    from uav_policy.push import load_key, push_request, write_key
+    from uav_policy.push import PushService, load_key, push_request, push_text, write_key
 
     nodes = private_nodes(domain)
     key_dir = tempfile.TemporaryDirectory()
@@ -109,16 +110,27 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
         rate = (s1 - s0) / (t1 - t0)
         cfg = NetConfig(model=model)
         blob = wio.to_bytes(build_network(cfg, seed=1), cfg)
-        client = node.create_client(SetParameters, contract.PUSH_WEIGHTS_SERVICE)
+        client = node.create_client(PushService, contract.PUSH_WEIGHTS_SERVICE)
         client.wait_for_service(timeout_sec=10)
-        lat = {False: [], True: []}  # as_base64: latencies (ms), the two encodings taking turns
-        for i in range(2 * pushes):
+        lat = []
+        for i in range(pushes):
             t = time.perf_counter()
-            fut = client.call_async(push_request(blob, as_base64=bool(i % 2), key=key, seq=i + 1))
+            fut = client.call_async(push_request(blob, key=key, seq=i + 1))
             rclpy.spin_until_future_complete(node, fut, timeout_sec=10)
-            assert fut.result().results[0].successful, fut.result().results[0].reason
-            lat[bool(i % 2)].append((time.perf_counter() - t) * 1e3)
-        return rate, lat, len(blob)
+            assert fut.result().success, fut.result().message
+            lat.append((time.perf_counter() - t) * 1e3)
+        # A hostile push of 200 MB: refused by its length once rclpy has converted the string.
+        huge = PushService.Request(load_namespace=push_text(None, 0.5) + "A" * (200 << 20))
+        t0, s0 = read()
+        t = time.perf_counter()
+        fut = client.call_async(huge)
+        rclpy.spin_until_future_complete(node, fut, timeout_sec=120)
+        refused = time.perf_counter() - t
+        assert fut.result() is not None and not fut.result().success, "the 200 MB push was not refused"
+        while read()[0] - t0 < max(refused, 1.0):
+            rclpy.spin_once(node, timeout_sec=0.1)
+        t1, s1 = read()
+        return rate, lat, len(blob), refused, (s1 - s0) / (t1 - t0)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
@@ -147,13 +159,12 @@ def main() -> int:
             )
     for i, model in enumerate(("sam", "cnn")):
         base = in_process_loop(model, a.steps)
-        ros, lat, size = ros_loop_and_pushes(model, a.seconds, a.pushes, 80 + (os.getpid() + i) % 10)
+        ros, lat, size, refused, during = ros_loop_and_pushes(model, a.seconds, a.pushes, 80 + (os.getpid() + i) % 10)
         print(f"[{model}] lockstep loop: in-process {base:.1f} steps/s, over ROS {ros:.1f} steps/s, ratio {ros / base:.3f}")
-        raw, text = (float(np.percentile(lat[k], 50)) for k in (False, True))
         print(
-            f"[{model}] weight push ({size / 1024:.0f} KiB, SetParameters): BYTE_ARRAY p50 {raw:.1f} ms, max "
-            f"{max(lat[False]):.1f} ms; base64 STRING p50 {text:.1f} ms ({raw / text:.1f}x faster), max "
-            f"{max(lat[True]):.1f} ms; {len(lat[True])} each"
+            f"[{model}] weight push ({size / 1024:.0f} KiB): p50 {float(np.percentile(lat, 50)):.1f} ms, max {max(lat):.1f} ms "
+            f"({len(lat)} pushes); a 200 MB push refused after {refused:.2f} s, the loop at {during:.1f} steps/s meanwhile "
+            f"({during / ros:.2f}x)"
         )
     return 0
 

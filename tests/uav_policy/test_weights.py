@@ -108,11 +108,10 @@ def test_loaders_take_the_layer_sizes_from_the_file_and_nothing_else(tmp_path):
     assert wio.config_for("sam", tmp_path / "other.safetensors") == other
     x = torch.rand(2, 5, 64, 64) * 10
     torch.testing.assert_close(wio.load_file(tmp_path / "other.safetensors", other)(x)[0], net(x)[0])
-    assert wio.with_sizes_of(SAM, other) == NetConfig(model="sam", d_model=24, heads=2, relational_blocks=2, mlp_hidden=32)
-    flat = NetConfig(model="sam", sam_readout="flatten")
-    assert wio.load_file(tmp_path / "other.safetensors", flat, sizes_from_blob=True).cfg == other
+    assert wio.with_sizes_of(SAM, other) == other  # the layer sizes and the readout
+    assert wio.load_file(tmp_path / "other.safetensors", SAM, sizes_from_blob=True).cfg == other
     with pytest.raises(wio.WeightsError, match="architecture"):
-        wio.load_file(tmp_path / "other.safetensors", flat)  # without sizes_from_blob the sizes must match
+        wio.load_file(tmp_path / "other.safetensors", SAM)  # without sizes_from_blob the sizes must match
     # The frame stack is the file's too (evaluate flies a file with its own); the model, actions and
     # depth range are the stack's.
     with pytest.raises(wio.WeightsError, match="model 'sam'"):
@@ -242,58 +241,69 @@ def test_the_reward_window_is_recorded_when_given_and_hostile_entries_are_refuse
         wio.to_bytes(net, SAM, 150.0, 0.0)
 
 
-def test_a_push_request_reads_back_and_bad_pushes_are_named():
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+def test_a_push_reads_back_and_bad_pushes_are_named():
+    from uav_policy.push import push_request, push_text, read_push
 
-    from uav_policy.push import push_request, read_push
+    def read(text):
+        return read_push(text, wio.MAX_BYTES)
 
-    def read(params):
-        return read_push(params, wio.MAX_BYTES)
-
-    p = read(push_request(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000).parameters)
+    p = read(push_text(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000))
     assert (p.weights, p.epsilon, p.release_stamp_ns) == (b"abc", 0.25, 1_500_000_000)
-    assert read(push_request(b"abc").parameters) == type(p)(b"abc", None, None)  # a plain weights push
+    assert read(push_text(b"abc")) == type(p)(b"abc", None, None)  # a plain weights push
     blob = wio.to_bytes(build_network(SAM, seed=0), SAM)
-    assert read(push_request(blob, 0.5, 7, as_base64=True).parameters) == type(p)(blob, 0.5, 7), "base64 text, the same blob"
-    both = push_request(b"abc").parameters + push_request(b"abc", as_base64=True).parameters
-    with pytest.raises(ValueError, match="'weights' or 'weights_base64', not both"):
-        read(both)
-    text = Parameter(name="weights_base64", value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="ab$c"))
-    with pytest.raises(ValueError, match="'weights_base64' is not base64"):
-        read([text])
-    with pytest.raises(ValueError, match="would hold more than the 3 bytes allowed"):
-        read_push(push_request(b"abcdefgh", as_base64=True).parameters, 3)
-    with pytest.raises(ValueError, match="expected a BYTE_ARRAY parameter named 'weights'"):
-        read([])
+    assert read(push_request(blob, 0.5, 7).load_namespace) == type(p)(blob, 0.5, 7), "the request carries the same push"
+    assert read(push_text(None, epsilon=1)).epsilon == 1.0
+    with pytest.raises(ValueError, match="weights are not base64"):
+        read(push_text(None, 0.5) + "ab$c")
+    # Refused by the length of the text, before anything of it is read.
+    with pytest.raises(ValueError, match="would hold more than the 3 bytes of weights allowed"):
+        read_push(push_text(b"abcdefgh") + "=" * 2000, 3)
+    with pytest.raises(ValueError, match="weights would hold more than the 3 bytes allowed"):
+        read_push(push_text(b"abcdefgh"), 3)
+    for text in ("", "weights", '{"epsilon": 0.5}\n', "uav_push/2 {}", "uav_push/1 " + " " * 2000 + "{}"):
+        with pytest.raises(ValueError, match="not a push"):
+            read(text)
+    with pytest.raises(ValueError, match="a push is text"):
+        read(b"uav_push/1 {}")
+    with pytest.raises(ValueError, match="not JSON"):
+        read("uav_push/1 {epsilon: 1}")
+    with pytest.raises(ValueError, match="must be a JSON object"):
+        read("uav_push/1 [1]")
+    with pytest.raises(ValueError, match="an empty push"):
+        read("uav_push/1 {}")
     with pytest.raises(ValueError, match="'epsilon' must lie in"):
-        read(push_request(None, epsilon=float("nan")).parameters)
+        read(push_text(None, epsilon=float("nan")))
+    with pytest.raises(ValueError, match="'epsilon' must lie in"):
+        read("uav_push/1 " + '{"epsilon": Infinity}')
     with pytest.raises(ValueError, match="'release_stamp_ns' must be >= 0"):
-        read(push_request(None, release_stamp_ns=-1).parameters)
-    wrong = Parameter(name="weights", value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="x"))
-    with pytest.raises(ValueError, match="'weights' must be a BYTE_ARRAY"):
-        read([wrong])
-    with pytest.raises(ValueError, match="unknown push parameter 'gamma'"):
-        read([Parameter(name="gamma", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9))])
-    twice = push_request(None, epsilon=0.1).parameters * 2
-    with pytest.raises(ValueError, match="given twice"):
-        read(twice)
+        read(push_text(None, release_stamp_ns=-1))
+    for fields, why in (
+        ('{"release_stamp_ns": 1.5}', "'release_stamp_ns' must be an integer"),
+        ('{"epsilon": true}', "'epsilon' must be a number"),
+        ('{"epsilon": "0.5"}', "'epsilon' must be a number"),
+        ('{"epsilon": 0.5, "signature": 7}', "'signature' must be a string"),
+        ('{"gamma": 0.9}', "unknown push field 'gamma'"),
+        ('{"epsilon": 0.1, "epsilon": 0.2}', "'epsilon' given twice"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            read("uav_push/1 " + fields)
 
 
 def test_a_push_is_taken_only_signed_with_the_runs_key_and_newer_than_the_last(tmp_path):
     import os
     import stat
 
-    from uav_policy.push import load_key, push_request, read_push, verify, write_key
+    from uav_policy.push import load_key, push_text, read_push, verify, write_key
 
     key = load_key(write_key(tmp_path / "push.key"))
     assert stat.S_IMODE(os.stat(tmp_path / "push.key").st_mode) == 0o600 and len(key) == 32
     blob = wio.to_bytes(build_network(SAM, seed=0), SAM)
-    good = read_push(push_request(blob, 0.5, 7, as_base64=True, key=key, seq=5).parameters, wio.MAX_BYTES)
+    good = read_push(push_text(blob, 0.5, 7, key=key, seq=5), wio.MAX_BYTES)
     verify(key, good, last_seq=4)  # no error
     with pytest.raises(ValueError, match="not newer than 5"):
         verify(key, good, last_seq=5)
     with pytest.raises(ValueError, match="unsigned push refused"):
-        verify(key, read_push(push_request(blob, 0.5, 7).parameters, wio.MAX_BYTES), last_seq=0)
+        verify(key, read_push(push_text(blob, 0.5, 7), wio.MAX_BYTES), last_seq=0)
     with pytest.raises(ValueError, match="signature does not match"):
         verify(b"x" * 32, good, last_seq=0)
     # Every field is covered: the same signature over other weights, epsilon, release or number fails.

@@ -87,6 +87,43 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert f"replay memory restored: {t['env_steps']} transitions" in ros.log_of(again), ros.log_of(again)
 
 
+def test_a_killed_trainer_resumes_from_its_journal_and_learns_on_in_lockstep(ros, tmp_path):
+    """SIGKILL leaves no final checkpoint: the next trainer_node resumes from the periodic one, rebuilds the
+    replay memory from the journal, learns at once, and pairs on in lockstep with the same policy (the sim
+    says its last frame again, so the new trainer releases it)."""
+    import re
+    import signal
+
+    diag = diagnostics(ros)
+    run_dir = tmp_path / "run"
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.2")
+    lockstep = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0")  # a held frame waits
+    policy = ros.start("uav_policy", "policy_node", *lockstep, *pushes_signed_in(run_dir))
+    args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=60", "-p", "checkpoint_interval_updates:=20")
+    trainer = ros.start("uav_trainer", "trainer_node", *args, "-p", "log_interval_s:=0.5")
+    latest = run_dir / "checkpoints" / "latest"
+    journal = run_dir / "checkpoints" / "replay"
+    assert ros.spin_until(lambda: latest.is_file() and any(journal.glob("seg-*")), 180), ros.log_of(trainer)[-2000:]
+    os.killpg(trainer.pid, signal.SIGKILL)
+    trainer.wait(timeout=10)
+    again = ros.start("uav_trainer", "trainer_node", *args, "-p", "log_interval_s:=0.5", name="trainer2")
+    assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 60), ros.log_of(again)
+    said = r"resumed from \S+: (\d+) updates, (\d+) env steps \(replay memory restored: (\d+) transitions"
+    m = re.search(said, ros.log_of(again))
+    assert m, ros.log_of(again)[-2000:]
+    updates, steps, restored = map(int, m.groups())
+    assert updates >= 20 and restored == steps > 60, m.group(0)  # every transition the checkpoint had seen
+    t = lambda k: int(diag.get("uav_trainer", {}).get(k, -1))  # noqa: E731
+    # Learning goes on at once (the memory holds over learning_starts) and in the replay ratio (one per 4 steps).
+    assert ros.spin_until(lambda: t("env_steps") >= steps + 200, 120), ros.log_of(again)[-2000:]
+    assert ros.spin_until(lambda: t("updates") >= updates + 45, 30), diag.get("uav_trainer")
+    status = diag["uav_trainer"]
+    for key in ("chain_breaks", "frames_without_action", "unmatched_actions", "release_retries", "pushes_rejected"):
+        assert status[key] == "0", f"{key}={status[key]}"
+    assert "no longer in lockstep" not in ros.log_of(policy), ros.log_of(policy)[-2000:]
+    assert ros.stop(again) == 0
+
+
 def run_train(run_dir, domain: str, *args: str, timeout_s: float = 400):
     """The installed `train` launcher with the repository's params; (process result, node logs)."""
     cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params"), *args]
@@ -223,11 +260,13 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     assert (
         "recipes/shipped.yaml (sim_node: world:=random_each_episode mix_world:=basic mix_world_every:=4 "
         "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 hfov_deg:=150.0 reward_window_fraction:=0.078; "
-        "trainer_node: turn_penalty:=1.0 replay_ratio:=0.5 snapshots:=9)"
+        "trainer_node: sam_readout:=attend turn_penalty:=1.0 replay_ratio:=0.5 snapshots:=9)"
     ) in r.stdout
     assert "a new layout every episode ('basic' every 4 episodes)" in logs["sim"]
     files = [run_dir / f"policy_sam_step{n}.safetensors" for n in range(42, 60, 2)] + [run_dir / "policy_sam.safetensors"]
     assert sorted(run_dir.glob("policy_sam*.safetensors")) == sorted(files)
+    # The packaged SAM's architecture, pooled by attention.
+    assert wio.read_file_config(files[-1]) == wio.read_file_config(wio.packaged_weights("sam")[0])
     assert logs["trainer"].count("weights snapshot") == 9
     assert "sim_node --ros-args -p hfov_deg:=150.0 & " in r.stdout
     # Redirected output gets progress lines (a bar only on a terminal); the run's last row ends exploration.

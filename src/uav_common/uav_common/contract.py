@@ -39,7 +39,6 @@ WORLD_MARKERS_TOPIC = "world/markers"
 TRAJECTORY_TOPIC = "trajectory"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
-WEIGHTS_PARAMETER = "weights"
 
 # Lockstep needs every message: reliable, with room for bursts.
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)

@@ -8,11 +8,14 @@ import dataclasses
 from uav_common.actions import ActionSettings
 from uav_common.settings import setting
 
-from .networks import MAX_FRAMES, SAM_READOUTS, NetConfig
+from .networks import MAX_FRAMES, NetConfig
 from .safety import SafetySettings
 
 # Parameters retired, and why: a node given one stops at start-up and says so.
-RETIRED = {"ensemble_rule": "several weights files always act on their mean Q-values (the min rule did not help)"}
+RETIRED = {
+    "ensemble_rule": "several weights files always act on their mean Q-values (the min rule did not help)",
+    "sam_readout": "SAM's readout comes from the weights files (and pushes), like their layer sizes",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,13 +61,6 @@ class PolicySettings:
     )
     input_width: int = setting(64, "Network input width (px)", 8, 512)
     max_range_m: float = setting(10.0, "Depth normalisation range (m); match sim_node's max_range_m", 0.5, 100.0)
-    sam_readout: str = setting(
-        "max",
-        "SAM readout: max pools the nodes (the paper's design); flatten keeps each node's place; attend pools them by "
-        "attention (the attention shown forms the Q-values), attend_content with keys from each cell alone; must match "
-        "the weights",
-        choices=SAM_READOUTS,
-    )
     publish_overlay: bool = setting(
         True, "Publish attention/overlay (SAM) or saliency/overlay (CNN), rgb8, when someone subscribes"
     )

@@ -25,8 +25,6 @@ import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist, TwistStamped
-from rcl_interfaces.msg import SetParametersResult
-from rcl_interfaces.srv import SetParameters
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
@@ -45,7 +43,7 @@ from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
 from .insight import Insight, explanation
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, forward_flops, parameter_count
-from .push import ReleaseGate, load_key, read_push, verify
+from .push import PushService, ReleaseGate, load_key, read_push, verify
 from .safety import SafetyLayer
 
 CAMERA_INFO_WAIT_S = 2.0  # how long frames wait for their first CameraInfo (see _wait_for_camera_info)
@@ -86,7 +84,6 @@ class PolicyNode(Node):
             width=st.input_width,
             actions=len(self.actions),
             max_range_m=st.max_range_m,
-            sam_readout=st.sam_readout,
         )
         try:
             device = resolve_device(st.device)
@@ -142,7 +139,7 @@ class PolicyNode(Node):
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
         # service needs its own callback group: a suspended async callback holds its group.
         if self.accept_pushes:
-            self.create_service(SetParameters, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
+            self.create_service(PushService, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
         self.stack = FrameStack(frames)
         self.gate = ReleaseGate(self.wait_timeout_s)  # wait_for_trainer: frames held until released
         if self.wait_for_trainer:
@@ -552,12 +549,12 @@ class PolicyNode(Node):
     # -- weight pushes ------------------------------------------------------------------
     async def _on_push(self, request, response):
         t0 = time.perf_counter()
-        result = SetParametersResult(successful=False)
+        response.success = False
         try:
-            push = read_push(request.parameters, wio.MAX_BYTES)
+            push = read_push(request.load_namespace, wio.MAX_BYTES)
         except ValueError as e:
             push = None
-            result.reason = str(e)
+            response.message = str(e)
         if push is not None:
             try:
                 if self.push_key is None:
@@ -568,18 +565,16 @@ class PolicyNode(Node):
                 if beyond:  # a trainer that lost track of the stream: nothing of the push is taken
                     self.releases_refused += 1
                     self.get_logger().warning(f"weights push refused: {beyond}", throttle_duration_sec=5.0)
-                    result.reason = beyond
-                    response.results = [result]
+                    response.message = beyond
                     return response
             except ValueError as e:  # not from our trainer: nothing of it is taken, no frame is released
                 self.pushes_unauthenticated += 1
                 self.get_logger().warning(f"weights push refused: {e}", throttle_duration_sec=5.0)
-                result.reason = str(e)
-                response.results = [result]
+                response.message = str(e)
                 return response
         try:
             if push is None:
-                raise ValueError(result.reason)
+                raise ValueError(response.message)
             blob = push.weights
             if blob is not None:
                 self._check_cost(blob)
@@ -591,22 +586,21 @@ class PolicyNode(Node):
                 self._swap_in(net, blob)
             if push.epsilon is not None:
                 self.epsilon = push.epsilon
-            result.successful = True
-            result.reason = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms" if blob else "ok"
+            response.success = True
+            response.message = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms" if blob else "ok"
         except ValueError as e:  # WeightsError included
-            result.reason = str(e)
+            response.message = str(e)
         # A well-formed push releases its frames even when its weights are refused (they are then answered on
         # the weights and epsilon in use), so a refusal never holds a frame for wait_for_trainer_timeout_s.
         released = push is not None and push.release_stamp_ns is not None
-        if not result.successful:
+        if not response.success:
             self.pushes_rejected += 1
             if released:
-                result.reason += "; its frame release was applied, acting on the weights and epsilon in use"
-            self.get_logger().warning(f"weights push rejected: {result.reason}")
+                response.message += "; its frame release was applied, acting on the weights and epsilon in use"
+            self.get_logger().warning(f"weights push rejected: {response.message}")
         if released:
             for joined in self.gate.release(push.release_stamp_ns):
                 self._act(joined["frame"], joined["outcome"], time.perf_counter())
-        response.results = [result]
         return response
 
     def _seconds_per_flop(self) -> float:

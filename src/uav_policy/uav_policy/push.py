@@ -1,19 +1,22 @@
-"""Building and reading a weights push: rcl_interfaces/srv/SetParameters on policy_node/push_weights.
+"""Building and reading a weights push: diagnostic_msgs/srv/AddDiagnostics on policy_node/push_weights.
 
-A push holds any of these parameters: `weights` (BYTE_ARRAY, a safetensors blob) or
-`weights_base64` (STRING, the same blob in base64), `epsilon` (DOUBLE, the exploration rate to act
-with from now on) and `release_stamp_ns` (INTEGER: with policy_node's wait_for_trainer, answer the
-frames stamped up to this sim time, ns); and, to be accepted, `push_seq` (INTEGER, larger than any
-sequence number accepted before: a recorded push cannot be played again) and `signature` (STRING:
-HMAC-SHA256, in hex, of all of the above under the run's key, `push_key_file`). The Fast DDS in the
-PyPI wheels has no security plugins, so anyone on the domain can call the service: the key, which
-`train` writes for each run (mode 0600) and hands to both nodes, is what keeps them out.
+The request's one string is the push: `uav_push/1 ` and a JSON object of its small fields on the first
+line, then, when the push carries weights, the safetensors blob in base64. The fields: `epsilon` (the
+exploration rate to act with from now on), `release_stamp_ns` (with policy_node's wait_for_trainer,
+answer the frames stamped up to this sim time, ns) and, to be accepted, `push_seq` (larger than any
+sequence number accepted before: a recorded push cannot be played again) and `signature` (HMAC-SHA256,
+in hex, of the weights and every field under the run's key, `push_key_file`). The answer's `success`
+and `message` say whether it was taken, and why not.
 
-trainer_node's lockstep learning sends weights, epsilon and
-release after each step's updates, so the policy acts on the network that learnt from the step that
-produced the frame, as the in-process loop does. It sends the weights in base64: rclpy converts a
-BYTE_ARRAY byte by byte (measured: serialising, deserialising and joining CNN's 1.2 MB blob takes
-101 ms, as base64 text 8 ms), and lockstep learning waits for every push.
+Why this service type: it is the standard one whose request is a single string, which rclpy converts in
+one copy (200 MB: under a second), so an oversize push is refused by its length before anything is
+decoded. Every SetParameters request carries a BYTE_ARRAY field, which rclpy converts byte by byte
+before any callback can look at it (200 MB: 61 s with the executor stalled, 2.6 GB of memory).
+
+The Fast DDS in the PyPI wheels has no security plugins, so anyone on the domain can call the service:
+the key, which `train` writes for each run (mode 0600) and hands to both nodes, is what keeps them out.
+trainer_node's lockstep learning sends weights, epsilon and release after each step's updates, so the
+policy acts on the network that learnt from the step that produced the frame, as the in-process loop does.
 """
 
 from __future__ import annotations
@@ -23,31 +26,23 @@ import binascii
 import dataclasses
 import hashlib
 import hmac
+import json
 import math
 import os
 import secrets
 import stat
 from pathlib import Path
 
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from diagnostic_msgs.srv import AddDiagnostics as PushService  # noqa: N814 (the standard type pushes travel on)
 
-from uav_common import contract
-
-WEIGHTS_BASE64_PARAMETER = "weights_base64"
-EPSILON_PARAMETER = "epsilon"
-RELEASE_PARAMETER = "release_stamp_ns"
-SEQUENCE_PARAMETER = "push_seq"
-SIGNATURE_PARAMETER = "signature"
+PREFIX = "uav_push/1 "
+MAX_HEADER_CHARS = 1024  # the first line: prefix and JSON fields
+EPSILON_FIELD = "epsilon"
+RELEASE_FIELD = "release_stamp_ns"
+SEQUENCE_FIELD = "push_seq"
+SIGNATURE_FIELD = "signature"
 KEY_BYTES = 32
-_TYPES = {
-    contract.WEIGHTS_PARAMETER: (ParameterType.PARAMETER_BYTE_ARRAY, "BYTE_ARRAY"),
-    WEIGHTS_BASE64_PARAMETER: (ParameterType.PARAMETER_STRING, "STRING"),
-    EPSILON_PARAMETER: (ParameterType.PARAMETER_DOUBLE, "DOUBLE"),
-    RELEASE_PARAMETER: (ParameterType.PARAMETER_INTEGER, "INTEGER"),
-    SEQUENCE_PARAMETER: (ParameterType.PARAMETER_INTEGER, "INTEGER"),
-    SIGNATURE_PARAMETER: (ParameterType.PARAMETER_STRING, "STRING"),
-}
+_FIELDS = {EPSILON_FIELD: "a number", RELEASE_FIELD: "an integer", SEQUENCE_FIELD: "an integer", SIGNATURE_FIELD: "a string"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +67,7 @@ def sign(key: bytes, blob: bytes | None, epsilon: float | None, release_stamp_ns
 def verify(key: bytes, push: Push, last_seq: int) -> None:
     """ValueError unless `push` is signed with `key` and newer than `last_seq`."""
     if push.signature is None or push.seq is None:
-        raise ValueError(f"unsigned push refused: a push must carry '{SEQUENCE_PARAMETER}' and '{SIGNATURE_PARAMETER}'")
+        raise ValueError(f"unsigned push refused: a push must carry '{SEQUENCE_FIELD}' and '{SIGNATURE_FIELD}'")
     good = sign(key, push.weights, push.epsilon, push.release_stamp_ns, push.seq)
     if not hmac.compare_digest(good, push.signature):
         raise ValueError("push refused: its signature does not match this run's key (push_key_file)")
@@ -114,84 +109,89 @@ def load_key(path: str | os.PathLike) -> bytes:
     return key
 
 
-def push_request(
+def push_text(
     blob: bytes | None,
     epsilon: float | None = None,
     release_stamp_ns: int | None = None,
-    as_base64: bool = False,
     key: bytes | None = None,
     seq: int | None = None,
-) -> SetParameters.Request:
-    """A push of weights (None: none; `as_base64`: as weights_base64 text), and optionally an exploration
-    rate and a release stamp; with `key`, signed as push `seq`."""
-    params = []
-    if blob is not None and as_base64:
-        value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=base64.b64encode(blob).decode("ascii"))
-        params.append(Parameter(name=WEIGHTS_BASE64_PARAMETER, value=value))
-    elif blob is not None:
-        value = ParameterValue(type=ParameterType.PARAMETER_BYTE_ARRAY, byte_array_value=bytes(blob))
-        params.append(Parameter(name=contract.WEIGHTS_PARAMETER, value=value))
+) -> str:
+    """A push of weights (None: none), and optionally an exploration rate and a release stamp; with `key`,
+    signed as push `seq`."""
+    fields: dict[str, object] = {}
     if epsilon is not None:
-        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(epsilon))
-        params.append(Parameter(name=EPSILON_PARAMETER, value=value))
+        fields[EPSILON_FIELD] = float(epsilon)
     if release_stamp_ns is not None:
-        value = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=int(release_stamp_ns))
-        params.append(Parameter(name=RELEASE_PARAMETER, value=value))
+        fields[RELEASE_FIELD] = int(release_stamp_ns)
     if key is not None:
         if seq is None:
             raise ValueError("a signed push needs its sequence number")
-        eps = None if epsilon is None else float(epsilon)
-        stamp = None if release_stamp_ns is None else int(release_stamp_ns)
-        signature = sign(key, None if blob is None else bytes(blob), eps, stamp, int(seq))
-        params.append(
-            Parameter(name=SEQUENCE_PARAMETER, value=ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=int(seq)))
+        fields[SEQUENCE_FIELD] = int(seq)
+        fields[SIGNATURE_FIELD] = sign(
+            key, None if blob is None else bytes(blob), fields.get(EPSILON_FIELD), fields.get(RELEASE_FIELD), int(seq)
         )
-        params.append(
-            Parameter(name=SIGNATURE_PARAMETER, value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=signature))
-        )
-    return SetParameters.Request(parameters=params)
+    body = base64.b64encode(blob).decode("ascii") if blob is not None else ""
+    return f"{PREFIX}{json.dumps(fields)}\n{body}"
 
 
-def read_push(params, max_bytes: int) -> Push:
-    """The push in a request's parameters; ValueError names what is wrong (unknown or repeated names,
-    wrong types, weights given both ways, base64 that is malformed or would decode to over `max_bytes`,
-    an epsilon outside [0, 1], a negative stamp, or nothing at all)."""
-    seen: dict[str, ParameterValue] = {}
-    for p in params:
-        if p.name not in _TYPES:
-            raise ValueError(f"unknown push parameter '{p.name}'; expected any of {', '.join(_TYPES)}")
-        if p.name in seen:
-            raise ValueError(f"push parameter '{p.name}' given twice")
-        if p.value.type != _TYPES[p.name][0]:
-            raise ValueError(f"push parameter '{p.name}' must be a {_TYPES[p.name][1]}")
-        seen[p.name] = p.value
-    if not seen:
-        raise ValueError(
-            f"expected a BYTE_ARRAY parameter named '{contract.WEIGHTS_PARAMETER}' (or weights_base64, epsilon, release_stamp_ns)"
-        )
+def push_request(*args, **kwargs) -> PushService.Request:
+    """push_text's push as a request of the push service."""
+    return PushService.Request(load_namespace=push_text(*args, **kwargs))
+
+
+def _unique(pairs):
+    out = {}
+    for name, value in pairs:
+        if name in out:
+            raise ValueError(f"push field '{name}' given twice")
+        out[name] = value
+    return out
+
+
+def read_push(text, max_bytes: int) -> Push:
+    """The push in a request's text; ValueError names what is wrong (no push header, unknown or repeated
+    fields, wrong types, base64 that is malformed or would decode to over `max_bytes`, an epsilon outside
+    [0, 1], a negative stamp, or nothing at all). The length is checked before anything is decoded."""
+    if not isinstance(text, str):
+        raise ValueError("a push is text")
+    if len(text) > MAX_HEADER_CHARS + 1 + 4 * (max_bytes // 3 + 1):
+        raise ValueError(f"the push ({len(text)} characters) would hold more than the {max_bytes} bytes of weights allowed")
+    head, _, body = text.partition("\n")
+    if len(head) > MAX_HEADER_CHARS or not head.startswith(PREFIX):
+        raise ValueError(f"not a push: expected '{PREFIX}{{fields as JSON}}', a newline and the weights in base64")
+    try:
+        fields = json.loads(head[len(PREFIX) :], object_pairs_hook=_unique)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"the push's fields are not JSON: {e}") from None
+    if not isinstance(fields, dict):
+        raise ValueError("the push's fields must be a JSON object")
+    for name, value in fields.items():
+        if name not in _FIELDS:
+            raise ValueError(f"unknown push field '{name}'; expected any of {', '.join(_FIELDS)}")
+        ok = {
+            "a number": isinstance(value, (int, float)),
+            "an integer": isinstance(value, int),
+            "a string": isinstance(value, str),
+        }[_FIELDS[name]]
+        if not ok or isinstance(value, bool):
+            raise ValueError(f"push field '{name}' must be {_FIELDS[name]}")
     blob = None
-    if contract.WEIGHTS_PARAMETER in seen and WEIGHTS_BASE64_PARAMETER in seen:
-        raise ValueError(f"give '{contract.WEIGHTS_PARAMETER}' or '{WEIGHTS_BASE64_PARAMETER}', not both")
-    if contract.WEIGHTS_PARAMETER in seen:
-        raw = seen[contract.WEIGHTS_PARAMETER].byte_array_value
-        blob = raw if isinstance(raw, (bytes, bytearray)) else b"".join(raw)
-    if WEIGHTS_BASE64_PARAMETER in seen:
-        text = seen[WEIGHTS_BASE64_PARAMETER].string_value
-        if len(text) > 4 * (max_bytes // 3 + 1):  # refused before anything is decoded
-            raise ValueError(f"push parameter '{WEIGHTS_BASE64_PARAMETER}' would hold more than the {max_bytes} bytes allowed")
+    if body:
+        if len(body) > 4 * (max_bytes // 3 + 1):
+            raise ValueError(f"the push's weights would hold more than the {max_bytes} bytes allowed")
         try:
-            blob = base64.b64decode(text, validate=True)
+            blob = base64.b64decode(body, validate=True)
         except (binascii.Error, ValueError) as e:
-            raise ValueError(f"push parameter '{WEIGHTS_BASE64_PARAMETER}' is not base64: {e}") from None
-    eps = seen[EPSILON_PARAMETER].double_value if EPSILON_PARAMETER in seen else None
+            raise ValueError(f"the push's weights are not base64: {e}") from None
+    if blob is None and not fields.keys() & {EPSILON_FIELD, RELEASE_FIELD}:
+        raise ValueError("an empty push: expected weights, epsilon or release_stamp_ns")
+    eps = float(fields[EPSILON_FIELD]) if EPSILON_FIELD in fields else None
     if eps is not None and not (math.isfinite(eps) and 0.0 <= eps <= 1.0):
-        raise ValueError(f"push parameter 'epsilon' must lie in [0, 1], got {eps}")
-    stamp = seen[RELEASE_PARAMETER].integer_value if RELEASE_PARAMETER in seen else None
+        raise ValueError(f"push field 'epsilon' must lie in [0, 1], got {eps}")
+    stamp = fields.get(RELEASE_FIELD)
     if stamp is not None and stamp < 0:
-        raise ValueError(f"push parameter 'release_stamp_ns' must be >= 0, got {stamp}")
-    seq = seen[SEQUENCE_PARAMETER].integer_value if SEQUENCE_PARAMETER in seen else None
-    signature = seen[SIGNATURE_PARAMETER].string_value if SIGNATURE_PARAMETER in seen else None
-    return Push(blob, eps, stamp, seq, signature)
+        raise ValueError(f"push field 'release_stamp_ns' must be >= 0, got {stamp}")
+    return Push(blob, eps, stamp, fields.get(SEQUENCE_FIELD), fields.get(SIGNATURE_FIELD))
 
 
 # How far a release may lead the newest frame the policy has seen: trainer_node releases frames it has

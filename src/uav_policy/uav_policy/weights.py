@@ -173,7 +173,7 @@ def _expected_tensors(cfg: NetConfig) -> dict[str, torch.Tensor]:
 
 def load_bytes(blob: bytes, expected: NetConfig, sizes_from_blob: bool = False) -> torch.nn.Module:
     """A new network with the blob's weights, after checking everything; never touches a live net.
-    `sizes_from_blob`: take the layer sizes (networks.SIZE_FIELDS) from the blob's header instead of
+    `sizes_from_blob`: take the layer sizes (networks.SIZE_FIELDS) and SAM readout from the blob's header instead of
     `expected`; the network's `cfg` then says which were built."""
     if not isinstance(blob, (bytes, bytearray)) or len(blob) == 0:
         raise WeightsError("weights are empty")
@@ -285,8 +285,9 @@ def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
 
 
 def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
-    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS): the architecture a file made as `made` is loaded with."""
-    return dataclasses.replace(cfg, **{name: getattr(made, name) for name in SIZE_FIELDS})
+    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS) and SAM readout: the architecture a file made
+    as `made` is loaded with."""
+    return dataclasses.replace(cfg, sam_readout=made.sam_readout, **{name: getattr(made, name) for name in SIZE_FIELDS})
 
 
 def load_files(paths: list, model: str) -> torch.nn.Module:
@@ -341,7 +342,7 @@ def parse_files(value: str) -> list[str]:
 def open_files(paths: list[str], cfg: NetConfig) -> tuple[torch.nn.Module, str, float | None]:
     """What policy_node flies for its 'weights' files: (one network, or several of one architecture as a
     QEnsemble on their mean Q-values; where it came from, in words; the camera they were trained behind,
-    or None). Layer sizes come from the files; everything else must match `cfg` (the node's parameters).
+    or None). Layer sizes and SAM readout come from the files; everything else must match `cfg` (the node's parameters).
     WeightsError (a ValueError) says which file is wrong and, for another input size or frame stack,
     which parameters to set."""
     nets = []

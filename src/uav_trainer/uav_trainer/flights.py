@@ -139,12 +139,12 @@ ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
 
 
 def architecture_args(model: str, weights: str) -> list[str]:
-    """policy_node parameters for a weights file whose SAM readout, input size or frame stack is not the default."""
+    """policy_node parameters for a weights file whose input size or frame stack is not the default."""
     from uav_policy import weights as wio
     from uav_policy.networks import NetConfig
 
     cfg = wio.config_for(model, weights)
-    args = [f"sam_readout:={cfg.sam_readout}"] if cfg.sam_readout != NetConfig.sam_readout else []
+    args = []
     if (cfg.height, cfg.width) != (NetConfig.height, NetConfig.width):
         args += [f"input_height:={cfg.height}", f"input_width:={cfg.width}"]
     if cfg.frames != NetConfig.frames:

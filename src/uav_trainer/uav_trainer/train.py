@@ -73,9 +73,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--sam-readout",
         choices=SAM_READOUTS,
-        default="max",
-        help="SAM readout for policy_node and trainer_node: max (the paper), flatten, attend (attention pooling) or "
-        "attend_content (keys from each cell alone)",
+        default=None,
+        help="SAM readout: max (the paper), flatten, attend (attention pooling) or attend_content (keys from each cell "
+        "alone) (default: the recipe's, else trainer.yaml's); the policy takes it from the pushed weights",
     )
     ap.add_argument(
         "--input-size",
@@ -136,7 +136,7 @@ def main(argv=None) -> int:
         "uav_policy",
         "policy_node",
         node_args("policy")
-        + p([f"model:={a.model}", f"sam_readout:={a.sam_readout}", f"seed:={a.seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
+        + p([f"model:={a.model}", f"seed:={a.seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
         + p(["accept_pushes:=true", f"push_key_file:={key}", "safety:=false"])
         + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
     )
@@ -148,7 +148,7 @@ def main(argv=None) -> int:
         + p(
             [
                 f"model:={a.model}",
-                f"sam_readout:={a.sam_readout}",
+                *([f"sam_readout:={a.sam_readout}"] if a.sam_readout else []),
                 f"seed:={a.seed}",
                 f"total_steps:={a.steps}",
                 f"run_dir:={run_dir}",
@@ -188,7 +188,6 @@ def main(argv=None) -> int:
         print(
             f"weights: {', '.join(map(str, files))}\nfly them: {fly_sim}ros2 run uav_policy policy_node --ros-args "
             f"-p model:={a.model} -p weights:={','.join(map(str, files))}"
-            + (f" -p sam_readout:={a.sam_readout}" if a.sam_readout != "max" else "")
         )
     else:
         print(f"this run wrote no weights in {run_dir}", file=sys.stderr)

@@ -24,7 +24,7 @@ import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import ParameterType
-from rcl_interfaces.srv import GetParameters, SetParameters
+from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
 
@@ -35,7 +35,7 @@ from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings, setting
 from uav_policy.agent import resolve_device
 from uav_policy.networks import parameter_count
-from uav_policy.push import load_key, push_request, write_key
+from uav_policy.push import PushService, load_key, push_request, write_key
 from uav_policy.weights import HFOV_RANGE_DEG
 from uav_sim.reward import center_window_slices, window_fraction_for_fov
 
@@ -108,7 +108,7 @@ class TrainerNode(Node):
             raise ParameterError(f"parameter 'push_key_file': {e}") from None
         self.push_seq = 0
         self.release_timeout_s = st.release_timeout_s
-        self.push_client = self.create_client(SetParameters, f"{policy}/push_weights")
+        self.push_client = self.create_client(PushService, f"{policy}/push_weights")
         # whether policy_node waits for releases, asked once (None: not yet known)
         self.get_param_client = self.create_client(GetParameters, f"{policy}/get_parameters")
         self.policy_waits: bool | None = None
@@ -212,9 +212,7 @@ class TrainerNode(Node):
         self._pushed_updates = updates
         # Larger than any number sent before, also by this run before a restart: the policy refuses replays.
         self.push_seq = max(self.push_seq + 1, time.time_ns())
-        request = push_request(
-            blob, self.training.epsilon(), self._go_stamp, as_base64=True, key=self.push_key, seq=self.push_seq
-        )
+        request = push_request(blob, self.training.epsilon(), self._go_stamp, key=self.push_key, seq=self.push_seq)
         fut = self.push_client.call_async(request)
         t0 = self._in_flight_t0 = time.perf_counter()
         fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(f, t0, b is not None))
@@ -254,8 +252,8 @@ class TrainerNode(Node):
 
     def _push_done(self, fut, t0: float, weights: bool = True) -> None:
         self.push_in_flight = None
-        res = fut.result().results[0] if fut.result() else None
-        if res is not None and res.successful:
+        res = fut.result()
+        if res is not None and res.success:
             if weights:
                 self.counts["pushes_ok"] += 1
                 self.push_latency_ms.append(1e3 * (time.perf_counter() - t0))
@@ -266,7 +264,7 @@ class TrainerNode(Node):
                 # no step would be in lockstep (each one held for its wait_for_trainer_timeout_s). Stop now;
                 # close() writes the final checkpoint, so the same command resumes once the nodes agree.
                 self.get_logger().error(
-                    f"policy_node rejected the weights of a release: {res.reason}. Stopping: in "
+                    f"policy_node rejected the weights of a release: {res.message}. Stopping: in "
                     "lockstep the policy must act on this node's weights. Give policy_node and trainer_node the same "
                     "model, frame_stack, input size (policy_node input_width and input_height, this node input_size_px) "
                     "and action_* parameters (train does), then run again to resume from the final checkpoint"
@@ -274,7 +272,7 @@ class TrainerNode(Node):
                 self.exit_code = 3
                 self._shutdown()
                 return
-            self.get_logger().error(f"policy rejected pushed weights: {res.reason if res else 'no answer'}")
+            self.get_logger().error(f"policy rejected pushed weights: {res.message if res else 'no answer'}")
             self._pushed_updates = None  # the next release carries the weights again
         self._send_go()
 
