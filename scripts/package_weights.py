@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Copy trained weights files into uav_policy's packaged weights, recording their training camera.
 
-    python scripts/package_weights.py runs/r35basic150_sam_seed20/policy_sam_step{21..29}000.safetensors \\
-        runs/r35basic150_sam_seed20/policy_sam.safetensors --model sam
+    python scripts/package_weights.py runs/sam_seed4/policy_sam_step{21..29}000.safetensors \\
+        runs/sam_seed4/policy_sam.safetensors --model sam
 
 Replaces the files of src/uav_policy/weights/<model>/ with <model>_00.safetensors,
 <model>_01.safetensors, ... in the order given (policy_node flies several as one policy, acting on

@@ -3,7 +3,7 @@
 
     python scripts/same_run.py runs/sam_seed0 runs/inproc_sam_seed0
     python scripts/same_run.py runs/sam_seed0 runs/inproc_sam_seed0 --tables runs/eval_a/results.csv runs/eval_b/results.csv
-    python scripts/same_run.py runs/sam_seed20 --packaged sam
+    python scripts/same_run.py runs/sam_seed4 --packaged sam
 
 Without --tables: the two run folders' episodes.csv (byte for byte) and every policy_*.safetensors
 file the first run wrote, tensor by tensor (a file the second lacks is reported). With --packaged

@@ -12,6 +12,7 @@ from conftest import ROOT, deep_qos, executable, start_up_error
 from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
+from uav_policy.push import PushService, push_request
 from uav_trainer.flights import ENSEMBLE_SEP, evaluate_once
 from uav_trainer.trainer_node import TrainerNode
 from uav_trainer.training import snapshot_steps
@@ -115,8 +116,21 @@ def test_a_killed_trainer_resumes_from_its_journal_and_learns_on_in_lockstep(ros
     assert updates >= 20 and restored == steps > 60, m.group(0)  # every transition the checkpoint had seen
     t = lambda k: int(diag.get("uav_trainer", {}).get(k, -1))  # noqa: E731
     # Learning goes on at once (the memory holds over learning_starts) and in the replay ratio (one per 4 steps).
-    assert ros.spin_until(lambda: t("env_steps") >= steps + 200, 120), ros.log_of(again)[-2000:]
-    assert ros.spin_until(lambda: t("updates") >= updates + 45, 30), diag.get("uav_trainer")
+    assert ros.spin_until(lambda: t("env_steps") >= steps + 100, 120), ros.log_of(again)[-2000:]
+    assert ros.spin_until(lambda: t("updates") >= updates + 20, 30), diag.get("uav_trainer")
+    # A flood of 50 forged pushes at once (1.2 MB of weights each): every one is answered and refused, and
+    # lockstep learning steps on meanwhile, nothing lost.
+    client = ros.node.create_client(PushService, contract.PUSH_WEIGHTS_SERVICE, qos_profile=deep_qos())  # sends all 50
+    assert client.wait_for_service(timeout_sec=20)
+    cnn = NetConfig(model="cnn")
+    blob = wio.to_bytes(build_network(cnn, seed=0), cnn)
+    before = t("env_steps")
+    futs = [client.call_async(push_request(blob, 1.0, key=b"k" * 32, seq=i + 1)) for i in range(50)]
+    assert ros.spin_until(lambda: all(f.done() for f in futs), 60), f"{sum(f.done() for f in futs)} of 50 answered"
+    assert all(not f.result().success and "signature does not match" in f.result().message for f in futs)
+    assert ros.spin_until(lambda: t("env_steps") >= before + 50, 30), "lockstep stalled after the push flood"
+    unauthenticated = lambda: int(diag.get("uav_policy", {}).get("pushes_unauthenticated", 0))  # noqa: E731
+    assert ros.spin_until(lambda: unauthenticated() == 50, 10), diag.get("uav_policy")
     status = diag["uav_trainer"]
     for key in ("chain_breaks", "frames_without_action", "unmatched_actions", "release_retries", "pushes_rejected"):
         assert status[key] == "0", f"{key}={status[key]}"
