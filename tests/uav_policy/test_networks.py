@@ -160,24 +160,6 @@ def test_attention_readout_weights_form_the_q_values():
     torch.testing.assert_close(q, q2)
 
 
-def test_attention_on_content_looks_where_the_cells_features_say_not_where_the_others_are():
-    """Readout `attend_content`: a cell's weight comes from its own conv features, so changing the top-left of the
-    image leaves the ratios between far cells' weights as they were; with `attend` (keys from the relational
-    nodes) every ratio moves."""
-    x = depth_batch(1)
-    y = x.clone()
-    y[:, :, :16, :16] = 0.5  # something near in the top-left corner
-    far = [63, 62, 55, 54]  # bottom-right cells: their receptive fields do not reach the corner
-    for readout, same in (("attend_content", True), ("attend", False)):
-        net = build_network(NetConfig(model="sam", sam_readout=readout), seed=0)
-        with torch.no_grad():
-            (_, wx), (_, wy) = net(x), net(y)
-        assert wx.shape == (1, 3, 1, 64)
-        rx, ry = wx[0, :, 0, far] / wx[0, :, 0, far[:1]], wy[0, :, 0, far] / wy[0, :, 0, far[:1]]
-        moved = float((rx - ry).abs().max())
-        assert (moved < 1e-6) == same, (readout, moved)
-
-
 def test_frame_stack_resets_per_episode():
     fs = FrameStack(5)
     s = fs.reset(np.full((2, 2), 1.0))

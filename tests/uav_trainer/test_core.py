@@ -171,21 +171,6 @@ def test_learner_fits_a_fixed_target():
     assert last < 0.1 * first
 
 
-def test_an_attention_entropy_weight_sharpens_the_attention_the_decision_uses():
-    from uav_trainer.learner import attention_entropy
-
-    cfg, batch = NetConfig(model="sam", sam_readout="attend"), small_batch(0)
-    x = torch.from_numpy(batch["state"])
-    entropies = {}
-    for weight in (0.0, 1.0):
-        lr = Learner(cfg, LearnerConfig(seed=0, learning_rate=1e-3, attention_entropy_weight=weight))
-        for _ in range(30):
-            lr.update(batch)
-        with torch.no_grad():
-            entropies[weight] = float(attention_entropy(lr.online(x)[1]))
-    assert entropies[1.0] < entropies[0.0] - 0.05, entropies
-
-
 def test_checkpoint_round_trip_and_resume(tmp_path):
     cfg = NetConfig(model="sam")
     a = Learner(cfg, LearnerConfig(seed=1, target_update_interval=3))

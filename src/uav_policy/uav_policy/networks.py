@@ -14,9 +14,7 @@ grid order into the CNN's hidden layer, so the head sees where each feature is, 
 Readout `attend` (an extension): attention pooling, one learned query per head over the nodes (as in Set
 Transformer's PMA); the heads' weighted values are the head's only input, so the weights shown are the weights
 that form the Q-values. The forward pass then returns those readout weights (B, heads, 1, nodes) as the
-attention the decision uses, in place of the relational block's. Readout `attend_content`: the same, with
-keys from each cell's conv features alone (no coordinates, no relational mixing), so where it looks follows
-what is seen; the values are the relational nodes as in `attend`.
+attention the decision uses, in place of the relational block's. The shipped recipe uses `attend`.
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
@@ -38,7 +36,7 @@ import torch
 from torch import nn
 
 MODELS = ("sam", "cnn")
-SAM_READOUTS = ("max", "flatten", "attend", "attend_content")
+SAM_READOUTS = ("max", "flatten", "attend")
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
@@ -182,26 +180,18 @@ class RelationalBlock(nn.Module):
 
 
 class AttentionPooling(nn.Module):
-    """One learned query per head attends over the nodes: (B, n, d) -> (B, d) and the weights (B, heads, 1, n).
-    Keys come from `key_in` (B, n, key_dim) features when given, else from the nodes."""
+    """One learned query per head attends over the nodes: (B, n, d) -> (B, d) and the weights (B, heads, 1, n)."""
 
-    def __init__(self, d_model: int, heads: int, key_dim: int | None = None):
+    def __init__(self, d_model: int, heads: int):
         super().__init__()
         self.heads, self.d_head = heads, d_model // heads
         self.query = nn.Parameter(torch.randn(heads, 1, self.d_head) / math.sqrt(self.d_head))
-        if key_dim is None:
-            self.kv = nn.Linear(d_model, 2 * d_model)
-        else:
-            self.key, self.value = nn.Linear(key_dim, d_model), nn.Linear(d_model, d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
         self.out = nn.Linear(d_model, d_model)
 
-    def forward(self, nodes: torch.Tensor, key_in: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b, n, d = nodes.shape
-        split = lambda t: t.view(b, n, self.heads, self.d_head).transpose(1, 2)  # noqa: E731  (b, h, n, d_head)
-        if key_in is None:
-            k, v = self.kv(nodes).view(b, n, 2, self.heads, self.d_head).permute(2, 0, 3, 1, 4)
-        else:
-            k, v = split(self.key(key_in)), split(self.value(nodes))
+        k, v = self.kv(nodes).view(b, n, 2, self.heads, self.d_head).permute(2, 0, 3, 1, 4)  # (b, h, n, d_head) each
         weights = torch.softmax(self.query @ k.transpose(-1, -2) / math.sqrt(self.d_head), dim=-1)  # (b, h, 1, n)
         return self.out((weights @ v).reshape(b, d)), weights
 
@@ -239,9 +229,8 @@ class D3QNSam(nn.Module):
             RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
         )
         self.pooling = None
-        if cfg.sam_readout in ("attend", "attend_content"):
-            key_dim = self.trunk.out_channels if cfg.sam_readout == "attend_content" else None
-            self.pooling = AttentionPooling(cfg.d_model, cfg.heads, key_dim)
+        if cfg.sam_readout == "attend":
+            self.pooling = AttentionPooling(cfg.d_model, cfg.heads)
         if cfg.sam_readout == "flatten":
             c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
             self.readout = nn.Sequential(
@@ -264,14 +253,13 @@ class D3QNSam(nn.Module):
     def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """forward() from the trunk's feature map (B, C, h, w) on."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
-        cells = nodes
         coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
         nodes = self.node_projection(torch.cat([nodes, coords], dim=-1))
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)
         if self.pooling is not None:
-            pooled, weights = self.pooling(nodes, cells if self.cfg.sam_readout == "attend_content" else None)
+            pooled, weights = self.pooling(nodes)
         elif self.readout is None:
             pooled = nodes.max(dim=1).values  # feature-wise max pooling over nodes
         else:

@@ -24,13 +24,6 @@ class LearnerConfig:
     target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
     target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
     huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
-    attention_entropy_weight: float = setting(
-        0.0,
-        "SAM: the mean normalised entropy of the attention the decision uses, times this, is added to the loss (> 0 "
-        "sharpens it; uav_policy.insight measures it); 0 = the paper's loss",
-        0.0,
-        10.0,
-    )
     seed: int = 0  # TrainerConfig's seed (not a setting of its own)
 
 
@@ -38,11 +31,6 @@ def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
     """y = r + gamma * (1 - done) * Q_target(s', argmax_a Q_online(s', a))."""
     best = q_next_online.argmax(dim=1, keepdim=True)
     return reward + gamma * (1.0 - done) * q_next_target.gather(1, best).squeeze(1)
-
-
-def attention_entropy(w: torch.Tensor) -> torch.Tensor:
-    """The mean over batch, heads and queries of each query's attention entropy over the nodes, over log(nodes)."""
-    return -(w * torch.log(w.clamp_min(1e-12))).sum(dim=-1).mean() / np.log(w.shape[-1])
 
 
 class NonFiniteLoss(RuntimeError):
@@ -76,11 +64,9 @@ class Learner:
         s, a, r, done, s2 = self._tensors(batch)
         with torch.no_grad():
             y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
-        q, w = self.online(s)
+        q = self.online(s)[0]
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
-        if self.cfg.attention_entropy_weight > 0 and w is not None:
-            loss = loss + self.cfg.attention_entropy_weight * attention_entropy(w)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"loss is {loss.item()} at update {self.updates}")
         self.optimizer.zero_grad(set_to_none=True)

@@ -74,8 +74,8 @@ def main(argv=None) -> int:
         "--sam-readout",
         choices=SAM_READOUTS,
         default=None,
-        help="SAM readout: max (the paper), flatten, attend (attention pooling) or attend_content (keys from each cell "
-        "alone) (default: the recipe's, else trainer.yaml's); the policy takes it from the pushed weights",
+        help="SAM readout: max (the paper), flatten or attend (attention pooling) (default: the recipe's, else "
+        "trainer.yaml's); the policy takes it from the pushed weights",
     )
     ap.add_argument(
         "--input-size",

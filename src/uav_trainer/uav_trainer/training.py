@@ -83,8 +83,8 @@ class TrainerConfig:
     )
     sam_readout: str = setting(
         "max",
-        "SAM readout: max pools the nodes (the paper), flatten keeps their places, attend pools them by attention, "
-        "attend_content with keys from each cell alone; policy_node's",
+        "SAM readout: max pools the nodes (the paper), flatten keeps their places, attend pools them by attention (the "
+        "attention shown forms the Q-values; the shipped recipe); policy_node takes it from the weights",
         choices=SAM_READOUTS,
     )
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
@@ -155,7 +155,7 @@ RETIRED = {
     **{
         name: "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
         for name in ("n_step", "priority_alpha", "priority_beta", "priority_beta_steps", "clearance_m", "clearance_weight")
-        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "augment_shift_px")
+        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "augment_shift_px", "attention_entropy_weight")
     },
 }
 
