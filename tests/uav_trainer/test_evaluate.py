@@ -491,13 +491,13 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
     rc, out = same_run(str(a), str(b))
     assert rc == 0 and out.endswith("same\n") and "policy_sam_step29000.safetensors: identical" in out
     assert same_run(str(a), "--packaged", "sam")[0] == 0, "a run's ten files in step order are the packaged ten"
-    net = wio.load_file(packaged[3], NetConfig())
+    net = wio.load_file(packaged[3], wio.config_for("sam", packaged[3]))
     with torch.no_grad():
         net.dueling_head.advantage[-1].bias[0] += 1e-6  # one value of one tensor
     wio.save_file(net, net.cfg, b / "policy_sam_step24000.safetensors", 150.0, 0.078)
     rc, out = same_run(str(a), str(b))
     assert rc == 1
-    assert "policy_sam_step24000.safetensors: 1 of 28 tensors differ" in out and out.endswith("DIFFERENT\n")
+    assert "policy_sam_step24000.safetensors: 1 of 33 tensors differ" in out and out.endswith("DIFFERENT\n")
     assert "policy_sam_step23000.safetensors: identical" in out
     (b / "episodes.csv").write_text("episode,env_step,length,reward,end\n1,7,7,-3.001,crash\n")
     rc, out = same_run(str(a), str(b))

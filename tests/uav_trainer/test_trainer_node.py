@@ -220,7 +220,8 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     assert len(ros_rows) > 20 and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
     names = [f"policy_sam_step{n}.safetensors" for n in snaps] + ["policy_sam.safetensors"]
     for name in names:
-        a, b = wio.load_file(ros_dir / name, NetConfig()), wio.load_file(ip_dir / name, NetConfig())
+        made = wio.config_for("sam", ros_dir / name)  # the recipe's readout
+        a, b = wio.load_file(ros_dir / name, made), wio.load_file(ip_dir / name, made)
         for (k, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
             assert torch.equal(x, y), f"{name}: tensor {k} differs"
     # replay_ratio 0.5 after learning_starts, the last step's updates included; no step after the budget.
