@@ -43,7 +43,7 @@ from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
 from .insight import Insight, explanation
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, forward_flops, parameter_count
-from .push import PushService, ReleaseGate, load_key, read_push, verify
+from .push import PUSH_QOS, PushService, ReleaseGate, load_key, read_push, verify
 from .safety import SafetyLayer
 
 CAMERA_INFO_WAIT_S = 2.0  # how long frames wait for their first CameraInfo (see _wait_for_camera_info)
@@ -137,9 +137,11 @@ class PolicyNode(Node):
         self.info_wait_since = None  # the first frame that waited for depth/camera_info
         self.frames_before_camera_info = 0
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
-        # service needs its own callback group: a suspended async callback holds its group.
+        # service needs its own callback group: a suspended async callback holds its group. Its request
+        # queue (PUSH_QOS) holds a burst of forged pushes, each refused in milliseconds, without losing the trainer's.
         if self.accept_pushes:
-            self.create_service(PushService, "~/push_weights", self._on_push, callback_group=MutuallyExclusiveCallbackGroup())
+            group = MutuallyExclusiveCallbackGroup()
+            self.create_service(PushService, "~/push_weights", self._on_push, qos_profile=PUSH_QOS, callback_group=group)
         self.stack = FrameStack(frames)
         self.gate = ReleaseGate(self.wait_timeout_s)  # wait_for_trainer: frames held until released
         if self.wait_for_trainer:

@@ -34,6 +34,7 @@ import stat
 from pathlib import Path
 
 from diagnostic_msgs.srv import AddDiagnostics as PushService  # noqa: N814 (the standard type pushes travel on)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 PREFIX = "uav_push/1 "
 MAX_HEADER_CHARS = 1024  # the first line: prefix and JSON fields
@@ -42,6 +43,11 @@ RELEASE_FIELD = "release_stamp_ns"
 SEQUENCE_FIELD = "push_seq"
 SIGNATURE_FIELD = "signature"
 KEY_BYTES = 32
+# The push service's request queue. rclpy's services keep the last 10 requests: under load, a burst of
+# forged pushes overwrote queued ones (10 of 50 never answered), the trainer's among them.
+PUSH_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST, depth=100
+)
 _FIELDS = {EPSILON_FIELD: "a number", RELEASE_FIELD: "an integer", SEQUENCE_FIELD: "an integer", SIGNATURE_FIELD: "a string"}
 
 
