@@ -44,10 +44,12 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     )
     run_dir = tmp_path / "run"
     window = ("-p", "reward_window_fraction:=0.3")  # 19 of 64 px: the trainer reads it back from step_outcome
-    # The first frame waits for policy and trainer (as train starts it): never said again, none lost to discovery.
+    # As train starts them: the first frame waits for policy and trainer, and the policy answers each frame once
+    # the trainer has it and releases it, so no step goes unstored however late discovery matches a topic.
     lockstep = ("-p", "lockstep_republish_s:=60.0", "-p", "wait_for_subscribers:=2")
     ros.start("uav_sim", "sim_node", *lockstep, "-p", "hfov_deg:=100.0", *window)
-    policy = ros.start("uav_policy", "policy_node", *pushes_signed_in(run_dir))
+    waits = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0")
+    policy = ros.start("uav_policy", "policy_node", *waits, *pushes_signed_in(run_dir))
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
     ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 1000, 300)
