@@ -317,7 +317,7 @@ def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_nam
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
     run_dir = tmp_path / "run"
     sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2", "--trainer-arg", "conv_channels:=[8, 16]")
-    r, logs = run_train(run_dir, "75", "--steps", "200", "--input-size", "48", "--frames", "3", *sizes, timeout_s=300)
+    r, logs = run_train(run_dir, "101", "--steps", "200", "--input-size", "48", "--frames", "3", *sizes, timeout_s=300)
     made = wio.read_file_config(run_dir / "policy_sam.safetensors")
     assert (made.height, made.width, made.frames, made.d_model, made.heads) == (48, 48, 3, 24, 2)
     assert made.conv_channels == (8, 16)  # 12 x 12 nodes from 48 px
