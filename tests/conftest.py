@@ -16,7 +16,9 @@ ROOT = Path(__file__).resolve().parents[1]
 INSTALL = ROOT / "install"
 sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
 
-# A private domain per test: tests never hear each other or anything else on the machine.
+# A private domain per test: tests never hear each other or anything else on the machine. The harness draws
+# 1-60; a test that sets its own uses one of 61-101 that no other test uses (101 is the highest Linux allows
+# without clashing with ephemeral ports).
 _domains = itertools.count(1 + (os.getpid() * 7) % 60)
 
 
@@ -61,7 +63,7 @@ class RosHarness:
     def __init__(self, tmp_path: Path):
         import rclpy
 
-        self.domain_id = 1 + next(_domains) % 100
+        self.domain_id = 1 + next(_domains) % 60
         self.env = dict(
             os.environ,
             ROS_DOMAIN_ID=str(self.domain_id),

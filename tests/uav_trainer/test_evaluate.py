@@ -15,7 +15,7 @@ from uav_policy.networks import NetConfig, build_network
 from uav_trainer.flights import Behaviour, evaluate_once
 
 
-def run_tool(pkg, exe, *args, domain="102", timeout=300):
+def run_tool(pkg, exe, *args, domain="75", timeout=300):
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     return subprocess.run([str(executable(pkg, exe)), *args], env=env, capture_output=True, text=True, timeout=timeout)
 
@@ -137,7 +137,7 @@ def test_attention_figures_are_written(tmp_path):
 
 
 @pytest.mark.parametrize("model", ["sam", "cnn"])
-def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model):
+def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model, monkeypatch):
     from uav_sim.simulator import SimConfig
 
     shipped = sorted((ROOT / "src" / "uav_policy" / "weights" / model).glob("*.safetensors"))
@@ -149,7 +149,7 @@ def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model):
     # Trained with sim_node's default camera and reward window: out of the box, no camera mismatch.
     assert {wio.read_file_camera(p) for p in shipped} == {SimConfig.hfov_deg}
     assert {wio.read_file_window(p) for p in shipped} == {SimConfig.reward_window_fraction}
-    os.environ["ROS_DOMAIN_ID"] = "76"
+    monkeypatch.setenv("ROS_DOMAIN_ID", "76")
     r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged files
     assert r.steps == 200 and r.crashes == 0, r
 

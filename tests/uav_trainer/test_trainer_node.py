@@ -167,7 +167,7 @@ def log_dir(r, run_dir):
 
 
 @pytest.mark.slow  # a 4000-step learning run, about 140 s on 2 cores: python -m pytest -m slow
-def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
+def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch):
     """The main job on a small world: the trained greedy policy must beat epsilon = 1 clearly."""
     run_dir = tmp_path / "run"
     args = ("--recipe", "paper", "--model", "sam", "--steps", "4000", "--world", SMALL_WORLD)
@@ -178,7 +178,7 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path):
     assert "turn_penalty:=0.0" in r.stdout and "recipes/paper.yaml" in r.stdout
     untrained = tmp_path / "untrained.safetensors"
     wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), untrained)
-    os.environ["ROS_DOMAIN_ID"] = "73"
+    monkeypatch.setenv("ROS_DOMAIN_ID", "73")
     trained = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=0.0)
     baseline = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=1.0)
     before = evaluate_once("sam", str(untrained), SMALL_WORLD, 500, epsilon=0.0)
@@ -270,7 +270,7 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
     assert "did not release the frame" not in ros.log_of(policy), "the refused release must not wait for the timeout"
 
 
-def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path):
+def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path, monkeypatch):
     """Without --recipe, train sets up what the packaged weights were trained with (params/recipes/shipped.yaml):
     nine snapshots besides the final weights, flown as one policy."""
     run_dir = tmp_path / "run"
@@ -299,7 +299,7 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     assert all(int(r["length"]) <= 4 for r in rows)
     # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
     assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
-    os.environ["ROS_DOMAIN_ID"] = "74"
+    monkeypatch.setenv("ROS_DOMAIN_ID", "74")
     flown = evaluate_once("sam", ENSEMBLE_SEP.join(map(str, files)), "basic", 20)
     assert flown.steps == 20
 
@@ -417,7 +417,9 @@ def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
         (180.0, 120.0, None, "max", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}),
     ],
 )
-def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes):
+def test_ros_evaluation_equals_the_in_process_measurement(
+    tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes, monkeypatch
+):
     """Same simulator, stack and network: flying through the ROS nodes changes nothing (and the
     random start heading, extra sim parameters, the weights' SAM readout, input size, layer sizes and frame stack
     and, without an hfov_deg argument, the camera recorded in the weights and the reward window it records reach the nodes)."""
@@ -428,7 +430,7 @@ def test_ros_evaluation_equals_the_in_process_measurement(tmp_path, jitter, hfov
     cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)
     window = 0.5 if trained_hfov is not None else None  # recorded with the camera: flown by both paths unasked
     wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov, reward_window_fraction=window)
-    os.environ["ROS_DOMAIN_ID"] = "74"
+    monkeypatch.setenv("ROS_DOMAIN_ID", "79")
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
     over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args)
     flown = hfov if hfov is not None else trained_hfov

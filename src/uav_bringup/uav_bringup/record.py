@@ -22,7 +22,7 @@ from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 
 from uav_common import contract
-from uav_common.node_runner import run
+from uav_common.node_runner import DeferredInterrupt, run
 from uav_common.ros_params import ParameterError
 
 from .taps import DEFAULT_TOPICS, TopicTap, typestore
@@ -53,9 +53,10 @@ def open_bag(path: Path):
 
 
 class Recorder(Node):
-    def __init__(self, out: Path, topics, quiet: bool = False):
+    def __init__(self, out: Path, topics, quiet: bool = False, hold=None):
         super().__init__("recorder")
         self.out = out
+        self.hold = hold or DeferredInterrupt()  # Ctrl-C never lands inside a write: the bag stays whole
         self.quiet = quiet
         self.writer = open_bag(out)
         self.connections = {}
@@ -81,7 +82,8 @@ class Recorder(Node):
     def on_message(self, topic: str, _msgtype: str, data: bytes, receive_ns: int) -> None:
         if self.writer is None:
             return
-        self.writer.write(self.connections[topic], receive_ns, data)
+        with self.hold:
+            self.writer.write(self.connections[topic], receive_ns, data)
         self.counts[topic] += 1
         self.bytes += len(data)
 
@@ -158,7 +160,8 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     a = ap.parse_args(remove_ros_args(argv)[1:])
-    return run(lambda: Recorder(Path(a.output), a.topics, a.quiet), argv)
+    hold = DeferredInterrupt().install()
+    return run(lambda: Recorder(Path(a.output), a.topics, a.quiet, hold), argv)
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 import threading
 
@@ -74,3 +75,34 @@ def interrupted(e: BaseException | None) -> bool:
         seen.add(id(e))
         e = e.__cause__ or e.__context__
     return False
+
+
+class DeferredInterrupt:
+    """Ctrl-C as usual (KeyboardInterrupt), except inside `with hold:`, where it lands when the block ends:
+    work that must not stop half-way (a record being written to a bag) finishes first.
+
+    `install()` before rclpy.init: rclpy's own handler (which wakes the executor) then passes the signal on
+    to this one."""
+
+    def __init__(self):
+        self.depth = 0
+        self.pending = False
+
+    def install(self) -> DeferredInterrupt:
+        signal.signal(signal.SIGINT, self._on_signal)
+        return self
+
+    def _on_signal(self, _signum, _frame) -> None:
+        if self.depth:
+            self.pending = True
+        else:
+            raise KeyboardInterrupt
+
+    def __enter__(self) -> None:
+        self.depth += 1
+
+    def __exit__(self, *_exc) -> None:
+        self.depth -= 1
+        if not self.depth and self.pending:
+            self.pending = False
+            raise KeyboardInterrupt
