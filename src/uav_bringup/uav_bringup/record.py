@@ -114,8 +114,9 @@ class Recorder(Node):
         print(f"bag {self.out} closed: {self.summary()} ({counts})", flush=True)
 
 
-def recorder_publishers(node) -> dict[str, int]:
-    """{topic: publishers the recorder has matched}, kept up to date from its /diagnostics."""
+def recorder_publishers(node, written: dict[str, int] | None = None) -> dict[str, int]:
+    """{topic: publishers the recorder has matched}, kept up to date from its /diagnostics; `written`, when
+    given, gets {topic: messages the recorder has written}."""
     heard: dict[str, int] = {}
 
     def on(msg) -> None:
@@ -124,6 +125,8 @@ def recorder_publishers(node) -> dict[str, int]:
                 heard.update(
                     {kv.key[len("publishers ") :]: int(kv.value) for kv in st.values if kv.key.startswith("publishers ")}
                 )
+                if written is not None:
+                    written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
 
     node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, on, 10)
     return heard

@@ -91,6 +91,7 @@ class StepMonitor:
         self.target = steps
         self.joiner = contract.StampJoiner(("outcome", "odom"), max_pending=1000)
         self.first = True
+        self.outcomes = 0  # step_outcome messages heard (a frame said again included)
         self.steps = self.crashes = 0
         self.sites: set[tuple[float, float]] = set()
         self.reward = 0.0
@@ -101,6 +102,7 @@ class StepMonitor:
         self.behaviour: Behaviour | None = None
 
     def add(self, stream: str, msg) -> None:
+        self.outcomes += stream == "outcome"
         stamp = contract.stamp_ns(msg.header.stamp)
         j = self.joiner.add(stream, stamp, msg)
         if j is None or self.done:
@@ -282,13 +284,14 @@ def evaluate_once(
         )
         ready_by = time.monotonic() + 60.0
         sim_extra = []
+        written = {}  # the recorder's messages written, by topic
         if record_to is not None:
             # Recorder and policy first. The simulator starts once the recorder hears the policy's
             # publishers, and holds its first frame until the policy, the recorder and this monitor
             # all listen: the bag holds every step from the first frame on.
             from uav_bringup.record import recorder_publishers, wait_for_policy
 
-            heard = recorder_publishers(node)
+            heard = recorder_publishers(node, written)
             node.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: None, deep)  # the third listener
             procs.start("record", "uav_bringup", "record", [], args=["-o", str(record_to), "--quiet"])
             procs.start("policy", "uav_policy", "policy_node", policy_args)
@@ -343,6 +346,16 @@ def evaluate_once(
             executor.spin_once(timeout_sec=0.05)
         if "safety_interventions" not in said:
             raise RuntimeError("policy_node did not report its safety interventions on /diagnostics")
+        if record_to is not None:  # a busy recorder may lag: the bag closes once it holds every step
+            outcome = node.resolve_topic_name(contract.OUTCOME_TOPIC)
+            asked = time.monotonic()
+            while written.get(outcome, 0) < mon.outcomes and time.monotonic() < asked + 60.0:
+                executor.spin_once(timeout_sec=0.05)
+            if written.get(outcome, 0) < mon.outcomes:
+                raise RuntimeError(
+                    f"the recorder wrote {written.get(outcome, 0)} of the {mon.outcomes} step outcomes within 60 s: "
+                    f"the bag {record_to} is incomplete"
+                )
     finally:
         procs.stop_all(["policy", "sim", "record"])
         executor.shutdown()
