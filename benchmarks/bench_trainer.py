@@ -6,6 +6,11 @@ wall-clock on this machine from scratch until the SAM policy flies 1000 exploit 
 with 0 crashes (in-process trainer, evaluated every --eval-every steps; evaluation time is included
 in the wall-clock).
 
+With --actors N [N ...], `train --actors N`'s env steps/s and updates/s for each N (ratios against the
+first, in the same run); with --actors-learning BUDGET, N = 2 against N = 1 at the same env-step budget
+over --actors-seeds: crashes per 1000 exploit steps of each run's final weights in Basic, Complex and
+Turbulent (in process, the recipe's random start headings).
+
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_trainer.py
 """
 
@@ -89,10 +94,12 @@ def sample_ms(n: int = 100) -> dict[str, float]:
 LEARNING_STARTS = 500
 
 
-def ros_throughput(steps: int, domain: int) -> tuple[float, float]:
-    """(env steps/s, updates/s) of `train` once learning has started, from its metrics.csv."""
+def ros_throughput(steps: int, domain: int, actors: int = 1) -> tuple[float, float]:
+    """(env steps/s, updates/s) of `train` (with `actors` actor pairs) once learning has started, from its
+    metrics.csv."""
     with tempfile.TemporaryDirectory() as d:
         cmd = [str(ROOT / "install/uav_trainer/lib/uav_trainer/train"), "--steps", str(steps), "--run-dir", d]
+        cmd += ["--actors", str(actors)]
         cmd += ["--params-dir", str(ROOT / "params")]
         cmd += ["--trainer-arg", f"learning_starts:={LEARNING_STARTS}", "--trainer-arg", "log_interval_s:=2.0"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -123,6 +130,23 @@ def inprocess_throughput(steps: int) -> float:
         run_inprocess(cfg, d, sim_cfg, worlds, log=lambda s: None, on_step=on_step)
         end = time.perf_counter()
     return (steps - LEARNING_STARTS - 100) / (end - marks["t"])
+
+
+def actors_learning(actors: int, seed: int, budget: int, domain: int, out: Path) -> dict[str, int]:
+    """`train --actors N` for `budget` env steps, then its final weights flown 1000 exploit steps in each world
+    in process from random headings: {world: crashes}."""
+    run_dir = out / f"actors{actors}_seed{seed}"
+    cmd = [str(ROOT / "install/uav_trainer/lib/uav_trainer/train"), "--steps", str(budget), "--run-dir", str(run_dir)]
+    cmd += ["--params-dir", str(ROOT / "params"), "--actors", str(actors), "--seed", str(seed), "--no-resume"]
+    cmd += ["--log-dir", str(run_dir / "logs")]
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    jitter = float(load_recipe("shipped", ROOT / "params").node("sim_node").get("start_yaw_jitter_deg", 0.0))
+    weights = str(run_dir / "policy_sam.safetensors")
+    return {
+        world: evaluate_inprocess("sam", weights, world, 1000, seed=seed, start_yaw_jitter_deg=jitter).crashes
+        for world in ("basic", "complex", "turbulent")
+    }
 
 
 def time_to_zero_crashes(seed: int, eval_every: int, max_steps: int) -> tuple[float | None, int, list]:
@@ -165,7 +189,12 @@ def main() -> int:
     ap.add_argument("--input-sizes", type=int, nargs="+", default=[64, 84], metavar="PX", help="update cost at these inputs")
     ap.add_argument("--updates-only", action="store_true", help="print the update costs and stop")
     ap.add_argument("--threads", type=int, default=1, help="torch threads for the update costs")
+    ap.add_argument("--actors", type=int, nargs="+", default=[], metavar="N", help="train's throughput with N actors")
+    ap.add_argument("--actors-learning", type=int, default=0, metavar="BUDGET", help="N = 2 against N = 1 at this budget")
+    ap.add_argument("--actors-seeds", type=int, nargs="+", default=[0, 1, 2])
     a = ap.parse_args()
+    if a.actors or a.actors_learning:
+        return actors_figures(a)
     torch.set_num_threads(a.threads)
     for model in ("sam", "cnn"):
         base = update_ms(model, 64)
@@ -198,6 +227,35 @@ def main() -> int:
         print(
             f"wall-clock from scratch to 0 crashes in 1000 Basic exploit steps: {t:.0f} s ({t / 60:.1f} min), {steps} env steps"
         )
+    return 0
+
+
+def actors_figures(a) -> int:
+    domain = 200 + os.getpid() % 10  # (a benchmark runs alone; the tests keep to 1-101)
+    rates = {n: ros_throughput(a.ros_steps, domain, n) for n in a.actors}
+    first = a.actors[0] if a.actors else None
+    for n, (env_rate, upd_rate) in rates.items():
+        base_env, base_upd = rates[first]
+        print(
+            f"train --actors {n}: {env_rate:.1f} env steps/s ({env_rate / base_env:.2f}x {first} actor(s)), "
+            f"{upd_rate:.1f} updates/s ({upd_rate / max(base_upd, 1e-9):.2f}x)",
+            flush=True,
+        )
+    if not a.actors_learning:
+        return 0
+    out = Path(tempfile.mkdtemp(prefix="actors_learning_"))
+    worlds = ("basic", "complex", "turbulent")
+    for n in (1, 2):
+        crashes = {w: [] for w in worlds}
+        for seed in a.actors_seeds:
+            got = actors_learning(n, seed, a.actors_learning, domain, out)
+            print(f"  --actors {n} seed {seed}: crashes per 1000 steps " + " / ".join(str(got[w]) for w in worlds), flush=True)
+            for w in worlds:
+                crashes[w].append(got[w])
+        means = " / ".join(f"{np.mean(crashes[w]):.1f} ± {np.std(crashes[w], ddof=1):.1f}" for w in worlds)
+        seeds = len(a.actors_seeds)
+        print(f"train --actors {n}, {a.actors_learning} env steps, {seeds} seeds: {means} (basic / complex / turbulent)")
+    print(f"runs in {out}")
     return 0
 
 

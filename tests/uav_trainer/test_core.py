@@ -5,8 +5,9 @@ import torch
 from uav_common.frame_stack import FrameStack
 from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
+from uav_trainer.episodes import EpisodeStats
 from uav_trainer.learner import Learner, LearnerConfig, double_dqn_target, linear_epsilon
-from uav_trainer.replay import ReplayMemory
+from uav_trainer.replay import LanedReplay, ReplayMemory
 
 
 def frame(v):
@@ -207,3 +208,41 @@ def test_confidence_interval_matches_a_hand_computed_t_interval():
     mean, hw = mean_ci95([0.0, 1.0, 2.0])  # s = 1, n = 3: 4.303 * 1 / sqrt(3)
     assert mean == 1.0 and hw == pytest.approx(4.303 / 3**0.5)
     assert np.isnan(mean_ci95([5.0])[1])
+
+
+def test_a_laned_memory_keeps_each_actors_chain_and_samples_every_lane_by_its_share():
+    """Two actors' steps interleave: each lane's stacks and next states are its own actor's frames, as if it
+    had a memory of its own, and batches come from the lanes in proportion to what they hold."""
+    mem = LanedReplay(2, 200, (2, 2), frames=3, seed=1)
+    assert [lane.capacity for lane in mem.lanes] == [100, 100] and mem.capacity == 200
+    alone = [ReplayMemory(100, (2, 2), frames=3) for _ in range(2)]
+    frame = lambda actor, k: np.full((2, 2), 100.0 * actor + k, dtype=np.float32)  # noqa: E731
+    for m, actor in ((mem.lanes[0], 0), (mem.lanes[1], 1), (alone[0], 0), (alone[1], 1)):
+        m.add_first(frame(actor, 0))
+    for k in range(1, 31):
+        for actor in (0, 1):  # interleaved, as two actors' steps arrive
+            if actor == 1 and k > 10:
+                continue  # actor 1 makes a third of actor 0's steps
+            for m in (mem.lanes[actor], alone[actor]):
+                m.add_transition(k % 4, float(k), False, frame(actor, k))
+    assert len(mem) == len(alone[0]) + len(alone[1]) == 30 + 10
+    for actor in (0, 1):
+        for slot in range(len(alone[actor])):
+            assert np.array_equal(mem.lanes[actor].stack(slot), alone[actor].stack(slot))
+    batch = mem.sample(4000)
+    assert batch["state"].shape == (4000, 3, 2, 2)
+    from_1 = (batch["state"][:, -1, 0, 0] >= 100).mean()
+    assert 0.2 < from_1 < 0.3, from_1  # 10 of 40 transitions are actor 1's
+    # Every sampled transition's next state is the same actor's next frame.
+    assert np.array_equal(batch["next_state"][:, -1, 0, 0] - batch["state"][:, -1, 0, 0], np.ones(4000))
+    with pytest.raises(ValueError, match="at least 2 lanes"):
+        LanedReplay(1, 200, (2, 2))
+
+
+def test_each_actors_episode_is_its_own():
+    stats = EpisodeStats()
+    assert stats.step(1.0, False, 1, actor=0) is None
+    assert stats.step(5.0, False, 2, actor=1) is None
+    assert stats.step(2.0, True, 3, actor=0) == (2, 3.0)  # actor 1's step is not in actor 0's episode
+    assert stats.step(5.0, True, 4, actor=1) == (2, 10.0)
+    assert stats.episodes == 2 and stats.mean_length() == 2.0

@@ -632,3 +632,32 @@ def test_a_resume_with_too_few_stored_transitions_refills_without_a_burst_of_upd
     assert per_step[:29] == [0] * 29, "the memory refills to learning_starts (50) first"
     assert max(per_step) == 1 and sum(per_step) == 15, per_step  # then one update per two steps, no burst
     c.close()
+
+
+def test_several_actors_learn_from_one_memory_each_exploring_at_its_own_rate_and_resume_by_refilling(tmp_path):
+    logs = []
+    cfg = small_cfg(epsilon_decay_steps=100, total_steps=1000)
+    t = Training(cfg, tmp_path, log=logs.append, actors=3)
+    assert "with 3 actors the replay memory is not journaled" in " ".join(logs)
+    assert [t.epsilon(i) for i in range(3)] == [1.0, 1.0, 1.0]  # all start exploring fully
+    rng = np.random.default_rng(0)
+    frame = lambda: rng.uniform(0, 10, (64, 64)).astype(np.float32)  # noqa: E731
+    sinks = [t.sink(i) for i in range(3)]
+    for s in sinks:
+        s.add_first(frame())
+    for k in range(100):
+        for i, s in enumerate(sinks):
+            if i < 2 or k % 2:
+                s.add_step(k % 4, 1.0, k % 30 == 29, frame())
+        t.learn_due()
+    assert t.actor_steps == [100, 100, 50] and t.env_steps == 250
+    assert t.learner.updates == int((250 - 50) * 0.5)
+    # Ape-X's spread over the decayed schedule: 0.05, 0.05^4.5, 0.05^8.
+    assert [round(t.epsilon(i), 10) for i in range(3)] == [0.05, round(0.05**4.5, 10), round(0.05**8, 10)]
+    # Each actor's own episodes: a crash at its k = 29, 59, 89, after 30 steps (15 for the actor at odd k only).
+    assert [length for _step, length, _reward in t.stats.history] == [30, 30, 15] * 3
+    t.save_checkpoint()
+    t.close()
+    again = Training(cfg, tmp_path, log=logs.append, resume=True, actors=3)
+    assert (again.env_steps, again.learner.updates) == (250, 100)
+    assert len(again.replay) == 0 and not again.can_learn()  # the memory refills before learning goes on

@@ -22,7 +22,15 @@ def declare(node, name: str, default, description: str, lo=None, hi=None, choice
     if choices:
         desc.additional_constraints = f"one of: {', '.join(choices)}"
     try:
-        value = node.declare_parameter(name, default, desc).value
+        if default == []:  # rclpy would take an empty list for bytes: an empty default is a list of strings
+            from rcl_interfaces.msg import ParameterType
+            from rclpy.parameter import Parameter
+
+            desc.type = ParameterType.PARAMETER_STRING_ARRAY
+            value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY, desc).value
+            value = [] if value is None else list(value)
+        else:
+            value = node.declare_parameter(name, default, desc).value
     except Exception as e:  # rclpy raises several types; all mean "this value is unusable"
         raise ParameterError(f"parameter '{name}': {e}") from None
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):

@@ -1,8 +1,9 @@
 """sim_node: the pybullet quadrotor simulator on ROS 2.
 
 Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, world/markers (the
-room and obstacles, latched), trajectory (this episode's path), /clock and /diagnostics; consumes
-cmd_vel. Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
+room and obstacles, latched), trajectory (this episode's path), /clock (unless publish_clock:=false:
+several simulators in one graph would each say their own time) and /diagnostics; consumes cmd_vel.
+Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
 `lockstep` mode one cmd_vel advances one step; in `realtime` mode the simulator steps at a fixed
 rate with the latest command and a watchdog.
 """
@@ -81,6 +82,11 @@ class SimNodeSettings:
         "odom", "the world frame: Odometry header, markers and trajectory (REP 105); prefixed with the namespace"
     )
     base_frame_id: str = setting("base_link", "Odometry child frame (REP 105); prefixed with the namespace")
+    publish_clock: bool = setting(
+        True,
+        "publish the simulated time on /clock; false when several simulators share a graph (train --actors N with "
+        "N > 1 sets it: each actor's stamps are its own sim time, and no one clock fits them all)",
+    )
     depth_encoding: str = setting(
         "32FC1",
         "depth/image_raw encoding: 32FC1 (metres) or 16UC1 (millimetres, 0 = no return, as camera drivers)",
@@ -121,7 +127,7 @@ class SimNode(Node):
         self.pub_info = self.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, q)
         self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, q)
         self.pub_outcome = self.create_publisher(Range, contract.OUTCOME_TOPIC, q)
-        self.pub_clock = self.create_publisher(Clock, "/clock", q)
+        self.pub_clock = self.create_publisher(Clock, "/clock", q) if st.publish_clock else None
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.pub_markers = self.create_publisher(MarkerArray, contract.WORLD_MARKERS_TOPIC, contract.LATCHED_QOS)
         self.pub_path = self.create_publisher(Path, contract.TRAJECTORY_TOPIC, 10)
@@ -261,7 +267,8 @@ class SimNode(Node):
     # -- output ------------------------------------------------------------------------
     def publish(self, r: StepResult) -> None:
         stamp = contract.stamp_from_seconds(r.sim_time_s)
-        self.pub_clock.publish(Clock(clock=stamp))
+        if self.pub_clock is not None:
+            self.pub_clock.publish(Clock(clock=stamp))
         if self.sim.world is not self.marked_world:  # the first frame, or a new layout this episode
             self.marked_world = self.sim.world
             self.pub_markers.publish(world_markers(self.sim.world, self.odom_frame, stamp))

@@ -9,28 +9,29 @@ from collections import deque
 
 @dataclasses.dataclass
 class EpisodeStats:
-    """Running episode length/reward; `window` recent episodes for the paper's training curves."""
+    """Running episode length/reward, one episode open per actor; `window` recent episodes for the paper's
+    training curves."""
 
     window: int = 20
     episodes: int = 0
-    length: int = 0
-    reward: float = 0.0
     history: list = dataclasses.field(default_factory=list)  # (env_step, length, reward)
 
     def __post_init__(self):
         self._recent = deque(maxlen=self.window)
+        self._open: dict[int, tuple[int, float]] = {}  # actor: (length, reward) of its episode so far
 
-    def step(self, reward: float, ended: bool, env_step: int) -> tuple[int, float] | None:
-        """Account one step; returns (length, reward) when it ended an episode (a collision or a time limit)."""
-        self.length += 1
-        self.reward += reward
+    def step(self, reward: float, ended: bool, env_step: int, actor: int = 0) -> tuple[int, float] | None:
+        """Account one step of `actor`; returns (length, reward) when it ended that actor's episode (a
+        collision or a time limit)."""
+        length, total = self._open.get(actor, (0, 0.0))
+        done = (length + 1, total + reward)
         if not ended:
+            self._open[actor] = done
             return None
-        done = (self.length, self.reward)
+        self._open.pop(actor, None)
         self.history.append((env_step, *done))
         self._recent.append(done)
         self.episodes += 1
-        self.length, self.reward = 0, 0.0
         return done
 
     def mean_length(self) -> float:

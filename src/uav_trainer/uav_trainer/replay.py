@@ -9,6 +9,9 @@ The next state of transition i is the stack at slot i+1; `done` masks it after a
 The memory is journaled, not saved whole: `segment(since)` holds the slots written since write `since`
 (each checkpoint writes one, a few MiB), and `load_segments` rebuilds the memory from them as it was after
 a given write, the slots where they were. So a resume after a stop or a crash learns on at once.
+
+Several actors' steps interleave: `LanedReplay` keeps each actor's chain in a lane of its own (a
+ReplayMemory with an equal share of the capacity), so a transition's frames stay neighbours.
 """
 
 from __future__ import annotations
@@ -196,3 +199,34 @@ class ReplayMemory:
             "done": self.done[picks].astype(np.float32),
             "next_state": self.stacks((picks + 1) % self.capacity),
         }
+
+
+class LanedReplay:
+    """One replay memory for several actors: lane i (a ReplayMemory of capacity // lanes frames) holds actor
+    i's chain, and a batch is drawn uniformly over the transitions of all lanes. Not journaled: a run with
+    several actors that resumes refills its memory."""
+
+    def __init__(self, lanes: int, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0):
+        if lanes < 2:
+            raise ValueError(f"a laned memory needs at least 2 lanes, got {lanes} (one actor: ReplayMemory)")
+        share = capacity // lanes
+        self.lanes = [ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i) for i in range(lanes)]
+        self.capacity = share * lanes
+        self.frames = frames
+        self.rng = np.random.default_rng(seed)  # which lane each sample comes from
+
+    @property
+    def writes(self) -> int:
+        return sum(lane.writes for lane in self.lanes)
+
+    def __len__(self) -> int:
+        return sum(len(lane) for lane in self.lanes)
+
+    def sample(self, batch: int) -> dict[str, np.ndarray]:
+        """A batch drawn uniformly over all lanes' transitions (each lane's share by its count)."""
+        sizes = np.array([len(lane) for lane in self.lanes], dtype=np.float64)
+        if sizes.sum() == 0:
+            raise RuntimeError("the replay memory holds no complete transition yet")
+        per_lane = self.rng.multinomial(batch, sizes / sizes.sum())
+        parts = [lane.sample(int(k)) for lane, k in zip(self.lanes, per_lane, strict=True) if k]
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}

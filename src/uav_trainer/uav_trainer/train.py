@@ -10,6 +10,12 @@ updates replay_ratio allows and only then releases the next frame to policy_node
 weights and epsilon, so a run is, bit for bit, `python -m uav_trainer.inprocess` with the same
 recipe and seed.
 
+`--actors N` (N > 1) starts N sim_node/policy_node pairs in namespaces /actor0 ... /actor<N-1>, each
+with seed seed+i (its own world sequence) and its own exploration rate, feeding one trainer_node:
+more experience per update, asynchronously (not bit-reproducible). An actor that dies is reported and
+training goes on with the others; none of them publishes /clock. Actors on other hosts can join the
+same trainer: docs/TRAINING.md, "Many actors".
+
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
 policy_<model>.safetensors and the recipe's snapshots). Ctrl-C stops the trainer first, which saves
 a final checkpoint with the replay memory, then the policy and the simulator. Running it again with
@@ -53,6 +59,14 @@ def main(argv=None) -> int:
     ap.add_argument("--world", default=None, help="training world, e.g. basic or random_each_episode (default: the recipe's)")
     ap.add_argument("--steps", type=int, default=30000, help="environment steps budget (default: 30000)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--actors",
+        type=int,
+        default=1,
+        metavar="N",
+        help=f"actor pairs (sim_node + policy_node) feeding the one trainer_node, in namespaces /actor0 ... (1 to "
+        f"{MAX_ACTORS}; default: 1, in lockstep and bit-identical to inprocess; more: asynchronous)",
+    )
     ap.add_argument("--run-dir", default=None, help="output directory (default: runs/<model>_seed<seed>)")
     ap.add_argument(
         "--log-dir",
@@ -94,6 +108,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.steps <= 0:
         ap.error("--steps must be positive")
+    if not 1 <= a.actors <= MAX_ACTORS:
+        ap.error(f"--actors must lie in [1, {MAX_ACTORS}], got {a.actors}")
     if a.input_size is not None and not 8 <= a.input_size <= 512:
         ap.error(f"--input-size must lie in [8, 512] px, got {a.input_size}")
     if a.frames is not None and not 1 <= a.frames <= MAX_FRAMES:
@@ -127,19 +143,23 @@ def main(argv=None) -> int:
     p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731
     world = [f"world:={a.world}"] if a.world else []
-    # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
-    sim_extra = [*world, f"seed:={a.seed}", "wait_for_subscribers:=2"]
-    sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
-    procs.start("sim", "uav_sim", "sim_node", node_args("sim") + p(sim_extra))
-    procs.start(
-        "policy",
-        "uav_policy",
-        "policy_node",
-        node_args("policy")
-        + p([f"model:={a.model}", f"seed:={a.seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
-        + p(["accept_pushes:=true", f"push_key_file:={key}", "safety:=false"])
-        + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
-    )
+    actors = actor_names(a.actors)
+    for name, ns, seed in zip(actors, actor_namespaces(a.actors), range(a.seed, a.seed + a.actors), strict=True):
+        remap = ["-r", f"__ns:={ns}"] if ns else []
+        # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
+        sim_extra = [*world, f"seed:={seed}", "wait_for_subscribers:=2", *(["publish_clock:=false"] if ns else [])]
+        sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
+        procs.start(f"sim{name}", "uav_sim", "sim_node", remap + node_args("sim") + p(sim_extra))
+        procs.start(
+            f"policy{name}",
+            "uav_policy",
+            "policy_node",
+            remap
+            + node_args("policy")
+            + p([f"model:={a.model}", f"seed:={seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
+            + p(["accept_pushes:=true", f"push_key_file:={key}", "safety:=false"])
+            + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
+        )
     trainer = procs.start(
         "trainer",
         "uav_trainer",
@@ -154,24 +174,26 @@ def main(argv=None) -> int:
                 f"run_dir:={run_dir}",
                 f"push_key_file:={key}",
                 f"resume:={'false' if a.no_resume else 'true'}",
+                *([f"actors:=[{', '.join(actor_namespaces(a.actors))}]"] if a.actors > 1 else []),
                 *[f"input_size_px:={px}" for px in size],
                 *frames,
                 *a.trainer_arg,
             ]
         ),
     )
+    many = f" from {a.actors} actors (asynchronous)" if a.actors > 1 else ""
     print(
-        f"training D3QN-{a.model.upper()} with recipe {recipe.path} ({recipe.summary()}) for {a.steps} steps -> {run_dir} "
-        f"(node logs in {logs})",
+        f"training D3QN-{a.model.upper()} with recipe {recipe.path} ({recipe.summary()}) for {a.steps} steps{many} -> "
+        f"{run_dir} (node logs in {logs})",
         flush=True,
     )
     interrupted = stop_signals()
     code = 0
     try:
-        code = follow(trainer, run_dir, a.steps, interrupted, procs)
+        code = follow(trainer, run_dir, a.steps, interrupted, procs, actors)
     finally:
         procs.stop("trainer", timeout_s=120)
-        procs.stop_all(["policy", "sim"])
+        procs.stop_all([f"policy{n}" for n in actors] + [f"sim{n}" for n in actors])
     trainer_code = trainer.returncode
     failed = trainer_code not in (0, None, -signal.SIGINT)
     # Only files this run wrote: an earlier run's (or a crashed run's) files are not this run's result.
@@ -195,11 +217,23 @@ def main(argv=None) -> int:
 
 
 PROGRESS_EVERY_S = 30.0  # a progress line this often when stdout is no terminal (a log file, CI, nohup)
+MAX_ACTORS = 16
 
 
-def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes) -> int:
+def actor_namespaces(n: int) -> list[str]:
+    """The actors' namespaces: none for one actor (the nodes as `ros2 run` starts them), /actor0 ... for more."""
+    return [""] if n == 1 else [f"/actor{i}" for i in range(n)]
+
+
+def actor_names(n: int) -> list[str]:
+    """The suffix of each actor's process and log names: sim, policy for one actor; sim0, policy0, ... for more."""
+    return [""] if n == 1 else [str(i) for i in range(n)]
+
+
+def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes, actors=("",)) -> int:
     """Progress from metrics.csv until the trainer exits or Ctrl-C: a bar on a terminal, else a line every
-    PROGRESS_EVERY_S seconds and one at the end (steps, rate, ETA)."""
+    PROGRESS_EVERY_S seconds and one at the end (steps, rate, ETA). One actor's node exiting stops a run with
+    one actor; with several, the run goes on (the trainer counts the actor lost) while any actor is whole."""
     from tqdm import tqdm
 
     metrics = run_dir / "metrics.csv"
@@ -207,10 +241,15 @@ def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes) ->
     lines = bar.disable  # tqdm disables itself when stdout is not a terminal
     t0, done, printed = time.monotonic(), 0, time.monotonic()
     code = 0
+    told = set()
     while trainer.poll() is None and not interrupted():
-        dead = [name for name in ("sim", "policy") if procs.procs[name].poll() is not None]
-        if dead:
-            print(f"\n{dead[0]}_node exited early (code {procs.procs[dead[0]].returncode}); stopping", file=sys.stderr)
+        dead = [f"{kind}{n}" for n in actors for kind in ("sim", "policy") if procs.procs[f"{kind}{n}"].poll() is not None]
+        for name in sorted(set(dead) - told):
+            print(f"\n{name}_node exited (code {procs.procs[name].returncode})", file=sys.stderr)
+            told.add(name)
+        whole = [n for n in actors if f"sim{n}" not in dead and f"policy{n}" not in dead]
+        if not whole:
+            print("no actor is left whole; stopping", file=sys.stderr)
             code = 1
             break
         time.sleep(1.0)

@@ -29,7 +29,7 @@ from uav_sim.reward import step_reward
 from . import checkpoint
 from .episodes import EpisodeStats
 from .learner import Learner, LearnerConfig, NonFiniteLoss, linear_epsilon
-from .replay import ReplayMemory
+from .replay import LanedReplay, ReplayMemory
 
 DEVICES = ("auto", "cpu", "cuda")
 
@@ -208,11 +208,17 @@ class RunDirError(ValueError):
 
 class Training:
     """One training run: add transitions as they come, then `learn_due()` after each step. Single-threaded:
-    the in-process loop and trainer_node (which learns in lockstep with acting) call it the same way."""
+    the in-process loop and trainer_node (which learns in lockstep with acting) call it the same way.
 
-    def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True):
+    With several `actors` (trainer_node's `actors`), each actor's steps go to a lane of their own in the replay
+    memory and to an episode of their own, and each actor explores at its own rate (`epsilon(actor)`)."""
+
+    def __init__(self, cfg: TrainerConfig, run_dir: str | Path, log=print, resume: bool = True, actors: int = 1):
         cfg.validate()
+        if actors < 1:
+            raise ValueError(f"a training run needs at least one actor, got {actors}")
         self.cfg = cfg
+        self.actors = actors
         self.log = log
         self.dir = Path(run_dir)
         try:  # refused at once, in one line, rather than as a traceback at the first write
@@ -244,12 +250,19 @@ class Training:
         self.reward_window_fraction: float | None = None
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device))
-        self.replay = ReplayMemory(
-            cfg.replay_capacity, (self.net_cfg.height, self.net_cfg.width), self.net_cfg.frames, seed=cfg.seed
-        )
+        shape = (self.net_cfg.height, self.net_cfg.width)
+        if actors == 1:
+            self.replay = ReplayMemory(cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed)
+        else:
+            self.replay = LanedReplay(actors, cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed)
+        # The journal keeps one actor's chain; with several, a resume refills the memory.
+        self.journal = cfg.save_replay and actors == 1
+        if cfg.save_replay and actors > 1:
+            log(f"with {actors} actors the replay memory is not journaled: a resume refills it before learning on")
         self._journaled = 0  # replay writes already in the checkpoints' journal
         self.stats = EpisodeStats()
         self.env_steps = 0
+        self.actor_steps = [0] * actors  # of env_steps, each actor's (this start's: not checkpointed)
         self.collisions = 0
         self.reward_sum = 0.0
         self.last_loss = float("nan")
@@ -358,7 +371,7 @@ class Training:
         """Rebuild the replay memory from the journal as it was at checkpoint `path` (`writes` frames
         written); a description, or "" if none was restored. A bad, mismatching or broken journal is
         logged and dropped: the run refills instead, and journals afresh."""
-        if not self.cfg.save_replay or writes == 0:
+        if not self.journal or writes == 0:
             return ""
         try:
             segments = checkpoint.journal_segments(self.checkpoint_dir, path)
@@ -374,37 +387,50 @@ class Training:
         return f"{len(self.replay)} transitions" + (f"; the {lost} frames after the journal's end are lost" if lost else "")
 
     # -- acting side --------------------------------------------------------------------
-    def epsilon(self) -> float:
+    def epsilon(self, actor: int = 0) -> float:
+        """The exploration rate of `actor` now: the linear schedule (epsilon_start to epsilon_end over the decay
+        steps), raised, with several actors, to Ape-X's power 1 + 7 i / (N - 1). Actor 0 follows the schedule,
+        the last one explores least (at the schedule's 0.05 end: 0.05 and 0.05^8), all start at 1.0."""
         c = self.cfg
-        return linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.decay_steps)
+        base = linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.decay_steps)
+        return base if self.actors == 1 else base ** (1.0 + 7.0 * actor / (self.actors - 1))
 
-    def add_first(self, frame: np.ndarray) -> None:
-        self.replay.add_first(frame)
+    def _memory(self, actor: int) -> ReplayMemory:
+        return self.replay if self.actors == 1 else self.replay.lanes[actor]
 
-    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
-        """One transition; the reward comes from the simulator package's reward function. Steps after the
-        budget is spent are not recorded (not learnt from, counted or logged)."""
+    def sink(self, actor: int) -> ActorSink:
+        """Where actor `actor`'s steps go (a TransitionAssembler's sink)."""
+        return ActorSink(self, actor)
+
+    def add_first(self, frame: np.ndarray, actor: int = 0) -> None:
+        self._memory(actor).add_first(frame)
+
+    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, actor: int = 0) -> float:
+        """One transition of `actor`; the reward comes from the simulator package's reward function. Steps after
+        the budget is spent are not recorded (not learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
         if self.cfg.turn_penalty > 0.0 and not collided and action in self.cfg.turning_actions:
             reward -= self.cfg.turn_penalty
         if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
             return reward
-        self.replay.add_transition(action, reward, collided, next_frame)
+        self._memory(actor).add_transition(action, reward, collided, next_frame)
         self.env_steps += 1
+        self.actor_steps[actor] += 1
         self.reward_sum += reward
         self.collisions += int(collided)
-        self._log_episode(self.stats.step(reward, collided, self.env_steps), "crash")
+        self._log_episode(self.stats.step(reward, collided, self.env_steps, actor), "crash")
         return reward
 
-    def add_truncated(self, first_frame: np.ndarray) -> None:
+    def add_truncated(self, first_frame: np.ndarray, actor: int = 0) -> None:
         """A step that ended its episode without a collision (the simulator's time limit): nothing is
         learnt from it, because its next frame is already the new episode's first (`first_frame`),
         which starts a new chain. Counted as an environment step with reward 0 in the episode stats."""
         if self.budget_done:
             return
-        self.replay.add_first(first_frame)
+        self._memory(actor).add_first(first_frame)
         self.env_steps += 1
-        self._log_episode(self.stats.step(0.0, True, self.env_steps), "time_limit")
+        self.actor_steps[actor] += 1
+        self._log_episode(self.stats.step(0.0, True, self.env_steps, actor), "time_limit")
 
     def _log_episode(self, ended: tuple[int, float] | None, end: str) -> None:
         if not ended:
@@ -505,7 +531,7 @@ class Training:
             return None
         self._checkpoint_wall = time.monotonic()
         rng = {"replay": checkpoint.rng_state(self.replay.rng)}
-        journaling = self.cfg.save_replay and not self.budget_done and self.replay.writes > self._journaled
+        journaling = self.journal and not self.budget_done and self.replay.writes > self._journaled
         segment = self.replay.segment(self._journaled) if journaling else None
         try:
             path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, segment)
@@ -620,3 +646,20 @@ class Training:
             f.close()
         if self.tb:
             self.tb.close()
+
+
+@dataclasses.dataclass(frozen=True)
+class ActorSink:
+    """One actor's side of a Training: the steps a TransitionAssembler completes, tagged with the actor."""
+
+    training: Training
+    actor: int
+
+    def add_first(self, frame: np.ndarray) -> None:
+        self.training.add_first(frame, self.actor)
+
+    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
+        return self.training.add_step(action, beta_m, collided, next_frame, self.actor)
+
+    def add_truncated(self, first_frame: np.ndarray) -> None:
+        self.training.add_truncated(first_frame, self.actor)
