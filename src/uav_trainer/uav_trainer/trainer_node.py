@@ -95,7 +95,8 @@ class Actor:
     def __init__(self, node: TrainerNode, index: int, namespace: str, policy: str, hw: tuple[int, int]):
         self.index, self.ns = index, namespace
         self.label = namespace or "the actor"
-        topic = lambda name: f"{namespace}/{name}" if namespace else name  # noqa: E731
+        self.policy = f"{namespace}'s policy_node" if namespace else "policy_node"  # in log lines
+        topic = lambda name: f"{namespace.rstrip('/')}/{name}" if namespace else name  # noqa: E731 ("/": the root)
         self.outcome_topic = node.resolve_topic_name(topic(contract.OUTCOME_TOPIC))
         self.pairing = TransitionAssembler(
             node.training.sink(index), node.actions, node.step_ns, hw, on_ready=lambda stamp: node._on_ready(self, stamp)
@@ -243,7 +244,7 @@ class TrainerNode(Node):
         actor.policy_waits = bool(values) and values[0].type == ParameterType.PARAMETER_BOOL and values[0].bool_value
         if not actor.policy_waits:
             self.get_logger().error(
-                f"policy_node of {actor.label} does not wait for releases (its wait_for_trainer is not true), so it acts "
+                f"{actor.policy} does not wait for releases (its wait_for_trainer is not true), so it acts "
                 "before learning and the run is not in lockstep; give policy_node wait_for_trainer:=true (train does)"
             )
 
@@ -251,7 +252,7 @@ class TrainerNode(Node):
         if contract.stamp_ns(msg.header.stamp) > actor.pairing.released:
             self.counts["unreleased_answers"] += 1
             self.get_logger().warning(
-                f"policy_node of {actor.label} answered a frame this node had not released "
+                f"{actor.policy} answered a frame this node had not released "
                 f"({self.counts['unreleased_answers']} so far): learning is not in lockstep; give policy_node "
                 "wait_for_trainer:=true (train does)",
                 throttle_duration_sec=30.0,
@@ -362,7 +363,7 @@ class TrainerNode(Node):
         actor.push_in_flight = None
         self.counts["release_retries"] += 1
         self.get_logger().warning(
-            f"policy_node of {actor.label} did not answer the release of the frame at {actor.in_flight_stamp / 1e9:.1f} s "
+            f"{actor.policy} did not answer the release of the frame at {actor.in_flight_stamp / 1e9:.1f} s "
             f"sim time within {self.release_timeout_s:g} s: sending it again ({self.counts['release_retries']} so far)"
         )
         if actor.go_stamp is None or actor.go_stamp < actor.in_flight_stamp:
@@ -388,7 +389,7 @@ class TrainerNode(Node):
                 # no step would be in lockstep (each one held for its wait_for_trainer_timeout_s). Stop now;
                 # close() writes the final checkpoint, so the same command resumes once the nodes agree.
                 self.get_logger().error(
-                    f"policy_node of {actor.label} rejected the weights of a release: {res.message}. Stopping: in "
+                    f"{actor.policy} rejected the weights of a release: {res.message}. Stopping: in "
                     "lockstep the policy must act on this node's weights. Give policy_node and trainer_node the same "
                     "model, frame_stack, input size (policy_node input_width and input_height, this node input_size_px) "
                     "and action_* parameters (train does), then run again to resume from the final checkpoint"
