@@ -7,6 +7,7 @@ import subprocess
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
+from sensor_msgs.msg import Range
 
 from conftest import ROOT, deep_qos, executable, start_up_error
 from uav_common import contract
@@ -168,14 +169,14 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
         waits = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0", "-p", f"seed:={i}")
         return ros.start("uav_policy", "policy_node", "-r", f"__ns:={ns}", *waits, *pushes_signed_in(run_dir), name=f"policy{i}")
 
-    stray = ("-r", "__ns:=/stray", "-p", "lockstep_republish_s:=0.2", "-p", "publish_clock:=false")
-    ros.start("uav_sim", "sim_node", *stray, name="stray")
+    stray = ros.node.create_publisher(Range, "/stray/step_outcome", 10)  # a simulator no one named
+    ros.node.create_timer(0.1, lambda: stray.publish(Range()))
     actors = ("-p", "actors:=[/actor0, /actor1, /ghost]", "-p", "actor_timeout_s:=8.0")
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5", *actors)
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
     t = lambda: by_node.get("/trainer_node", {})  # noqa: E731
     policies = [actor(0)]
-    assert ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 200, 120), ros.log_of(trainer)[-2000:]
+    assert ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 50, 120), ros.log_of(trainer)[-2000:]
     policies.append(actor(1))  # an actor started later is taken up
     ok = ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 2000 and int(t().get("steps /actor1", 0)) >= 300, 300)
     assert ok, ros.log_of(trainer)[-2000:]
@@ -210,8 +211,9 @@ def test_train_with_two_actors_learns_from_both_and_goes_on_when_one_dies(tmp_pa
     run_dir = tmp_path / "run"
     domain = "81"
     cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params")]
-    cmd += ["--model", "cnn", "--actors", "2", "--steps", "300", "--sim-arg", "max_episode_steps:=50"]
+    cmd += ["--model", "cnn", "--actors", "2", "--steps", "400", "--sim-arg", "max_episode_steps:=50"]
     cmd += ["--trainer-arg", "actor_timeout_s:=3.0", "--trainer-arg", "log_interval_s:=0.5"]
+    cmd += ["--trainer-arg", "replay_ratio:=0.05"]  # few updates: the run is about its actors
     out = (tmp_path / "train.out").open("w")
     train = subprocess.Popen(cmd, env=train_env(run_dir, domain), stdout=out, stderr=subprocess.STDOUT, text=True)
     try:
@@ -240,7 +242,7 @@ def test_train_with_two_actors_learns_from_both_and_goes_on_when_one_dies(tmp_pa
             train.wait(timeout=120)
     trainer_log = (logs()[0] / "trainer.log").read_text()
     assert "/actor1: its sim_node has said nothing for 3 s, counted as lost" in trainer_log, trainer_log[-3000:]
-    assert "step budget of 300 reached" in trainer_log
+    assert "step budget of 400 reached" in trainer_log
     printed = (tmp_path / "train.out").read_text()
     assert "from 2 actors (asynchronous)" in printed and "sim1_node exited" in printed, printed[-2000:]
     assert (run_dir / "policy_cnn.safetensors").is_file()
@@ -519,13 +521,10 @@ def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
 
 @pytest.mark.parametrize(
     ("jitter", "hfov", "trained_hfov", "readout", "size", "sam_sizes"),
-    [
-        (0.0, 90.0, None, "max", 64, {}),
-        (180.0, 90.0, None, "max", 64, {}),
+    [  # each readout, jitter or not, a camera given or the weights', other sizes: three flights cover them
         (180.0, 120.0, None, "attend", 64, {}),
-        (0.0, 90.0, None, "flatten", 64, {}),
         (180.0, None, 90.0, "max", 64, {}),
-        (180.0, 120.0, None, "max", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}),
+        (0.0, 90.0, None, "flatten", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}),
     ],
 )
 def test_ros_evaluation_equals_the_in_process_measurement(
