@@ -185,9 +185,10 @@ class ReplayMemory:
         idx = np.where(older, idx[np.arange(len(slots)), latest][:, None], idx)
         return self.frame[idx].astype(np.float32)
 
-    def sample(self, batch: int) -> dict[str, np.ndarray]:
-        """A batch of transitions drawn uniformly (the paper's one-step Q-learning)."""
-        valid = np.flatnonzero(self._valid())
+    def sample(self, batch: int, valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """A batch of transitions drawn uniformly (the paper's one-step Q-learning); `valid`: the sampleable
+        slots when the caller has them already."""
+        valid = np.flatnonzero(self._valid()) if valid is None else valid
         if valid.size == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
         picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
@@ -212,7 +213,6 @@ class LanedReplay:
         share = capacity // lanes
         self.lanes = [ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i) for i in range(lanes)]
         self.capacity = share * lanes
-        self.frames = frames
         self.rng = np.random.default_rng(seed)  # which lane each sample comes from
 
     @property
@@ -224,9 +224,10 @@ class LanedReplay:
 
     def sample(self, batch: int) -> dict[str, np.ndarray]:
         """A batch drawn uniformly over all lanes' transitions (each lane's share by its count)."""
-        sizes = np.array([len(lane) for lane in self.lanes], dtype=np.float64)
+        valid = [np.flatnonzero(lane._valid()) for lane in self.lanes]
+        sizes = np.array([v.size for v in valid], dtype=np.float64)
         if sizes.sum() == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
         per_lane = self.rng.multinomial(batch, sizes / sizes.sum())
-        parts = [lane.sample(int(k)) for lane, k in zip(self.lanes, per_lane, strict=True) if k]
+        parts = [lane.sample(int(k), v) for lane, v, k in zip(self.lanes, valid, per_lane, strict=True) if k]
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}

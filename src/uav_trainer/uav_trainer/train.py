@@ -143,8 +143,9 @@ def main(argv=None) -> int:
     p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731
     world = [f"world:={a.world}"] if a.world else []
-    actors = actor_names(a.actors)
-    for name, ns, seed in zip(actors, actor_namespaces(a.actors), range(a.seed, a.seed + a.actors), strict=True):
+    namespaces = actor_namespaces(a.actors)
+    actors = [ns.removeprefix("/actor") for ns in namespaces]  # process and log names: sim, sim0, sim1, ...
+    for name, ns, seed in zip(actors, namespaces, range(a.seed, a.seed + a.actors), strict=True):
         remap = ["-r", f"__ns:={ns}"] if ns else []
         # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
         sim_extra = [*world, f"seed:={seed}", "wait_for_subscribers:=2", *(["publish_clock:=false"] if ns else [])]
@@ -174,7 +175,7 @@ def main(argv=None) -> int:
                 f"run_dir:={run_dir}",
                 f"push_key_file:={key}",
                 f"resume:={'false' if a.no_resume else 'true'}",
-                *([f"actors:=[{', '.join(actor_namespaces(a.actors))}]"] if a.actors > 1 else []),
+                *([f"actors:=[{', '.join(namespaces)}]"] if a.actors > 1 else []),
                 *[f"input_size_px:={px}" for px in size],
                 *frames,
                 *a.trainer_arg,
@@ -223,11 +224,6 @@ MAX_ACTORS = 16
 def actor_namespaces(n: int) -> list[str]:
     """The actors' namespaces: none for one actor (the nodes as `ros2 run` starts them), /actor0 ... for more."""
     return [""] if n == 1 else [f"/actor{i}" for i in range(n)]
-
-
-def actor_names(n: int) -> list[str]:
-    """The suffix of each actor's process and log names: sim, policy for one actor; sim0, policy0, ... for more."""
-    return [""] if n == 1 else [str(i) for i in range(n)]
 
 
 def follow(trainer, run_dir: Path, total: int, interrupted, procs: Processes, actors=("",)) -> int:

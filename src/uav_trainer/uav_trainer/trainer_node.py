@@ -331,11 +331,11 @@ class TrainerNode(Node):
         if actor.silent:
             return
         now = time.monotonic()
-        since = actor.last_heard if actor.last_heard is not None else self.started
+        sim_quiet = now - (actor.last_heard if actor.last_heard is not None else self.started) >= self.actor_timeout_s
         unanswered = actor.unanswered_since is not None and now - actor.unanswered_since >= self.actor_timeout_s
-        if now - since < self.actor_timeout_s and not unanswered:
+        if not sim_quiet and not unanswered:
             return
-        actor.silent = "policy" if unanswered and now - since < self.actor_timeout_s else "sim"
+        actor.silent = "sim" if sim_quiet else "policy"
         if actor.silent == "policy":
             self.counts["actors_lost"] += 1
             what = f"{actor.label}: its policy_node has answered no release for {self.actor_timeout_s:g} s, counted as lost"
@@ -371,8 +371,6 @@ class TrainerNode(Node):
         actor.pushed_updates = None  # the weights go again too
 
     def _push_done(self, actor: Actor, fut, t0: float, weights: bool = True) -> None:
-        if actor.push_in_flight is not fut:
-            return  # dropped: it was sent again
         actor.push_in_flight, actor.unanswered_since = None, None
         if actor.silent == "policy":
             actor.silent = None
