@@ -12,8 +12,9 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
+sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
 
+from uav_bringup.mavlink import BridgeSettings  # noqa: E402
 from uav_common.settings import fmt, reference_rows, specs  # noqa: E402
 from uav_policy.policy_node import PolicySettings  # noqa: E402
 from uav_sim.sim_node import SimNodeSettings  # noqa: E402
@@ -23,6 +24,7 @@ NODES = {
     "sim": ("uav_sim", "sim_node", SimNodeSettings),
     "policy": ("uav_policy", "policy_node", PolicySettings),
     "trainer": ("uav_trainer", "trainer_node", TrainerNodeSettings),
+    "mavlink_bridge": ("uav_bringup", "mavlink_bridge", BridgeSettings),
 }
 
 

@@ -25,6 +25,7 @@ setup(
             "fly = uav_bringup.fly:main",
             "record = uav_bringup.record:main",
             "live_view = uav_bringup.live_view:main",
+            "mavlink_bridge = uav_bringup.mavlink_bridge:main",
         ],
     },
 )

@@ -24,6 +24,7 @@ setup(
             "trainer_node = uav_trainer.trainer_node:main",
             "train = uav_trainer.train:main",
             "evaluate = uav_trainer.evaluate:main",
+            "grounding = uav_trainer.grounding:main",
             "plot_curves = uav_trainer.plots:main",
             "attention_figures = uav_trainer.figures:main",
         ],

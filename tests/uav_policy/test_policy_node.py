@@ -445,6 +445,29 @@ def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pus
     assert "answering each frame once trainer_node releases it (lockstep learning)" in ros.log_of(proc)
     bad = call_push(ros, None, epsilon=1.5)
     assert not bad.success and "'epsilon' must lie in [0, 1]" in bad.message
+    # The epsilon parameter shows what the node acts with (ros2 param get, Foxglove); a user cannot set it.
+    assert call_push(ros, None, epsilon=0.25).success
+    assert get_parameter(ros, "epsilon") == 0.25
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+
+    client = ros.node.create_client(SetParameters, "/policy_node/set_parameters")
+    assert client.wait_for_service(timeout_sec=10)
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9)
+    fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
+    assert ros.spin_until(fut.done, 20)
+    res = fut.result().results[0]
+    assert not res.successful and "is set by the trainer's pushes" in res.reason, res.reason
+    assert get_parameter(ros, "epsilon") == 0.25
+
+
+def get_parameter(ros, name: str):
+    from rcl_interfaces.srv import GetParameters
+
+    client = ros.node.create_client(GetParameters, "/policy_node/get_parameters")
+    assert client.wait_for_service(timeout_sec=10)
+    fut = client.call_async(GetParameters.Request(names=[name]))
+    assert ros.spin_until(fut.done, 20)
+    return fut.result().values[0].double_value
 
 
 def test_an_unreleased_frame_is_answered_after_the_timeout_with_a_warning(ros):
@@ -467,6 +490,10 @@ def test_a_flying_policy_takes_no_pushes_and_no_parameter_changes(ros):
     assert "/" + contract.PUSH_WEIGHTS_SERVICE not in services, sorted(services)
     value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.0)
     fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
+    assert ros.spin_until(fut.done, 20)
+    res = fut.result().results[0]
+    assert not res.successful and "fixed at start-up while flying" in res.reason, res.reason
+    fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="step_duration_s", value=value)]))
     assert ros.spin_until(fut.done, 20)
     res = fut.result().results[0]
     assert not res.successful and "read-only" in res.reason, res.reason

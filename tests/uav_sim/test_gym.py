@@ -43,7 +43,7 @@ def test_a_collision_terminates_with_the_papers_penalty_and_a_time_limit_truncat
                 break
         assert terminated and not truncated and reward == -10.0
         obs, info = env.reset()
-        assert info["episode"] == 1 and env.observation_space.contains(obs)
+        assert info["episode_index"] == 1 and env.observation_space.contains(obs)
     finally:
         env.close()
     env = gymnasium.make(ENV_ID, world="basic", max_episode_steps=3)
@@ -71,3 +71,38 @@ def test_a_vector_of_simulators_in_subprocesses_steps_in_parallel():
 def test_a_bad_world_is_refused_when_the_environment_is_made():
     with pytest.raises(Exception, match="unknown world 'nowhere'"):
         gymnasium.make(ENV_ID, world="nowhere")
+
+
+def test_stable_baselines3_trains_on_it_alone_and_on_a_vector_of_two():
+    """A client nobody here wrote: SB3's checker, then its DQN learns through its first logs (which read
+    info["episode"] as Gymnasium's episode statistics), on one environment and on a vector env of two."""
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+    from stable_baselines3.common.env_util import make_vec_env
+
+    def make():
+        return gymnasium.make(ENV_ID, world="tests/worlds/small.yaml", max_episode_steps=20)
+
+    env = make()
+    sb3_check_env(env.unwrapped)
+    for venv in (env, make_vec_env(make, n_envs=2, seed=0)):
+        kw = dict(buffer_size=400, learning_starts=60, train_freq=4, batch_size=16, seed=0, device="cpu")
+        model = DQN("CnnPolicy", venv, policy_kwargs=dict(normalize_images=False), stats_window_size=5, **kw)
+        model.learn(200, log_interval=1)
+        assert model.num_timesteps >= 200 and len(model.ep_info_buffer) > 0, "episodes ended and were counted"
+        assert {"r", "l", "t"} <= set(model.ep_info_buffer[-1]) and model.ep_info_buffer[-1]["l"] <= 20
+        venv.close()
+
+
+def test_record_episode_statistics_reports_each_episodes_return_and_length():
+    env = gymnasium.wrappers.RecordEpisodeStatistics(gymnasium.make(ENV_ID, world="basic", max_episode_steps=4))
+    try:
+        env.reset(seed=0)
+        total = 0.0
+        for _ in range(4):
+            _, reward, terminated, truncated, info = env.step(1)
+            total += reward
+        assert truncated and info["episode"]["l"] == 4 and info["episode"]["r"] == pytest.approx(total)
+        assert isinstance(info["episode_index"], int), "the simulator's own count, under a key of its own"
+    finally:
+        env.close()

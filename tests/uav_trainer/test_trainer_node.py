@@ -298,14 +298,9 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
     trainer train one recipe, read from one file."""
-    import dataclasses
-
     import torch
 
-    from uav_common.settings import build
     from uav_trainer import inprocess
-    from uav_trainer.recipes import load_recipe
-    from uav_trainer.training import TrainerConfig
 
     steps, seed, learn = 420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300}
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
@@ -313,15 +308,13 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=300)
     assert "recipes/shipped.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
-    recipe = load_recipe("shipped", ROOT / "params")
-    cfg = build(TrainerConfig, {**recipe.node("trainer_node"), "seed": seed, "total_steps": steps, **learn})
-    cfg = dataclasses.replace(cfg, turning_actions=(1, 2))
-    sim_cfg, worlds = inprocess.sim_settings(recipe.node("sim_node"), seed, 64)
+    # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
+    args = ["--steps", str(steps), "--seed", str(seed), "--run-dir", str(ip_dir), "--params-dir", str(ROOT / "params")]
+    args += [x for k, v in learn.items() for x in (f"--{k.replace('_', '-')}", str(v))]
     snaps = snapshot_steps(9, steps)
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # trainer_node's torch_threads (params/trainer.yaml)
     try:
-        inprocess.run(cfg, str(ip_dir), sim_cfg, worlds, log=lambda *_: None)
+        assert inprocess.main(args) == 0
     finally:
         torch.set_num_threads(threads)
     ros_rows = (ros_dir / "episodes.csv").read_text().splitlines()
@@ -581,3 +574,16 @@ def test_trainer_node_stopped_30_times_under_load_exits_cleanly_every_time(ros, 
         log = ros.log_of(trainer)
         assert codes[-1] == 0 and "Traceback" not in log, (i, codes[-1], log[-3000:])
     assert codes == [0] * 30
+
+
+def test_train_whose_final_weights_cannot_be_written_names_them_and_exits_non_zero(tmp_path):
+    """The write error injected without a special filesystem: a folder stands where the final weights go, so every
+    write of them fails. trainer_node logs which files are missing and exits 4; train says so and claims no weights."""
+    run_dir = tmp_path / "run"
+    (run_dir / "policy_cnn.safetensors").mkdir(parents=True)
+    cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params")]
+    cmd += ["--model", "cnn", "--recipe", "paper", "--steps", "60", "--trainer-arg", "replay_ratio:=0.1"]
+    r = subprocess.run(cmd, env=train_env(run_dir, "82"), capture_output=True, text=True, timeout=240)
+    assert r.returncode == 4, r.stdout[-2000:] + r.stderr[-2000:]
+    assert f"weights not written: {run_dir / 'policy_cnn.safetensors'} (missing" in r.stderr, r.stderr
+    assert "latest checkpoint: " in r.stderr and "weights: " not in r.stdout

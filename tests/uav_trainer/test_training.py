@@ -661,3 +661,35 @@ def test_several_actors_learn_from_one_memory_each_exploring_at_its_own_rate_and
     again = Training(cfg, tmp_path, log=logs.append, resume=True, actors=3)
     assert (again.env_steps, again.learner.updates) == (250, 100)
     assert len(again.replay) == 0 and not again.can_learn()  # the memory refills before learning goes on
+
+
+def test_an_inprocess_run_whose_final_weights_cannot_be_written_says_so_and_exits_non_zero(tmp_path, monkeypatch, capsys):
+    """A full disk at the end of a run (the write error injected): the replay journal is freed before the final
+    writes, and the trainer names the stale and missing files and the checkpoint that stays latest, and exits 1."""
+    import errno
+
+    from uav_trainer import inprocess
+
+    run_dir = tmp_path / "run"
+    real = wio.write_atomic
+    journal_at_final = []
+
+    def write(path, data):
+        path = type(run_dir)(path)
+        if path.name in ("policy_cnn.safetensors", "policy_cnn_step145.safetensors"):
+            journal_at_final.append(any((run_dir / "checkpoints" / checkpoint.JOURNAL_DIR).glob("seg-*")))
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, data)
+
+    monkeypatch.setattr(wio, "write_atomic", write)
+    run_dir.mkdir()
+    (run_dir / "policy_cnn.safetensors").write_bytes(b"an earlier run's weights")
+    args = ["--model", "cnn", "--steps", "150", "--snapshots", "9", "--learning-starts", "20", "--recipe", "paper"]
+    args += ["--checkpoint-interval-updates", "20", "--run-dir", str(run_dir), "--threads", "1"]
+    assert inprocess.main(args) == 1
+    err = capsys.readouterr().err
+    assert f"{run_dir / 'policy_cnn.safetensors'} (stale: No space left on device)" in err, err
+    assert f"{run_dir / 'policy_cnn_step145.safetensors'} (missing" in err and "latest checkpoint: " in err, err
+    assert any(journal_at_final) and not journal_at_final[-1], "the journal, there mid-run, was freed before the final write"
+    assert checkpoint.latest(run_dir / "checkpoints") is not None
+    assert "weights: " not in capsys.readouterr().out

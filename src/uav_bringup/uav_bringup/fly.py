@@ -19,7 +19,7 @@ from pathlib import Path
 
 from uav_common.launching import Processes, params_args, stop_signals
 
-STOP_ORDER = ["sim", "policy", "record", "live_view"]  # the recorder last: the bag holds the final messages
+STOP_ORDER = ["sim", "policy", "mavlink", "record", "live_view"]  # the recorder last: the bag holds the final messages
 
 
 def wait_for_recorder(procs: Processes, namespace: str, stopped, timeout_s: float = 60.0) -> bool:
@@ -70,6 +70,13 @@ def main(argv=None) -> int:
     ap.add_argument("--log-dir", default="", help="write node logs here instead of the terminal")
     ap.add_argument("--sim-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra sim_node parameter")
     ap.add_argument("--policy-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra policy_node parameter")
+    ap.add_argument(
+        "--mavlink",
+        default="",
+        metavar="URL",
+        help="also hand cmd_vel to an autopilot through mavlink_bridge (e.g. udpin:0.0.0.0:14540); it never arms or "
+        "switches modes (docs/REAL_CAMERA.md)",
+    )
     a = ap.parse_args(argv)
     if a.duration < 0:
         ap.error("--duration must be >= 0")
@@ -92,6 +99,10 @@ def main(argv=None) -> int:
     # The policy before the simulator: loading its networks takes longer than the real-time watchdog.
     policy_values = [f"model:={a.model}"] + ([f"weights:={a.weights}"] if a.weights else [])
     procs.start("policy", "uav_policy", "policy_node", node_args(params, "policy", policy_values + a.policy_arg, a.namespace))
+    if a.mavlink:
+        procs.start(
+            "mavlink", "uav_bringup", "mavlink_bridge", node_args(params, "mavlink_bridge", [f"url:={a.mavlink}"], a.namespace)
+        )
     if a.record and not wait_for_recorder(procs, a.namespace, stopped):
         procs.stop_all(STOP_ORDER)
         return 0 if stopped() else 1
@@ -99,8 +110,10 @@ def main(argv=None) -> int:
     if a.lockstep and a.record:
         sim_values.append("wait_for_subscribers:=2")  # the policy and the recorder
     procs.start("sim", "uav_sim", "sim_node", node_args(params, "sim", sim_values + a.sim_arg, a.namespace))
-    extras = (f", recording to {a.record}" if a.record else "") + (
-        f", live view on ws://localhost:{a.port}" if a.live_view else ""
+    extras = (
+        (f", recording to {a.record}" if a.record else "")
+        + (f", live view on ws://localhost:{a.port}" if a.live_view else "")
+        + (f", commands to the autopilot on {a.mavlink}" if a.mavlink else "")
     )
     print(f"flying D3QN-{a.model.upper()} in '{a.world}'{extras}; Ctrl-C stops", flush=True)
 

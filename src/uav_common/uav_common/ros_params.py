@@ -42,3 +42,33 @@ def declare(node, name: str, default, description: str, lo=None, hi=None, choice
     if choices and value not in choices:
         raise ParameterError(f"parameter '{name}'={value!r} is invalid: expected one of {', '.join(choices)}")
     return value
+
+
+class NodeOwned:
+    """A parameter that shows a value the node itself changes (e.g. policy_node's epsilon, set by each push): the
+    node's `set(value)` goes through, anyone else's set (ros2 param set, Foxglove) is refused with `reason`. Declare
+    the parameter with read_only=False; rclpy still refuses every other parameter as read-only."""
+
+    def __init__(self, node, name: str, reason: str):
+        from rcl_interfaces.msg import SetParametersResult
+
+        self.node, self.name, self._own = node, name, False
+
+        def check(params):
+            for p in params:
+                if p.name == self.name and not self._own:
+                    return SetParametersResult(successful=False, reason=f"parameter '{name}' {reason}")
+            return SetParametersResult(successful=True)
+
+        node.add_on_set_parameters_callback(check)
+
+    def set(self, value) -> None:
+        from rclpy.parameter import Parameter
+
+        self._own = True  # the executors here are single-threaded: no other set runs in between
+        try:
+            result = self.node.set_parameters([Parameter(self.name, value=value)])[0]
+        finally:
+            self._own = False
+        if not result.successful:
+            raise ValueError(f"parameter '{self.name}': {result.reason}")

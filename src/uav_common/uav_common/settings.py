@@ -200,6 +200,6 @@ def reference_rows(cls) -> list[str]:
     rows = ["| parameter | default | range | description |", "|---|---|---|---|"]
     for s in specs(cls):
         rng = f"[{s.lo}, {s.hi}]" if s.lo is not None else ", ".join(s.choices) if s.choices else ""
-        rw = "" if s.read_only else " (changeable at run time)"
+        rw = "" if s.read_only else " (changes at run time)"
         rows.append(f"| `{s.name}` | `{fmt(s.default)}` | {rng} | {s.description}{rw} |")
     return rows

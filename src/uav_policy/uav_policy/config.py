@@ -30,7 +30,12 @@ class PolicySettings:
         "the packaged weights",
     )
     epsilon: float = setting(
-        0.0, "Probability of a random action (exploration); while training, the trainer's pushes change it", 0.0, 1.0
+        0.0,
+        "Probability of a random action (exploration); while training, the trainer's pushes change it and the parameter "
+        "shows the value in use (a user's set is refused)",
+        0.0,
+        1.0,
+        read_only=False,
     )
     seed: int = setting(0, "Seed for the random initialisation and for exploration", 0, 2**31 - 1)
     device: str = setting(

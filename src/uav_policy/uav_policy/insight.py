@@ -13,7 +13,8 @@ Measured per frame and summarised by `Insight` (policy_node's /diagnostics, eval
 - faithfulness, a deletion test: how often the greedy action changes when the image regions of the top-k
   explained nodes are masked to "no return", against masking k random nodes; the ratio of the two rates;
 - grounding: the explanation's mass on pixels nearer than NEAR_M against their share of the image (1 = no
-  preference; above 1 = looks at what is near).
+  preference; above 1 = looks at what is near); `mass_ratio` and `increase_on` measure it on an object placed in a
+  scene (uav_trainer.grounding's counterfactual test).
 """
 
 from __future__ import annotations
@@ -85,15 +86,32 @@ def node_slices(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> list[tup
     return [(slice(r * h // gh, (r + 1) * h // gh), slice(c * w // gw, (c + 1) * w // gw)) for r in range(gh) for c in range(gw)]
 
 
-def near_ratio(dist: np.ndarray, depth_m: np.ndarray, grid_hw: tuple[int, int], near_m: float = NEAR_M) -> float | None:
-    """The mass on pixels nearer than near_m over their share of the image; None when nothing is near."""
+def mass_ratio(dist: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> float | None:
+    """The explanation's mass on the pixels of `mask` (an image-sized bool array) over their share of the image
+    (1 = no preference, 2 = twice their share); None when the mask is empty."""
     d = received(dist)
-    near = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=np.inf) < near_m
-    share = float(near.mean())
+    m = np.asarray(mask, dtype=bool)
+    share = float(m.mean())
     if share == 0.0:
         return None
-    per_node = np.array([near[rs, cs].mean() for rs, cs in node_slices(grid_hw, near.shape)])
+    per_node = np.array([m[rs, cs].mean() for rs, cs in node_slices(grid_hw, m.shape)])
     return float((d * per_node).sum() / share)
+
+
+def increase_on(dist: np.ndarray, reference: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> bool:
+    """Does the node whose mass grew most over `reference` (the explanation without the object) see a pixel of
+    `mask` (the object)? False when no node grew (a map that does not move with the scene finds nothing)."""
+    rise = received(dist) - received(reference)
+    best = int(np.argmax(rise))
+    if rise[best] <= 1e-9:
+        return False
+    rs, cs = node_slices(grid_hw, np.shape(mask))[best]
+    return bool(np.asarray(mask, dtype=bool)[rs, cs].any())
+
+
+def near_ratio(dist: np.ndarray, depth_m: np.ndarray, grid_hw: tuple[int, int], near_m: float = NEAR_M) -> float | None:
+    """The mass on pixels nearer than near_m over their share of the image; None when nothing is near."""
+    return mass_ratio(dist, np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=np.inf) < near_m, grid_hw)
 
 
 def masked_states(

@@ -14,7 +14,14 @@ grid order into the CNN's hidden layer, so the head sees where each feature is, 
 Readout `attend` (an extension): attention pooling, one learned query per head over the nodes (as in Set
 Transformer's PMA); the heads' weighted values are the head's only input, so the weights shown are the weights
 that form the Q-values. The forward pass then returns those readout weights (B, heads, 1, nodes) as the
-attention the decision uses, in place of the relational block's. The shipped recipe uses `attend`.
+attention the decision uses, in place of the relational block's.
+Readout `query` (Mott et al. 2019): queries computed from the frame (a summary of the self-attended nodes), one per
+action and one for the value, attend over the nodes *before* any self-attention mixing; each action's advantage (and
+the value) is computed from its own attended vector alone, with no path around the attention. Returns
+(B, heads, actions + 1, nodes).
+Readout `topk` (Tang, Nguyen & Ha 2020): one learned query per head scores the self-attended nodes; only the top
+nodes/TOPK_SHARE of each head, unmixed, reach the dueling head, weighted by their softmax over the kept ones
+(B, heads, 1, nodes; zero off the kept nodes).
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
@@ -36,7 +43,8 @@ import torch
 from torch import nn
 
 MODELS = ("sam", "cnn")
-SAM_READOUTS = ("max", "flatten", "attend")
+SAM_READOUTS = ("max", "flatten", "attend", "query", "topk")
+TOPK_SHARE = 8  # the topk readout keeps a node in every TOPK_SHARE (8 of the default 64)
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
@@ -196,6 +204,53 @@ class AttentionPooling(nn.Module):
         return self.out((weights @ v).reshape(b, d)), weights
 
 
+class QueryReadout(nn.Module):
+    """Frame-dependent queries, one per action and one for the value, over the unmixed nodes (see the module doc)."""
+
+    def __init__(self, d_model: int, heads: int, actions: int, hidden: int):
+        super().__init__()
+        self.heads, self.d_head, self.actions = heads, d_model // heads, actions
+        self.queries = nn.Linear(d_model, (actions + 1) * d_model)
+        self.norm = nn.LayerNorm(d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
+        self.hidden = nn.Sequential(nn.Linear(d_model, hidden), nn.ReLU(inplace=True))
+        self.advantage = nn.Parameter(torch.randn(actions, hidden) / math.sqrt(hidden))
+        self.advantage_bias = nn.Parameter(torch.zeros(actions))
+        self.value = nn.Linear(hidden, 1)
+
+    def forward(self, unmixed: torch.Tensor, mixed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        b, n, d = unmixed.shape
+        m = self.actions + 1
+        q = self.queries(mixed.mean(dim=1)).view(b, m, self.heads, self.d_head).transpose(1, 2)  # (b, h, m, d_head)
+        k, v = self.kv(self.norm(unmixed)).view(b, n, 2, self.heads, self.d_head).permute(2, 0, 3, 1, 4)
+        weights = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.d_head), dim=-1)  # (b, h, m, n)
+        h = self.hidden((weights @ v).transpose(1, 2).reshape(b, m, d))  # (b, m, hidden): one vector per query
+        a = (h[:, : self.actions] * self.advantage).sum(dim=-1) + self.advantage_bias
+        return self.value(h[:, self.actions]) + a - a.mean(dim=-1, keepdim=True), weights
+
+
+class TopKPooling(nn.Module):
+    """One learned query per head scores the self-attended nodes; only each head's top k unmixed nodes are pooled."""
+
+    def __init__(self, d_model: int, heads: int, keep: int):
+        super().__init__()
+        self.heads, self.d_head, self.keep = heads, d_model // heads, keep
+        self.query = nn.Parameter(torch.randn(heads, 1, self.d_head) / math.sqrt(self.d_head))
+        self.key = nn.Linear(d_model, d_model)
+        self.norm = nn.LayerNorm(d_model)
+        self.value = nn.Linear(d_model, d_model)
+        self.out = nn.Linear(d_model, d_model)
+
+    def forward(self, unmixed: torch.Tensor, mixed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        b, n, d = unmixed.shape
+        k = self.key(mixed).view(b, n, self.heads, self.d_head).transpose(1, 2)  # (b, h, n, d_head)
+        v = self.value(self.norm(unmixed)).view(b, n, self.heads, self.d_head).transpose(1, 2)
+        logits = self.query @ k.transpose(-1, -2) / math.sqrt(self.d_head)  # (b, h, 1, n)
+        kth = logits.topk(min(self.keep, n), dim=-1).values[..., -1:]
+        weights = torch.softmax(logits.masked_fill(logits < kth, -math.inf), dim=-1)  # zero off the kept nodes
+        return self.out((weights @ v).reshape(b, d)), weights
+
+
 class DuelingHead(nn.Module):
     """Q = V + A - mean(A)."""
 
@@ -228,18 +283,22 @@ class D3QNSam(nn.Module):
         self.relational_blocks = nn.ModuleList(
             RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
         )
-        self.pooling = None
+        self.pooling = self.query_readout = None
         if cfg.sam_readout == "attend":
             self.pooling = AttentionPooling(cfg.d_model, cfg.heads)
-        if cfg.sam_readout == "flatten":
+        if cfg.sam_readout == "topk":
+            self.pooling = TopKPooling(cfg.d_model, cfg.heads, max(1, self.trunk.grid_h * self.trunk.grid_w // TOPK_SHARE))
+        self.readout = None
+        if cfg.sam_readout == "query":
+            self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden)
+        elif cfg.sam_readout == "flatten":
             c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
             self.readout = nn.Sequential(
                 nn.Linear(cfg.d_model, c), nn.Flatten(1), nn.Linear(n * c, cfg.cnn_hidden), nn.ReLU(inplace=True)
             )
             self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
-        else:
-            self.readout = None
-            self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
+        else:  # the query readout has its own heads, one per query
+            self.dueling_head = None if self.query_readout else DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
 
     @property
     def grid_hw(self) -> tuple[int, int]:
@@ -247,18 +306,23 @@ class D3QNSam(nn.Module):
 
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Q-values (B, actions) and the attention the decision uses: the last block's weights (B, heads, nodes,
-        nodes), or with the `attend` readout its weights (B, heads, 1, nodes)."""
+        nodes), or the readout's weights with `attend` / `topk` (B, heads, 1, nodes) and `query` (B, heads,
+        actions + 1, nodes)."""
         return self.from_features(self.trunk(depth_m))
 
     def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """forward() from the trunk's feature map (B, C, h, w) on."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
         coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
-        nodes = self.node_projection(torch.cat([nodes, coords], dim=-1))
+        nodes = unmixed = self.node_projection(torch.cat([nodes, coords], dim=-1))
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)
-        if self.pooling is not None:
+        if self.query_readout is not None:
+            return self.query_readout(unmixed, nodes)
+        if isinstance(self.pooling, TopKPooling):
+            pooled, weights = self.pooling(unmixed, nodes)
+        elif self.pooling is not None:
             pooled, weights = self.pooling(nodes)
         elif self.readout is None:
             pooled = nodes.max(dim=1).values  # feature-wise max pooling over nodes

@@ -34,7 +34,7 @@ from uav_common import contract
 from uav_common.actions import turning_indices
 from uav_common.frame_stack import CameraView, FrameStack, NetworkInput, SampledStack
 from uav_common.node_runner import in_thread, run
-from uav_common.ros_params import ParameterError
+from uav_common.ros_params import NodeOwned, ParameterError
 from uav_common.settings import declare_settings
 
 from . import weights as wio
@@ -55,6 +55,8 @@ class PolicyNode(Node):
         st = declare_settings(self, PolicySettings, RETIRED)
         model, seed = st.model, st.seed
         self.epsilon = st.epsilon
+        why = "is set by the trainer's pushes" if st.accept_pushes else "is fixed at start-up while flying (-p epsilon:=X)"
+        self.epsilon_param = NodeOwned(self, "epsilon", why)
         self.step_duration_s = st.step_duration_s
         self.publish_overlay = st.publish_overlay
         self.wait_for_trainer, self.wait_timeout_s = st.wait_for_trainer, st.wait_for_trainer_timeout_s
@@ -588,6 +590,7 @@ class PolicyNode(Node):
                 self._swap_in(net, blob)
             if push.epsilon is not None:
                 self.epsilon = push.epsilon
+                self.epsilon_param.set(push.epsilon)  # ros2 param get and /diagnostics agree
             response.success = True
             response.message = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms" if blob else "ok"
         except ValueError as e:  # WeightsError included

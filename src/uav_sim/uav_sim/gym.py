@@ -13,7 +13,14 @@ to [0, max_range_m] (beyond range and invalid pixels read as the range, too clos
 paper's four (uav_common.actions.PAPER_ACTIONS). Reward: the paper's (uav_sim.reward.step_reward; -10
 for a collision). A collision terminates the episode; `max_episode_steps` truncates it. `reset(seed=N)`
 rebuilds the simulator with that seed (weather, start heading, `random` worlds), so the same seed gives
-the same first observations.
+the same first observations. `info`: beta_m, episode_index (the simulator's episode count), x_m, y_m, world;
+the key "episode" is left to gymnasium.wrappers.RecordEpisodeStatistics and SB3's Monitor.
+
+With Stable-Baselines3 (observations are metres, not pixels, hence normalize_images=False):
+
+    from stable_baselines3 import DQN
+    model = DQN("CnnPolicy", gym.make("uav_sim/DepthAvoid-v0"), policy_kwargs=dict(normalize_images=False))
+    model.learn(10_000)
 """
 
 from __future__ import annotations
@@ -98,7 +105,7 @@ class DepthAvoidEnv(gymnasium.Env):
         r = self._env.last
         return {
             "beta_m": float(r.beta_m),
-            "episode": r.episode,
+            "episode_index": r.episode,  # not "episode": Gymnasium and SB3 reserve it for episode statistics
             "x_m": r.pose.x_m,
             "y_m": r.pose.y_m,
             "world": self._env.sim.world.name,

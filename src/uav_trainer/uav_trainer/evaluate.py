@@ -81,6 +81,14 @@ def main(argv=None) -> int:
         "extension; policy_node gets the K files as its weights, comma-separated; one results row per group, its weights column "
         "the files joined by '+')",
     )
+    ap.add_argument(
+        "--insight-every",
+        type=int,
+        default=1,
+        metavar="K",
+        help="measure what the decisions look at on every K-th step (default 1: every step; 0: never). The measure "
+        "costs more than the flight (tens of ms a decision for an ensemble): K 10 evaluates several times faster",
+    )
     ap.add_argument("--out", default="runs/eval", help="output folder for results.md / results.csv")
     ap.add_argument("--params-dir", default="params")
     ap.add_argument(
@@ -123,6 +131,8 @@ def main(argv=None) -> int:
         ap.error(f"--record {a.record}: not empty (bags are never overwritten; choose a new folder)")
     if a.crash_log and not a.inprocess:
         ap.error("--crash-log needs --inprocess")
+    if a.insight_every < 0:
+        ap.error("--insight-every must be >= 0 (0: never)")
     if a.repeats < 1 or a.steps < 1:
         ap.error("--repeats and --steps must be >= 1")
     if a.ensemble < 1:
@@ -257,6 +267,7 @@ def main(argv=None) -> int:
                     progress=bar.update,
                     record_to=bag,
                     safety=a.safety,
+                    insight_every=a.insight_every,
                 )
             net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
             r = evaluate_inprocess(
@@ -271,6 +282,7 @@ def main(argv=None) -> int:
                 net_cfg=net_cfg,
                 crash_log=crash_rows if a.crash_log else None,
                 reward_window_fraction=win,
+                insight_every=a.insight_every,
                 **sensor,
             )
             bar.update(a.steps)

@@ -232,6 +232,7 @@ def evaluate_once(
     progress=None,
     record_to: Path | None = None,
     safety: bool = False,
+    insight_every: int = 1,
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps; with
     `record_to`, uav_bringup's `record` keeps the flight there as a bag, from its first frame. The policy
@@ -277,7 +278,7 @@ def evaluate_once(
                 f"seed:={seed}",
                 "publish_overlay:=false",
                 f"safety:={str(safety).lower()}",
-                "insight_every:=1",  # every decision measured, over the whole flight
+                f"insight_every:={insight_every}",  # every k-th decision measured, over the whole flight
                 f"insight_window:={2 * steps + 100}",
                 *wargs,
             ]
@@ -405,6 +406,7 @@ def evaluate_inprocess(
     reward_window_fraction: float | None = None,
     sensor: str = "ideal",
     sensor_scale: float = 1.0,
+    insight_every: int = 1,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
@@ -414,7 +416,8 @@ def evaluate_inprocess(
     camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
     `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default).
     A `sensor` preset renders its own camera (at `sensor_scale`), mapped onto the weights' field of view as
-    policy_node maps a camera through CameraInfo."""
+    policy_node maps a camera through CameraInfo. What the decisions look at is measured on every
+    `insight_every`-th step (policy_node's parameter; 0 = never)."""
     from uav_policy import weights as wio
     from uav_policy.agent import Agent
     from uav_sim.simulator import SimConfig, Simulator
@@ -450,13 +453,13 @@ def evaluate_inprocess(
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
     start_yaw = r.pose.yaw_rad  # the episode's start heading
     # What the decisions look at, for the stack's networks (a stand-in network without a grid is not measured).
-    insight = Insight(net.grid_hw, seed=seed) if hasattr(net, "grid_hw") else None
+    insight = Insight(net.grid_hw, seed=seed) if hasattr(net, "grid_hw") and insight_every > 0 else None
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
             state = flight.env.state  # a new array every step: the step below leaves it as it is
             s = flight.step(0.0)
-            if insight is not None:
+            if insight is not None and step % insight_every == 0:
                 insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention))
             before, r = s.before.pose, s.after
             reward += r.reward

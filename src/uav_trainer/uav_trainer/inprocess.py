@@ -126,7 +126,9 @@ def main(argv=None) -> int:
     ap.add_argument("--params-dir", default="params", help="folder with recipes/ (default: params)")
     ap.add_argument("--steps", type=int, default=30000, help="environment steps budget (default: 30000)")
     ap.add_argument("--run-dir", default=None, help="default: runs/inproc_<model>_seed<seed>")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads (default: 2)")
+    ap.add_argument(
+        "--threads", type=int, default=1, help="torch threads (default: 1, trainer_node's torch_threads: the run equals train's)"
+    )
     ap.add_argument("--resume", action="store_true", help="resume from the run directory's latest checkpoint")
     ap.add_argument("--world", default=None, help="training world (default: the recipe's)")
     ap.add_argument(
@@ -158,8 +160,9 @@ def main(argv=None) -> int:
         ap.error(f"sim_node parameters: {e}")
     except RunDirError as e:
         ap.error(str(e))
-    if not t.policy_weights_path.is_file():
-        print(f"no weights written in {t.policy_weights_path.parent} (see the log above)", file=sys.stderr)
+    report = t.unwritten_report()
+    if report or not t.policy_weights_path.is_file():
+        print(report or f"no weights written in {t.policy_weights_path.parent} (see the log above)", file=sys.stderr)
         return 1
     print(f"weights: {t.policy_weights_path}")
     return 0

@@ -202,6 +202,10 @@ def main(argv=None) -> int:
     files = [p for p in planned if p.exists() and p.stat().st_mtime >= started]
     if failed:
         print(f"trainer_node exited with code {trainer_code}; see {logs / 'trainer.log'}", file=sys.stderr)
+        unwritten = [line for line in _read_lines(logs / "trainer.log") if "weights not written:" in line]
+        if unwritten:
+            print(unwritten[-1].split("] ")[-1], file=sys.stderr)
+            files = [p for p in files if not any(str(p) in line for line in unwritten)]
         if files:
             print(f"written before it stopped: {', '.join(map(str, files))}", file=sys.stderr)
         return trainer_code
@@ -215,6 +219,13 @@ def main(argv=None) -> int:
     else:
         print(f"this run wrote no weights in {run_dir}", file=sys.stderr)
     return code if not interrupted() else 130
+
+
+def _read_lines(path: Path) -> list[str]:
+    try:
+        return path.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
 
 
 PROGRESS_EVERY_S = 30.0  # a progress line this often when stdout is no terminal (a log file, CI, nohup)

@@ -52,6 +52,7 @@ from uav_sim.reward import center_window_slices, window_fraction_for_fov
 from .pairing import TransitionAssembler
 from .training import RETIRED, RunDirError, TrainerConfig, Training, reward_description
 
+UNWRITTEN_EXIT_CODE = 4  # the run ended, but weights files it names were not written (train says which)
 UNKNOWN_SCAN_S = 2.0  # how often the graph is searched for step outcomes from namespaces not in `actors`
 
 
@@ -480,6 +481,10 @@ class TrainerNode(Node):
             )
         elif self.training.failed:
             self.get_logger().error(self.training.failed)
+        report = self.training.unwritten_report()
+        if report:
+            self.get_logger().error(report)
+            self.exit_code = self.exit_code or UNWRITTEN_EXIT_CODE
         self.training.close()
 
 

@@ -232,6 +232,7 @@ class Training:
         if stale:
             log(f"removed {stale} unfinished checkpoint folder(s) an interrupted run left behind")
         self.checkpoint_failures = 0
+        self.unwritten: dict[Path, str] = {}  # weights files (snapshots, the policy) whose last write failed, and why
         self._checkpoint_wall = time.monotonic()
         self.net_cfg = NetConfig(
             model=cfg.model,
@@ -501,6 +502,7 @@ class Training:
                 self.save_weights(path)
             except OSError as e:
                 self.checkpoint_failures += 1
+                self.unwritten[path] = e.strerror or str(e)
                 self.log(f"snapshot {path.name} not written ({e.strerror or e}); training goes on")
                 continue
             written.append(path)
@@ -530,20 +532,28 @@ class Training:
         if self.failed:
             return None
         self._checkpoint_wall = time.monotonic()
+        if self.budget_done and final:  # what the run no longer needs goes before the last writes
+            freed = checkpoint.drop_journal(self.checkpoint_dir)
+            if freed:
+                self.log(f"the step budget is spent: the replay journal ({freed / 2**20:.0f} MiB) is removed")
         rng = {"replay": checkpoint.rng_state(self.replay.rng)}
         journaling = self.journal and not self.budget_done and self.replay.writes > self._journaled
         segment = self.replay.segment(self._journaled) if journaling else None
         try:
             path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng, segment)
         except OSError as e:
+            path = None
             if segment is None:
-                return self._checkpoint_failed(e)
-            self.log(f"the checkpoint with the replay segment could not be written ({e.strerror or e}): writing it without")
-            segment = None
-            try:
-                path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng)
-            except OSError as e2:
-                return self._checkpoint_failed(e2)
+                self._checkpoint_failed(e)
+            else:
+                self.log(f"the checkpoint with the replay segment could not be written ({e.strerror or e}): writing it without")
+                segment = None
+                try:
+                    path = checkpoint.save(self.checkpoint_dir, self.learner, self.counters(), rng)
+                except OSError as e2:
+                    self._checkpoint_failed(e2)
+        if path is None and not final:
+            return None
         if segment is not None:
             self._journaled = self.replay.writes
             checkpoint.prune_journal(self.checkpoint_dir, self.replay.writes - self.replay.capacity)
@@ -553,16 +563,28 @@ class Training:
                     f"replay memory saved with the checkpoint: {len(self.replay)} transitions in the journal "
                     f"(this checkpoint wrote the last {mib:.0f} MiB)"
                 )
-        elif self.budget_done and final:
-            freed = checkpoint.drop_journal(self.checkpoint_dir)
-            if freed:
-                self.log(f"the step budget is spent: the replay journal ({freed / 2**20:.0f} MiB) is removed")
-        try:
+        try:  # the final weights are written even when the final checkpoint could not be
             self.save_weights(self.policy_weights_path)
+            self.unwritten.pop(self.policy_weights_path, None)
+        except OSError as e:
+            self.unwritten[self.policy_weights_path] = e.strerror or str(e)
+            self.log(
+                f"{'checkpoint ' + path.name + ' written, but ' if path else ''}{self.policy_weights_path.name} not written: {e}"
+            )
+        try:
             self.plot()
         except OSError as e:
-            self.log(f"checkpoint {path.name} written, but not {self.policy_weights_path.name} or curves.png: {e}")
+            self.log(f"curves.png not written: {e}")
         return path
+
+    def unwritten_report(self) -> str | None:
+        """At the end of a run: which weights files are stale (an earlier write of this run or another) or missing,
+        and the checkpoint that stays `latest`; None when every one was written."""
+        if not self.unwritten:
+            return None
+        files = ", ".join(f"{p} ({'stale' if p.is_file() else 'missing'}: {why})" for p, why in sorted(self.unwritten.items()))
+        kept = checkpoint.latest(self.checkpoint_dir)
+        return f"weights not written: {files}; latest checkpoint: {kept or 'none'}"
 
     def _checkpoint_failed(self, e: OSError) -> None:
         self.checkpoint_failures += 1
