@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -14,12 +16,52 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL = ROOT / "install"
+SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")  # a small room, whatever the working directory
+# Node logs go to a folder of this run, not ~/.ros/log (a test that sets its own ROS_LOG_DIR keeps it).
+os.environ["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix="uav_tests_roslog_")
 sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
 
 # A private domain per test: tests never hear each other or anything else on the machine. The harness draws
 # 1-60; a test that sets its own uses one of 61-101 that no other test uses (101 is the highest Linux allows
 # without clashing with ephemeral ports).
 _domains = itertools.count(1 + (os.getpid() * 7) % 60)
+
+
+SHARED_DOMAIN = 99  # nodes that exit at once at start-up (run_to_exit, start_up_error): never a node that stays up
+_DOMAIN_LITERALS = [
+    re.compile(r"ROS_DOMAIN_ID['\"]?\s*[=:,]\s*['\"](\d+)['\"]"),  # env dicts, setenv
+    re.compile(r"\bdomain(?:_id)?\s*=\s*['\"]?(\d+)['\"]?", re.IGNORECASE),  # domain="77", DOMAIN = "83"
+    re.compile(r"\b(?:train_env|run_train)\([^,()]+,\s*['\"](\d+)['\"]"),
+]
+
+
+def fixed_domains(root: Path = ROOT / "tests") -> dict[int, set[str]]:
+    """Each ROS domain a test file writes as a literal -> the tests (or module helpers) that use it."""
+    out: dict[int, set[str]] = {}
+    for path in sorted(root.rglob("*.py")):
+        owner = f"{path.name} (module)"
+        for line in path.read_text().splitlines():
+            if line.startswith(("def ", "async def ", "class ")):
+                owner = f"{path.name}::{line.split('(')[0].split()[-1].rstrip(':')}"
+            for pattern in _DOMAIN_LITERALS:
+                for m in pattern.finditer(line):
+                    out.setdefault(int(m.group(1)), set()).add(owner)
+    return out
+
+
+def pytest_collection_finish(session):
+    """Each test that starts nodes on a fixed domain has it to itself, outside the harness's 1-60 (below)."""
+    problems = []
+    for domain, owners in sorted(fixed_domains().items()):
+        owners = {o for o in owners if not o.startswith("conftest.py")}
+        if domain == SHARED_DOMAIN or not owners:
+            continue
+        if len(owners) > 1:
+            problems.append(f"domain {domain} is used by {sorted(owners)}")
+        if not 61 <= domain <= 101:
+            problems.append(f"domain {domain} ({sorted(owners)}) lies outside 61-101")
+    if problems:
+        raise pytest.UsageError("fixed ROS domains must be one test's each: " + "; ".join(problems))
 
 
 def script_module(name: str):

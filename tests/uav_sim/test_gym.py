@@ -6,6 +6,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import uav_sim.gym  # noqa: F401  (registers the environment)
+from conftest import SMALL_WORLD
 from uav_sim.gym import ENV_ID
 
 
@@ -34,7 +35,7 @@ def test_the_same_seed_gives_the_same_first_observations_and_another_seed_others
 
 
 def test_a_collision_terminates_with_the_papers_penalty_and_a_time_limit_truncates():
-    env = gymnasium.make(ENV_ID, world="tests/worlds/small.yaml", start_yaw_jitter_deg=0.0, max_episode_steps=500)
+    env = gymnasium.make(ENV_ID, world=SMALL_WORLD, start_yaw_jitter_deg=0.0, max_episode_steps=500)
     try:
         env.reset(seed=0)
         for _ in range(100):  # 2 m/s straight ahead: into the wall
@@ -81,7 +82,7 @@ def test_stable_baselines3_trains_on_it_alone_and_on_a_vector_of_two():
     from stable_baselines3.common.env_util import make_vec_env
 
     def make():
-        return gymnasium.make(ENV_ID, world="tests/worlds/small.yaml", max_episode_steps=20)
+        return gymnasium.make(ENV_ID, world=SMALL_WORLD, max_episode_steps=20)
 
     env = make()
     sb3_check_env(env.unwrapped)

@@ -4,6 +4,7 @@ import itertools
 
 import pytest
 
+from conftest import SMALL_WORLD
 from uav_sim.simulator import obstacle_distance_m
 from uav_sim.world import WorldError, load_world, procedural_world, training_layouts
 
@@ -143,5 +144,5 @@ def test_unknown_or_misspelt_keys_stop_the_load_naming_key_line_and_valid_keys(t
 
 
 def test_the_built_in_worlds_use_only_known_keys():
-    for name in ("basic", "complex", "turbulent", "tests/worlds/small.yaml"):
+    for name in ("basic", "complex", "turbulent", SMALL_WORLD):
         assert load_world(name).obstacles

@@ -15,7 +15,8 @@ from uav_policy.networks import NetConfig, build_network
 from uav_trainer.flights import Behaviour, evaluate_once
 
 
-def run_tool(pkg, exe, *args, domain="75", timeout=300):
+def run_tool(pkg, exe, *args, domain: str, timeout=300):
+    """An installed tool in the calling test's own ROS domain."""
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     return subprocess.run([str(executable(pkg, exe)), *args], env=env, capture_output=True, text=True, timeout=timeout)
 
@@ -43,6 +44,7 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
         str(ROOT / "params"),
         "--record",
         str(tmp_path / "bags"),
+        domain="75",
     )
     assert r.returncode == 0, r.stderr[-3000:]
     # Redirected, no bar: a progress line per row, with its place in the whole and an ETA.
@@ -72,13 +74,22 @@ def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):
     wio.save_file(build_network(NetConfig(), seed=2), NetConfig(), w)
     args = ["--weights", str(w), "--worlds", "basic", "--steps", "40", "--params-dir", str(ROOT / "params")]
     r = run_tool(
-        "uav_trainer", "evaluate", *args, "--start-yaw-jitter-deg", "180", "--repeats", "2", "--out", str(tmp_path / "e")
+        "uav_trainer",
+        "evaluate",
+        *args,
+        "--start-yaw-jitter-deg",
+        "180",
+        "--repeats",
+        "2",
+        "--out",
+        str(tmp_path / "e"),
+        domain="85",
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "random heading (uniform ±180°), 2 x 40 steps" in (tmp_path / "e" / "results.md").read_text()
     rows = list(csv.DictReader(open(tmp_path / "e" / "results.csv")))
     assert len(rows) == 1 and int(rows[0]["steps"]) == 80  # two runs of one weight file pooled into one row
-    bad = run_tool("uav_trainer", "evaluate", *args, "--start-yaw-jitter-deg", "200")
+    bad = run_tool("uav_trainer", "evaluate", *args, "--start-yaw-jitter-deg", "200", domain="85")
     assert bad.returncode == 2 and "--start-yaw-jitter-deg" in bad.stderr
 
 
@@ -130,6 +141,7 @@ def test_attention_figures_are_written(tmp_path):
         "3",
         "--out",
         str(tmp_path),
+        domain="86",
     )
     assert r.returncode == 0, r.stderr[-2000:]
     png, gif = tmp_path / "attention_turbulent.png", tmp_path / "flight_turbulent.gif"

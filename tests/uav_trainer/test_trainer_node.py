@@ -9,7 +9,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from sensor_msgs.msg import Range
 
-from conftest import ROOT, deep_qos, executable, start_up_error
+from conftest import ROOT, SMALL_WORLD, deep_qos, executable, start_up_error
 from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
@@ -18,7 +18,6 @@ from uav_trainer.flights import ENSEMBLE_SEP, evaluate_once
 from uav_trainer.trainer_node import TrainerNode
 from uav_trainer.training import snapshot_steps
 
-SMALL_WORLD = str(ROOT / "tests" / "worlds" / "small.yaml")
 # trainer_node's /diagnostics counts of what did not pair (zero when pairing is exact)
 PAIRING_COUNTS = (
     "frames_without_action",
@@ -67,8 +66,8 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
     ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 1000, 300)
     assert ok, ros.log_of(trainer)[-2000:]
-    ros.stop(policy)  # the lockstep loop halts; let the trainer drain what is in flight
-    ros.spin_for(2.0)
+    ros.stop(policy)  # the lockstep loop halts; the trainer drains what is in flight (reported at 2 Hz)
+    ros.spin_until(lambda: diag["uav_trainer"]["env_steps"] == diag["uav_sim"]["steps"], 30)
     sim_steps = int(diag["uav_sim"]["steps"])
     t = diag["uav_trainer"]
     # Transition k-1 -> k is stored once frame and outcome k are in (action k-1 came before them): every
@@ -180,9 +179,10 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
     policies.append(actor(1))  # an actor started later is taken up
     ok = ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 2000 and int(t().get("steps /actor1", 0)) >= 300, 300)
     assert ok, ros.log_of(trainer)[-2000:]
-    for policy in policies:  # both lockstep loops halt; let the trainer drain what is in flight
+    for policy in policies:  # both lockstep loops halt; the trainer drains what is in flight
         ros.stop(policy)
-    ros.spin_for(2.0)
+    sim_steps = lambda: sum(int(by_node[f"/actor{i}/sim_node"]["steps"]) for i in (0, 1))  # noqa: E731
+    ros.spin_until(lambda: int(t()["env_steps"]) == sim_steps(), 30)
     status = t()
     sims = [by_node[f"/actor{i}/sim_node"] for i in (0, 1)]
     for i, sim in enumerate(sims):
@@ -488,7 +488,7 @@ def test_a_failed_run_offers_no_weights_to_fly_least_of_all_an_earlier_runs(tmp_
     os.utime(old, (0, 0))  # long before this run
     cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params")]
     cmd += ["--steps", "60", "--trainer-arg", "lerning_rate:=0.1"]
-    r = subprocess.run(cmd, env=train_env(run_dir, "81"), capture_output=True, text=True, timeout=300)
+    r = subprocess.run(cmd, env=train_env(run_dir, "84"), capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, r.stdout[-1000:] + r.stderr[-1000:]
     assert "fly them" not in r.stdout and str(old) not in r.stdout + r.stderr
     assert "trainer_node exited with code 2" in r.stderr

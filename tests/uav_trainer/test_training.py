@@ -8,7 +8,7 @@ import pytest
 import safetensors.numpy
 import torch
 
-from conftest import run_to_exit
+from conftest import SMALL_WORLD, run_to_exit
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig
 from uav_sim.simulator import SimConfig
@@ -413,8 +413,8 @@ def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
         def forward(self, x):
             return torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(x.shape[0], 4), None
 
-    fixed = evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight())
-    varied = evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight(), start_yaw_jitter_deg=180.0)
+    fixed = evaluate_inprocess("cnn", "", SMALL_WORLD, 300, net=Straight())
+    varied = evaluate_inprocess("cnn", "", SMALL_WORLD, 300, net=Straight(), start_yaw_jitter_deg=180.0)
     assert fixed.crashes >= 3 and fixed.crash_sites == 1
     assert varied.crash_sites > 1
 
@@ -427,7 +427,7 @@ def test_the_crash_log_says_where_when_and_from_which_start(tmp_path):
         def forward(self, x):
             return torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(x.shape[0], 4), None
 
-    fly = lambda log, **kw: evaluate_inprocess("cnn", "", "tests/worlds/small.yaml", 300, net=Straight(), crash_log=log, **kw)  # noqa: E731
+    fly = lambda log, **kw: evaluate_inprocess("cnn", "", SMALL_WORLD, 300, net=Straight(), crash_log=log, **kw)  # noqa: E731
     fixed, varied = [], []
     r = fly(fixed)
     assert len(fixed) == r.crashes >= 3 and all(tuple(row) == CRASH_FIELDS for row in fixed)

@@ -1,0 +1,34 @@
+"""The packaged policies fly exactly as they did: a short in-process flight of each packaged set, with its crashes,
+reward and turning pinned. A change to how a frame becomes a command (or to the files) shows here first; update the
+numbers in the commit that explains the change."""
+
+from pathlib import Path
+
+import pytest
+
+from uav_trainer.flights import ENSEMBLE_SEP, evaluate_inprocess
+
+WEIGHTS = Path(__file__).resolve().parents[2] / "src" / "uav_policy" / "weights"
+REALSENSE = dict(sensor="realsense_d435", sensor_scale=0.1)
+
+# folder: (model, sensor, crashes, mean reward per step, turning steps) over 150 steps of Complex, random start
+# headings, simulator seed 3 (measured at the commit that added this test).
+PINNED = {
+    "sam": ("sam", {}, 2, 2.3991461638615923, 64),
+    "cnn": ("cnn", {}, 0, 3.089693096952854, 53),
+    "realsense_d435/sam": ("sam", REALSENSE, 1, 2.9063354966292807, 68),
+    "realsense_d435/cnn": ("cnn", REALSENSE, 0, 3.422047036634833, 52),
+}
+
+
+@pytest.mark.parametrize("folder", sorted(PINNED))
+def test_each_packaged_set_flies_as_pinned(folder):
+    model, sensor, crashes, reward, turns = PINNED[folder]
+    files = sorted((WEIGHTS / folder).glob("*.safetensors"))
+    assert len(files) >= 1, folder
+    r = evaluate_inprocess(
+        model, ENSEMBLE_SEP.join(map(str, files)), "complex", 150, seed=3, start_yaw_jitter_deg=180.0, insight_every=0, **sensor
+    )
+    assert (r.crashes, r.turn_steps) == (crashes, turns) and r.mean_reward == pytest.approx(reward, abs=1e-6), (
+        f"{folder} flies differently: {r.crashes} crashes, reward {r.mean_reward!r}, {r.turn_steps} turning steps"
+    )
