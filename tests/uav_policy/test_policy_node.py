@@ -627,3 +627,63 @@ def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
     # Every 5th answered camera frame is measured on a worker thread (or skipped while it is busy).
     assert int(last["insight_frames"]) + int(last["insight_skipped"]) >= 2 and int(last["insight_frames"]) >= 1
     assert proc.poll() is None
+
+
+def test_the_packaged_default_explains_a_camera_stream_by_where_the_obstacle_is(ros):
+    """The packaged default policy (sam) flown from a RealSense-like stream alone (848x480 16UC1, an 87 deg
+    CameraInfo): with a pillar on the left of the view the published attention lies more on the left than with the
+    same pillar on the right, and the other way round. The state spans 2.5 s of frames, so each scene is streamed
+    for 3 s before its maps count."""
+    import math
+
+    import numpy as np
+    from sensor_msgs.msg import CameraInfo
+
+    maps = {}  # stamp -> the attention map (relative to a uniform share)
+    ros.node.create_subscription(
+        Image,
+        contract.ATTENTION_TOPIC,
+        lambda m: maps.setdefault(contract.stamp_ns(m.header.stamp), contract.image_to_depth(m)),
+        50,
+    )
+    pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.SENSOR_QOS)
+    pub_info = ros.node.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, contract.SENSOR_QOS)
+    proc = ros.start("uav_policy", "policy_node", "-p", "model:=sam", "-p", "insight_every:=0")
+    assert ros.spin_until(lambda: pub_img.get_subscription_count() and pub_info.get_subscription_count(), 30)
+    f = 424 / math.tan(math.radians(87 / 2))
+    info = CameraInfo(width=848, height=480, k=[f, 0.0, 424.0, 0.0, f, 240.0, 0.0, 0.0, 1.0])
+    clock = ros.node.get_clock()
+    rows = np.arange(480)[:, None]
+    floor = np.where(rows > 240, np.minimum(1.0 * f / np.maximum(rows - 240, 1e-3), 9.0), np.inf)  # 1 m above a floor
+
+    def scene(column: int) -> np.ndarray:
+        depth = np.broadcast_to(floor, (480, 848)).astype(np.float32).copy()
+        depth[:, column - 45 : column + 45] = 1.8  # a pillar 1.8 m away, 90 px wide
+        return depth
+
+    def stream(depth: np.ndarray, seconds: float) -> list[int]:
+        stamps, start = [], time.monotonic()
+        while time.monotonic() - start < seconds:
+            stamp = clock.now().to_msg()
+            info.header.stamp = stamp
+            pub_info.publish(info)
+            pub_img.publish(contract.depth_to_image(depth, stamp, "camera_depth_optical_frame", "16UC1"))
+            if time.monotonic() - start > 3.0:  # the stack holds this scene only
+                stamps.append(contract.stamp_ns(stamp))
+            ros.spin_for(1 / 15)
+        ros.spin_for(0.3)
+        return [s for s in stamps if s in maps]
+
+    left, right = scene(250), scene(598)
+    on_left = stream(left, 4.5)
+    on_right = stream(right, 4.5)
+    assert len(on_left) >= 3 and len(on_right) >= 3, (len(on_left), len(on_right), ros.log_of(proc)[-2000:])
+    mean = lambda stamps: np.mean([maps[s] for s in stamps], axis=0)  # noqa: E731
+    a, b = mean(on_left), mean(on_right)
+    left_half, right_half = (slice(None), slice(0, 424)), (slice(None), slice(424, 848))
+    assert a[left_half].mean() > b[left_half].mean() and b[right_half].mean() > a[right_half].mean(), (
+        a[left_half].mean(),
+        b[left_half].mean(),
+        a[right_half].mean(),
+        b[right_half].mean(),
+    )
