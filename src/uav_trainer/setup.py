@@ -25,6 +25,7 @@ setup(
             "train = uav_trainer.train:main",
             "evaluate = uav_trainer.evaluate:main",
             "grounding = uav_trainer.grounding:main",
+            "distill = uav_trainer.distill:main",
             "plot_curves = uav_trainer.plots:main",
             "attention_figures = uav_trainer.figures:main",
         ],

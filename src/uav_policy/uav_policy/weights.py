@@ -31,6 +31,7 @@ FORMAT = "uav_policy/1"
 MAX_BYTES = 64 * 1024 * 1024
 CAMERA_KEY = "camera_hfov_deg"
 WINDOW_KEY = "reward_window_fraction"
+DISTILLED_KEY = "distilled_from"  # a distilled network's teachers: JSON [{"file", "sha256"}, ...]
 HFOV_RANGE_DEG = (10.0, 170.0)  # sim_node's hfov_deg range
 
 
@@ -39,12 +40,17 @@ class WeightsError(ValueError):
 
 
 def to_bytes(
-    net: torch.nn.Module, cfg: NetConfig, camera_hfov_deg: float | None = None, reward_window_fraction: float | None = None
+    net: torch.nn.Module,
+    cfg: NetConfig,
+    camera_hfov_deg: float | None = None,
+    reward_window_fraction: float | None = None,
+    notes: dict[str, str] | None = None,
 ) -> bytes:
     """The safetensors blob; `camera_hfov_deg` (when known) records the camera the net was trained with,
-    `reward_window_fraction` (when not None) the reward window it was trained on."""
+    `reward_window_fraction` (when not None) the reward window it was trained on; `notes` are further metadata
+    entries that loaders pass over (e.g. a distilled network's teachers, DISTILLED_KEY)."""
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in net.state_dict().items()}
-    meta = {"format": FORMAT, "config": cfg.to_json()}
+    meta = {**(notes or {}), "format": FORMAT, "config": cfg.to_json()}
     if camera_hfov_deg is not None:
         meta[CAMERA_KEY] = repr(_check_hfov(camera_hfov_deg))
     if reward_window_fraction is not None:
@@ -69,9 +75,10 @@ def save_file(
     path: str | os.PathLike,
     camera_hfov_deg: float | None = None,
     reward_window_fraction: float | None = None,
+    notes: dict[str, str] | None = None,
 ) -> None:
     """Write atomically: a reader never sees a half-written file."""
-    write_atomic(Path(path), to_bytes(net, cfg, camera_hfov_deg, reward_window_fraction))
+    write_atomic(Path(path), to_bytes(net, cfg, camera_hfov_deg, reward_window_fraction, notes))
 
 
 def _check_hfov(value) -> float:
@@ -239,6 +246,12 @@ def _read_file_metadata(path: str | os.PathLike) -> dict:
         return meta
     except WeightsError as e:
         raise WeightsError(f"{p}: {e}") from None
+
+
+def read_file_notes(path: str | os.PathLike) -> dict[str, str]:
+    """A weights file's metadata entries beyond the format, config, camera and window (e.g. DISTILLED_KEY)."""
+    meta = _read_file_metadata(path)
+    return {k: v for k, v in meta.items() if k not in ("format", "config", CAMERA_KEY, WINDOW_KEY)}
 
 
 def read_file_config(path: str | os.PathLike) -> NetConfig:
