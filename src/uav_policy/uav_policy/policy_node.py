@@ -31,7 +31,6 @@ from sensor_msgs.msg import CameraInfo, Image, Range
 from std_msgs.msg import Float32MultiArray
 
 from uav_common import contract
-from uav_common.actions import turning_indices
 from uav_common.frame_stack import CameraView, FrameStack, NetworkInput, SampledStack
 from uav_common.node_runner import in_thread, run
 from uav_common.ros_params import NodeOwned, ParameterError
@@ -43,6 +42,7 @@ from .attention import attention_map, overlay
 from .config import RETIRED, PolicySettings
 from .insight import Insight, explanation
 from .networks import SIZE_FIELDS, NetConfig, QEnsemble, forward_flops, parameter_count
+from .pilot import Pilot
 from .push import PUSH_QOS, PushService, ReleaseGate, load_key, read_push, verify
 from .safety import SafetyLayer
 
@@ -109,6 +109,7 @@ class PolicyNode(Node):
         self.frame_timeout_s = st.safety.frame_timeout_s
         self.control_period_s = 1.0 / st.control_rate_hz
         self.agent = Agent(net, self.cfg, device, seed)
+        self.pilot = Pilot(self.agent, self.actions, self.step_duration_s, self.safety)
         self.seconds_per_flop = self._seconds_per_flop() if st.accept_pushes else 0.0
 
         q = contract.STREAM_QOS
@@ -161,7 +162,6 @@ class PolicyNode(Node):
         self.latency_ms = deque(maxlen=1000)  # frame arrival to cmd_vel published
         self.create_timer(self.control_period_s / 2, self._control_tick)
         self.q_label = "action:" + ",".join(a.name for a in self.actions)
-        self.turning = turning_indices(self.actions)
         self.source = source
         self.acted, self.bad_frames, self.pushes_accepted, self.pushes_rejected = 0, 0, 0, 0
         self.pushes_unauthenticated = 0
@@ -396,30 +396,23 @@ class PolicyNode(Node):
 
     def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float) -> None:
         t0 = time.perf_counter()
-        action, q, w, _ = self.agent.act(state, self.epsilon)
-        a = self.actions[action]
+        d = self.pilot.decide(state, net_in, self.epsilon)
         chosen = Twist()
-        chosen.linear.x = a.linear_x_mps
-        chosen.angular.z = a.yaw_rate_radps(self.step_duration_s)
+        chosen.linear.x, chosen.angular.z = self.pilot.command_of(d.action)
         stamped = TwistStamped(twist=chosen)
         stamped.header.stamp = img.header.stamp
         stamped.header.frame_id = self.base_frame
         cmd = chosen
-        if self.safety:
-            # Should the way be blocked, the network's best turning action decides the way round.
-            best_turn = max(self.turning, key=lambda i: q[i], default=None)
-            turn = self.actions[best_turn].yaw_rate_radps(self.step_duration_s) if best_turn is not None else 0.0
-            vx, wz, why = self.safety.filter(chosen.linear.x, chosen.angular.z, net_in, turn)
-            if why:
-                cmd = Twist()
-                cmd.linear.x, cmd.angular.z = vx, wz
-                self.get_logger().info(f"safety: {why}", throttle_duration_sec=2.0)
+        if d.safety:
+            cmd = Twist()
+            cmd.linear.x, cmd.angular.z = d.linear_x_mps, d.yaw_rate_radps
+            self.get_logger().info(f"safety: {d.safety}", throttle_duration_sec=2.0)
         # The record (the network's choice) goes out before the command: whatever is flown is on record.
         self.pub_action.publish(stamped)
         self._command(cmd, img.header.stamp)
         self.last_stamp = contract.stamp_ns(img.header.stamp)
         self.latency_ms.append(1e3 * (time.perf_counter() - t_in))
-        self._publish_insight(img, depth, state, action, q, w)
+        self._publish_insight(img, depth, state, d.action, d.q, d.attention)
         self.acted += 1
         self.act_s += time.perf_counter() - t0
 

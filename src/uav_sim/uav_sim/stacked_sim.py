@@ -47,7 +47,11 @@ class StackedSim:
 
     def step(self, action: int) -> StepResult:
         a = self.actions[action]
-        r = self.sim.step(BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(self.sim.config.step_duration_s)))
+        return self.step_command(a.linear_x_mps, a.yaw_rate_radps(self.sim.config.step_duration_s))
+
+    def step_command(self, linear_x_mps: float, yaw_rate_radps: float) -> StepResult:
+        """One step of a body command that is not an action's (what a safety layer made of one)."""
+        r = self.sim.step(BodyTwist(linear_x_mps, yaw_rate_radps=yaw_rate_radps))
         self.last_input = x = self._input(r)
         self.state = self.stack.reset(x) if r.collided or r.truncated else self.stack.push(x)
         self.last = r

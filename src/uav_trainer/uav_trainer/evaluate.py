@@ -119,12 +119,10 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--safety",
         action="store_true",
-        help="fly through policy_node's safety layer (needs the ROS nodes); crashes then include what it prevented, "
-        "and its interventions are counted: compare with a run without it, never mix the two",
+        help="fly through policy_node's safety layer (with --inprocess: the same layer without the node); crashes then "
+        "include what it prevented, and its interventions are counted: compare with a run without it, never mix the two",
     )
     a = ap.parse_args(argv)
-    if a.safety and a.inprocess:
-        ap.error("--safety is policy_node's safety layer: it needs the ROS nodes (leave out --inprocess)")
     if a.record and a.inprocess:
         ap.error("--record needs the ROS nodes: it records their topics (leave out --inprocess)")
     if a.record and Path(a.record).is_dir() and any(Path(a.record).iterdir()):
@@ -283,6 +281,7 @@ def main(argv=None) -> int:
                 crash_log=crash_rows if a.crash_log else None,
                 reward_window_fraction=win,
                 insight_every=a.insight_every,
+                safety=a.safety,
                 **sensor,
             )
             bar.update(a.steps)

@@ -407,6 +407,7 @@ def evaluate_inprocess(
     sensor: str = "ideal",
     sensor_scale: float = 1.0,
     insight_every: int = 1,
+    safety: bool = False,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
@@ -417,9 +418,12 @@ def evaluate_inprocess(
     `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default).
     A `sensor` preset renders its own camera (at `sensor_scale`), mapped onto the weights' field of view as
     policy_node maps a camera through CameraInfo. What the decisions look at is measured on every
-    `insight_every`-th step (policy_node's parameter; 0 = never)."""
+    `insight_every`-th step (policy_node's parameter; 0 = never). With `safety` the commands pass policy_node's
+    safety layer (its default settings), as `evaluate --safety` flies them through the node; its interventions
+    are counted."""
     from uav_policy import weights as wio
     from uav_policy.agent import Agent
+    from uav_policy.safety import SafetyLayer, SafetySettings
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.world import load_world
 
@@ -447,7 +451,8 @@ def evaluate_inprocess(
         sensor_scale=sensor_scale,
     )
     sim = Simulator(load_world(world), sim_cfg)
-    flight = Flight(sim, agent, cfg.frames, trained_hfov_deg=hfov_deg)
+    layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
+    flight = Flight(sim, agent, cfg.frames, trained_hfov_deg=hfov_deg, safety=layer)
     r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
@@ -499,6 +504,7 @@ def evaluate_inprocess(
         len(sites),
         behaviour.turn_steps,
         len(behaviour.cells),
+        layer.counts.total if layer is not None else -1,
         insight=insight.summary() if insight is not None else None,
     )
 

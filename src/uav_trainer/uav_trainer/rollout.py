@@ -1,8 +1,9 @@
 """The act -> step -> stack loop, once: a policy flying the simulator with the paper's actions.
 
 In-process training, evaluation, figures and benchmarks all fly through `Flight.step`, so they
-act, move and stack frames exactly alike (and as policy_node and sim_node do over ROS); the stepping
-itself is uav_sim.stacked_sim.StackedSim, which the Gymnasium environment uses too.
+act, move and stack frames exactly alike (and as policy_node and sim_node do over ROS): the decision is
+uav_policy.pilot.Pilot's, policy_node's own, safety layer included when one is given; the stepping is
+uav_sim.stacked_sim.StackedSim, which the Gymnasium environment uses too.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import numpy as np
 
 from uav_common.actions import PAPER_ACTIONS, Action
 from uav_policy.agent import Agent
+from uav_policy.pilot import Pilot
+from uav_policy.safety import SafetyLayer
 from uav_sim.simulator import Simulator, StepResult
 from uav_sim.stacked_sim import StackedSim
 
@@ -24,6 +27,7 @@ class Step:
     attention: np.ndarray | None  # SAM's attention weights on the state (None for the CNN)
     before: StepResult  # the frame acted on (and the pose the step began at)
     after: StepResult  # what the step led to: the next frame, its reward, a collision or time limit
+    safety: str = ""  # what the safety layer changed ("" when nothing, or flown without one)
 
 
 class Flight:
@@ -36,18 +40,22 @@ class Flight:
         frames: int,
         actions: tuple[Action, ...] = PAPER_ACTIONS,
         trained_hfov_deg: float | None = None,
+        safety: SafetyLayer | None = None,
     ):
         """Frames reach the network as policy_node gives them: mapped onto its input size and the field of
-        view it was trained with (`trained_hfov_deg`; default: the simulator's camera)."""
+        view it was trained with (`trained_hfov_deg`; default: the simulator's camera); with `safety`, its
+        commands pass policy_node's safety layer."""
         hw = (agent.cfg.height, agent.cfg.width)
         self.env = StackedSim(sim, frames, actions, input_hw=hw, trained_hfov_deg=trained_hfov_deg)
         self.agent, self.actions = agent, actions
+        self.pilot = Pilot(agent, actions, sim.config.step_duration_s, safety)
 
     @property
     def last(self) -> StepResult:
         return self.env.last
 
     def step(self, epsilon: float = 0.0) -> Step:
-        action, q, w, _ = self.agent.act(self.env.state, epsilon)
+        d = self.pilot.decide(self.env.state, self.env.last_input, epsilon)
         before = self.env.last
-        return Step(action, q, w, before, self.env.step(action))
+        after = self.env.step_command(d.linear_x_mps, d.yaw_rate_radps) if d.safety else self.env.step(d.action)
+        return Step(d.action, d.q, d.attention, before, after, d.safety)

@@ -1,0 +1,55 @@
+"""The decision path, once (no ROS): a state of stacked network inputs -> the network's action, its Q-values and
+attention -> the action's body command -> the safety layer -> the command flown.
+
+policy_node decides every frame through `Pilot.decide`, and so do the in-process flights (uav_trainer.rollout:
+training, `evaluate --inprocess`, figures, benchmarks), so a frame becomes a command the same way with or without
+ROS, the safety layer included (`evaluate --inprocess --safety`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from uav_common.actions import Action, turning_indices
+
+from .agent import Agent
+from .safety import SafetyLayer
+
+
+@dataclasses.dataclass(frozen=True)
+class Decision:
+    action: int  # the network's own choice: what a trainer learns from and `action` records
+    q: np.ndarray  # the Q-values it was chosen on
+    attention: np.ndarray | None  # SAM's attention on the state (None for the CNN)
+    explored: bool  # a random action (epsilon)
+    linear_x_mps: float  # the command flown: the action's, or what the safety layer made of it
+    yaw_rate_radps: float
+    safety: str  # what the safety layer changed, in words ("" when nothing)
+
+
+class Pilot:
+    """Decides on a state: the agent's action as a body command, then the safety layer (when there is one)."""
+
+    def __init__(self, agent: Agent, actions: tuple[Action, ...], step_duration_s: float, safety: SafetyLayer | None = None):
+        self.agent, self.actions, self.step_duration_s, self.safety = agent, actions, step_duration_s, safety
+        self.turning = turning_indices(actions)
+
+    def command_of(self, action: int) -> tuple[float, float]:
+        """An action's body command: forward speed (m/s) and yaw rate (rad/s, left +)."""
+        a = self.actions[action]
+        return a.linear_x_mps, a.yaw_rate_radps(self.step_duration_s)
+
+    def decide(self, state: np.ndarray, newest_input: np.ndarray, epsilon: float = 0.0) -> Decision:
+        """The decision on `state` (frames, H, W); `newest_input` (its last frame on the network's input) is what the
+        safety layer checks the corridor in."""
+        action, q, w, explored = self.agent.act(state, epsilon)
+        vx, wz = self.command_of(action)
+        why = ""
+        if self.safety is not None:
+            # Should the way be blocked, the network's best turning action decides the way round.
+            best_turn = max(self.turning, key=lambda i: q[i], default=None)
+            turn = self.command_of(best_turn)[1] if best_turn is not None else 0.0
+            vx, wz, why = self.safety.filter(vx, wz, newest_input, turn)
+        return Decision(action, q, w, explored, vx, wz, why)
