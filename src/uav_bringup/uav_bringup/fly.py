@@ -53,6 +53,18 @@ def node_args(params: Path | None, name: str, values: list[str], namespace: str)
     return params_args(params, name) + ns + [x for kv in values for x in ("-p", kv)]
 
 
+def camera_of(model: str, weights: str) -> list[str]:
+    """sim_node arguments for the sensor `weights` (default: the packaged ones) were trained behind."""
+    from uav_policy import weights as wio
+    from uav_sim.sensor import sim_args_for_camera
+
+    try:
+        files = wio.parse_files(weights) if weights else wio.packaged_weights(model)
+        return sim_args_for_camera(wio.read_file_camera(files[0]) if files else None)
+    except ValueError:  # unreadable weights: policy_node says why at start-up
+        return []
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog="fly", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -107,6 +119,8 @@ def main(argv=None) -> int:
         procs.stop_all(STOP_ORDER)
         return 0 if stopped() else 1
     sim_values = [f"world:={a.world}", f"seed:={a.seed}", f"mode:={'lockstep' if a.lockstep else 'realtime'}"]
+    if not any(arg.startswith("sensor:=") for arg in a.sim_arg):
+        sim_values += camera_of(a.model, a.weights)  # the sensor the weights were trained behind
     if a.lockstep and a.record:
         sim_values.append("wait_for_subscribers:=2")  # the policy and the recorder
     procs.start("sim", "uav_sim", "sim_node", node_args(params, "sim", sim_values + a.sim_arg, a.namespace))

@@ -99,6 +99,24 @@ def preset(name: str) -> SensorPreset | None:
     return PRESETS[name]
 
 
+TRAINING_SCALE = 0.1  # what the sensor recipes render at (params/recipes/realsense_d435.yaml), and weights fly at
+
+
+def preset_for_camera(hfov_deg: float | None) -> str:
+    """The sensor a weights file trained behind `hfov_deg` (its recorded camera) is flown behind: the preset of that
+    field of view (files record only the field of view), else ideal."""
+    for name, p in PRESETS.items():
+        if hfov_deg is not None and abs(p.hfov_deg - hfov_deg) <= 0.5:
+            return name
+    return "ideal"
+
+
+def sim_args_for_camera(hfov_deg: float | None) -> list[str]:
+    """sim_node arguments for the sensor weights trained behind `hfov_deg` are flown behind: none for the ideal camera."""
+    sensor = preset_for_camera(hfov_deg)
+    return [] if sensor == "ideal" else [f"sensor:={sensor}", f"sensor_scale:={TRAINING_SCALE}"]
+
+
 def scaled_size(p: SensorPreset, scale: float) -> tuple[int, int]:
     """(width, height) rendered for a preset at `scale` of its resolution (at least 8 px a side)."""
     return max(8, round(p.width * scale)), max(8, round(p.height * scale))

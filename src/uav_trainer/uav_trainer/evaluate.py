@@ -147,14 +147,13 @@ def main(argv=None) -> int:
         from uav_sim.sensor import preset
 
         given = dict(arg.partition(":=")[::2] for arg in a.sim_arg)
-        sensor = {"sensor": given.get("sensor", "ideal")}
+        sensor = {"sensor": given.get("sensor")}  # None: the preset of the weights' camera, else ideal
         try:
-            preset(sensor["sensor"])
-            scale = sim_arg_number(a.sim_arg, "sensor_scale")
-            sensor["sensor_scale"] = 1.0 if scale is None else scale
+            preset(sensor["sensor"] or "ideal")
+            sensor["sensor_scale"] = sim_arg_number(a.sim_arg, "sensor_scale")
         except ValueError as e:
             ap.error(f"--sim-arg: {e}")
-        if not 0.05 <= sensor["sensor_scale"] <= 1.0:
+        if sensor["sensor_scale"] is not None and not 0.05 <= sensor["sensor_scale"] <= 1.0:
             ap.error(f"--sim-arg sensor_scale must lie in [0.05, 1], got {sensor['sensor_scale']:g}")
         if window is not None and not 0.0 < window <= 1.0:
             ap.error(f"--sim-arg reward_window_fraction must lie in (0, 1], got {window:g}")

@@ -33,18 +33,23 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     """Frames of an exploit-only flight of `files` (several: one policy on their mean Q-values; none: a
     seeded random initialisation): (depth, map of what the decision looks at (SAM's attention, the CNN's
     saliency), action index, collided)."""
+    from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.world import load_world
 
     net = wio.load_files(files, model) if files else build_network(wio.config_for(model, None), seed=seed)
     cfg = net.cfg
     agent = Agent(net, cfg, seed=seed)
-    # The camera the weights were trained with (their header), else the simulator's default; the
-    # image at the network's input size.
+    # The camera the weights were trained with (their header; behind a sensor preset of that field of view, the
+    # preset), else the simulator's default; an ideal camera's image at the network's input size.
     camera = wio.camera_for(files[0] if files else None, wio.UNRECORDED_HFOV_DEG)
-    sim_cfg = SimConfig(seed=seed, hfov_deg=camera, image_width=cfg.width, image_height=cfg.height)
+    sensor = preset_for_camera(camera)
+    scale = TRAINING_SCALE if sensor != "ideal" else 1.0
+    sim_cfg = SimConfig(
+        seed=seed, hfov_deg=camera, image_width=cfg.width, image_height=cfg.height, sensor=sensor, sensor_scale=scale
+    )
     sim = Simulator(load_world(world), sim_cfg)
-    flight = Flight(sim, agent, cfg.frames)
+    flight = Flight(sim, agent, cfg.frames, trained_hfov_deg=camera)
     out = []
     try:
         for _ in range(steps):

@@ -248,6 +248,10 @@ def evaluate_once(
         sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, first)}")
     if sim_arg_number(sim_args, "reward_window_fraction") is None:
         sim_args = (*sim_args, f"reward_window_fraction:={flown_window(model, first)}")
+    if not any(arg.startswith("sensor:=") for arg in sim_args):
+        from uav_sim.sensor import sim_args_for_camera
+
+        sim_args = (*sim_args, *sim_args_for_camera(flown_hfov_deg(model, first)))
     sim_args = (*sim_args, *image_size_args(model, first, sim_args))
     import rclpy
     import rclpy.executors
@@ -404,8 +408,8 @@ def evaluate_inprocess(
     net_cfg=None,
     crash_log: list | None = None,
     reward_window_fraction: float | None = None,
-    sensor: str = "ideal",
-    sensor_scale: float = 1.0,
+    sensor: str | None = None,
+    sensor_scale: float | None = None,
     insight_every: int = 1,
     safety: bool = False,
 ) -> EvalResult:
@@ -417,7 +421,8 @@ def evaluate_inprocess(
     camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
     `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default).
     A `sensor` preset renders its own camera (at `sensor_scale`), mapped onto the weights' field of view as
-    policy_node maps a camera through CameraInfo. What the decisions look at is measured on every
+    policy_node maps a camera through CameraInfo; None: the preset of the weights' camera (uav_sim.sensor.
+    preset_for_camera) at the recipes' scale, else the ideal camera. What the decisions look at is measured on every
     `insight_every`-th step (policy_node's parameter; 0 = never). With `safety` the commands pass policy_node's
     safety layer (its default settings), as `evaluate --safety` flies them through the node; its interventions
     are counted."""
@@ -439,6 +444,12 @@ def evaluate_inprocess(
         hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
     if reward_window_fraction is None:
         reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
+    if sensor is None:
+        from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
+
+        sensor = preset_for_camera(hfov_deg)
+        sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
+    sensor_scale = 1.0 if sensor_scale is None else sensor_scale
     agent = Agent(net, cfg, seed=seed)
     sim_cfg = SimConfig(
         seed=seed,

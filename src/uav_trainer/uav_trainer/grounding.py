@@ -268,17 +268,6 @@ def sim_config(net_cfg, hfov_deg: float, sensor: str, sensor_scale: float, seed:
     )
 
 
-def default_sensor(hfov_deg: float) -> str:
-    """The sensor preset whose field of view the weights were trained at (the preset recipes record only that), else ideal."""
-    from uav_sim.sensor import SENSORS, preset
-
-    for name in SENSORS:
-        p = preset(name)
-        if p is not None and abs(p.hfov_deg - hfov_deg) <= 0.5:
-            return name
-    return "ideal"
-
-
 def run(
     net, hfov_deg: float, sensor: str, sensor_scale: float, log=print
 ) -> tuple[list[Scene], list[tuple[Scene, Frame]], Frame]:
@@ -297,6 +286,7 @@ def run(
 
 def main(argv=None) -> int:
     from uav_policy import weights as wio
+    from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
 
     from .flights import load_policy, weights_or_packaged
 
@@ -306,7 +296,12 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--sensor", default=None, help="sensor preset to render with (default: the one the weights' camera matches, else ideal)"
     )
-    ap.add_argument("--sensor-scale", type=float, default=0.1, help="a preset's render scale (default 0.1, the recipes')")
+    ap.add_argument(
+        "--sensor-scale",
+        type=float,
+        default=TRAINING_SCALE,
+        help=f"a preset's render scale (default {TRAINING_SCALE:g}, the recipes')",
+    )
     ap.add_argument("--sanity", action="store_true", help="also run the cascading-randomisation sanity check")
     ap.add_argument("--out", default="runs/grounding", help="folder for grounding.csv, sanity.csv and grounding.md")
     a = ap.parse_args(argv)
@@ -326,7 +321,7 @@ def main(argv=None) -> int:
         except (ValueError, OSError, wio.WeightsError) as e:
             ap.error(f"--weights: {e}")
         net.eval()
-        sensor = a.sensor or default_sensor(hfov)
+        sensor = a.sensor or preset_for_camera(hfov)
         label = f"{model} ({len(files)} file{'s' * (len(files) > 1)}, {hfov:g} deg, sensor {sensor})"
         print(f"{label}: rendering the scenes", flush=True)
         _, frames, empty = run(net, hfov, sensor, a.sensor_scale)
