@@ -49,7 +49,10 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
         timeout=120,
     )
     assert r.returncode == 0, r.stdout + r.stderr
-    assert (out / "attention_flight.png").stat().st_size > 10_000 and (out / "flight_flight.gif").stat().st_size > 10_000
+    from PIL import Image as Picture
+
+    with Picture.open(out / "attention_flight.png") as png, Picture.open(out / "flight_flight.gif") as gif:
+        assert png.width >= 256 and png.height >= 256 and gif.n_frames >= 2, (png.size, gif.n_frames)
     assert f"({len(frames)} frames, {len(answered)} with attention)" in r.stdout
 
     r = subprocess.run(

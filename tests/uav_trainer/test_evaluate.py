@@ -438,8 +438,9 @@ def test_compare_models_counts_the_seeds_at_the_bar(tmp_path):
     )
     out = run("--bar", "paper")
     assert out.returncode == 0, out.stderr
-    p = compare.fisher_exact(3, 4, 1, 3)
-    assert f"new_sam 3 of 4, old_sam 1 of 3; Fisher exact two-sided p = {p:.3f}." in out.stdout
+    # By hand: 4 successes of 7, 4 drawn; P(k of new) = C(4,k) C(3,4-k) / 35 = 4, 18, 12, 1 (/35) for k = 1..4, and the
+    # tables no likelier than the observed k = 3 (12/35) are k = 1, 3, 4: p = 17/35 = 0.486.
+    assert "new_sam 3 of 4, old_sam 1 of 3; Fisher exact two-sided p = 0.486." in out.stdout
     two = run("--bar", "basic=0, complex=1")  # only the worlds named count: old seed 2 and new seed 4 now do
     assert "new_sam 4 of 5, old_sam 2 of 3" in two.stdout, two.stdout
     for bad in ("basic=-1", "basic", "=1", "basic=one"):
