@@ -41,7 +41,8 @@ def package(src: str, model: str, camera: float, out: Path) -> str:
     """Write `src` to `out` with `camera` and its reward window; a line saying what was written."""
     cfg = wio.config_for(model, src)
     net = wio.load_file(src, cfg)
-    wio.save_file(net, cfg, out, camera_hfov_deg=camera, reward_window_fraction=wio.read_file_window(src))
+    notes = wio.read_file_notes(src)  # e.g. a distilled network's teachers
+    wio.save_file(net, cfg, out, camera_hfov_deg=camera, reward_window_fraction=wio.read_file_window(src), notes=notes)
     before, after = load_file(src), load_file(str(out))
     if before.keys() != after.keys() or any(not before[k].equal(after[k]) for k in before):
         raise SystemExit(f"{out}: the tensors differ from {src}")

@@ -52,6 +52,9 @@ def push_args(ros):
     return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={key}", "-p", "safety:=false")
 
 
+IDEAL_87 = ("-p", "sensor:=ideal", "-p", "hfov_deg:=87.0")  # the packaged weights' field of view, exact depth
+
+
 def start_pair(ros, *policy_args, sim_args=()):
     """sim_node and a policy_node that takes this test's pushes."""
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5", *sim_args)
@@ -75,7 +78,9 @@ def insight_said(ros) -> list[dict]:
 def test_policy_answers_each_frame_once_and_explains_it(ros):
     w = Watch(ros)
     said = insight_said(ros)
-    proc = start_pair(ros, "-p", "model:=sam", "-p", "insight_every:=2")
+    # An ideal camera of the packaged weights' field of view, at their input size: frames are the input as they are,
+    # so the maps' absolute scale can be checked exactly (a camera's mapping: the camera tests below).
+    proc = start_pair(ros, "-p", "model:=sam", "-p", "insight_every:=2", sim_args=IDEAL_87)
     assert ros.spin_until(lambda: len(w.actions) >= 300, 60), ros.log_of(proc)
     ros.spin_for(0.3)
     acts = w.action_stamps()
@@ -122,7 +127,7 @@ def test_the_cnn_explains_its_decisions_with_saliency_on_its_own_topics(ros):
     ros.node.create_subscription(Image, contract.SALIENCY_OVERLAY_TOPIC, overlays.append, 10)
     ros.node.create_subscription(Image, contract.ATTENTION_TOPIC, atts.append, 10)
     said = insight_said(ros)
-    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5")
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.5", *IDEAL_87)
     proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "insight_every:=1")
     enough = lambda: len(maps) >= 10 and len(overlays) >= 3 and said and int(said[-1].get("insight_frames", 0)) >= 10  # noqa: E731
     assert ros.spin_until(enough, 60), ros.log_of(proc)[-2000:]
@@ -148,7 +153,7 @@ def test_a_stalled_policy_does_not_answer_a_repeated_frame_twice(ros):
         Odometry, contract.ODOM_TOPIC, lambda m: odoms.setdefault(contract.stamp_ns(m.header.stamp), m.twist.twist), qos
     )
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.05")
-    policy = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
+    policy = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "safety:=false")  # the network's own commands
     assert ros.spin_until(lambda: len(actions) >= 30, 60), ros.log_of(policy)
     policy.send_signal(signal.SIGSTOP)  # a busy machine: the sim says its frame again about 10 times
     ros.spin_for(0.5)
@@ -290,13 +295,13 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
     assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
     log = ros.log_of(proc)
     assert "weights push rejected" in log and "'camera_hfov_deg' must be a number" in log
-    assert "trained with a 150 deg camera)" in log, "the start-up line names the packaged weights' camera"
+    assert "trained with a 87 deg camera)" in log, "the start-up line names the packaged weights' camera"
     assert "depth/camera_info says" not in log, "the packaged weights' camera is the sim's default: no warning"
     # Weights trained behind another camera still fly, with a warning naming the camera to use.
     r = call_push(ros, forcing_action(3, camera_hfov_deg=90.0))
     assert r.success, r.message
     assert ros.spin_until(lambda: "trained with a 90 deg camera" in ros.log_of(proc), 10), ros.log_of(proc)
-    assert "depth/camera_info says 150.0 deg: frames are cropped to it" in ros.log_of(proc)
+    assert "depth/camera_info says 87.0 deg: frames cover" in ros.log_of(proc)
 
 
 def forcing_action_cnn() -> bytes:
@@ -621,7 +626,7 @@ def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
     stopping = lambda: "no depth frame for" in diag[-1].message and int(values(diag[-1])["safety_stops_no_frames"]) >= 3  # noqa: E731
     assert ros.spin_until(stopping, 5), [(d.message, values(d)["safety_stops_no_frames"]) for d in diag[-3:]]
     last = values(diag[-1])
-    assert last["source"] == "camera" and int(last["safety_forward_blocked"]) >= 5 and last["camera_coverage"] == "0.04"
+    assert last["source"] == "camera" and int(last["safety_forward_blocked"]) >= 5 and last["camera_coverage"] == "0.57"
     assert int(last["malformed_camera_info"]) >= 1 and "malformed depth/camera_info" in ros.log_of(proc)
     # Every 5th answered camera frame is measured on a worker thread (or skipped while it is busy).
     assert int(last["insight_frames"]) + int(last["insight_skipped"]) >= 2 and int(last["insight_frames"]) >= 1

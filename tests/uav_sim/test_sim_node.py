@@ -54,7 +54,9 @@ def twist(vx=0.0, wz=0.0, vy=0.0):
 
 def test_lockstep_topics_encodings_and_shared_stamps(ros):
     rec = Recorder(ros)
-    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
+    # The ideal camera of the wide150 recipe (sim_node's default is the realsense_d435 preset: its frames below).
+    ideal = ("-p", "sensor:=ideal", "-p", "hfov_deg:=150.0", "-p", "reward_window_fraction:=0.078")
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3", *ideal)
     assert rec.ready(ros), "no depth frame from sim_node"
     ros.spin_for(1.0)
     assert len(rec.distinct_frames()) == 1, "lockstep must not advance without commands"
@@ -74,10 +76,10 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     depth = contract.image_to_depth(img)
     assert depth.shape == (64, 64) and float(depth[32, 32]) > 0.0
     info = rec.by_topic["info"][-1]
-    # The default camera (the packaged weights'): 150 deg horizontal, fx = (64 / 2) / tan(75 deg) = 8.574 px.
+    # 150 deg horizontal, fx = (64 / 2) / tan(75 deg) = 8.574 px.
     assert abs(info.k[0] - 32.0 / math.tan(math.radians(75.0))) < 1e-9 and info.k[0] == info.k[4]
     assert info.header.frame_id == img.header.frame_id and contract.camera_info_hfov_deg(info) == pytest.approx(150.0)
-    # The default window, 0.078 of each side: beta is read over columns 29-33 (5 of 64, edges 3 px left
+    # A window of 0.078 of each side: beta is read over columns 29-33 (5 of 64, edges 3 px left
     # and 2 px right of the centre): atan(3 / fx) + atan(2 / fx) = 32.41 deg of arc.
     fov = math.atan(3 / info.k[0]) + math.atan(2 / info.k[0])
     assert rec.by_topic["outcome"][-1].field_of_view == pytest.approx(fov) and math.degrees(fov) == pytest.approx(32.41, abs=0.01)

@@ -148,19 +148,22 @@ def test_attention_figures_are_written(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and gif.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
 
 
+PACKAGED_FILES = {"sam": 10, "cnn": 10}  # how many networks each packaged policy is
+
+
 @pytest.mark.parametrize("model", ["sam", "cnn"])
 def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model, monkeypatch):
-    from uav_sim.simulator import SimConfig
+    from uav_sim.sensor import preset_for_camera
 
     shipped = sorted((ROOT / "src" / "uav_policy" / "weights" / model).glob("*.safetensors"))
-    assert len(shipped) == 10, f"the shipped {model} weights are ten files flown as one policy, got {len(shipped)}"
+    assert len(shipped) == PACKAGED_FILES[model], f"the shipped {model} weights: {len(shipped)} files"
     # What policy_node loads (the installed copies, in this order) is these files.
     assert [p.read_bytes() for p in wio.packaged_weights(model)] == [p.read_bytes() for p in shipped]
-    net = wio.load_files(shipped, model)  # valid for the architecture, and as one ensemble
-    assert len(net.members) == 10
-    # Trained with sim_node's default camera and reward window: out of the box, no camera mismatch.
-    assert {wio.read_file_camera(p) for p in shipped} == {SimConfig.hfov_deg}
-    assert {wio.read_file_window(p) for p in shipped} == {SimConfig.reward_window_fraction}
+    wio.load_files(shipped, model)  # valid for the architecture (several: as one ensemble)
+    # Trained behind a RealSense D435-like camera and the paper's reward window: evaluate and fly put the simulator
+    # behind that sensor preset (its field of view, recorded in the files).
+    assert {preset_for_camera(wio.read_file_camera(p)) for p in shipped} == {"realsense_d435"}
+    assert {wio.read_file_window(p) for p in shipped} == {None}
     monkeypatch.setenv("ROS_DOMAIN_ID", "76")
     r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged files
     assert r.steps == 200 and r.crashes == 0, r

@@ -370,29 +370,29 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
 
 
 def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path, monkeypatch):
-    """Without --recipe, train sets up what the packaged weights were trained with (params/recipes/shipped.yaml):
-    nine snapshots besides the final weights, flown as one policy."""
+    """Without --recipe, train sets up what the packaged weights were trained with (params/recipes/shipped.yaml, behind
+    the realsense_d435 sensor): nine snapshots besides the final weights, flown as one policy."""
     run_dir = tmp_path / "run"
     # With a short time limit (the recipe's is 300): the trainer must count cut episodes, never as crashes.
     r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=300)
     assert (
         "recipes/shipped.yaml (sim_node: world:=random_each_episode mix_world:=basic mix_world_every:=4 "
-        "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 hfov_deg:=150.0 reward_window_fraction:=0.078; "
-        "trainer_node: sam_readout:=attend turn_penalty:=1.0 replay_ratio:=0.5 snapshots:=9)"
+        "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 sensor:=realsense_d435 sensor_scale:=0.1 "
+        "reward_window_fraction:=0.2; trainer_node: sam_readout:=query turn_penalty:=1.0 replay_ratio:=0.5 snapshots:=9)"
     ) in r.stdout
     assert "a new layout every episode ('basic' every 4 episodes)" in logs["sim"]
     files = [run_dir / f"policy_sam_step{n}.safetensors" for n in range(42, 60, 2)] + [run_dir / "policy_sam.safetensors"]
     assert sorted(run_dir.glob("policy_sam*.safetensors")) == sorted(files)
-    # The packaged SAM's architecture, pooled by attention.
+    # The packaged SAM's architecture (the query readout).
     assert wio.read_file_config(files[-1]) == wio.read_file_config(wio.packaged_weights("sam")[0])
     assert logs["trainer"].count("weights snapshot") == 9
-    assert "sim_node --ros-args -p hfov_deg:=150.0 & " in r.stdout
+    assert "sim_node --ros-args -p sensor:=realsense_d435 -p sensor_scale:=0.1 & " in r.stdout
     # Redirected output gets progress lines (a bar only on a terminal); the run's last row ends exploration.
     assert "progress: 60/60 steps (100%)" in r.stdout and "steps/s, ETA" in r.stdout
     assert float(list(csv.DictReader(open(run_dir / "metrics.csv")))[-1]["epsilon"]) == pytest.approx(0.05)
     assert f"-p model:=sam -p weights:={','.join(map(str, files))}" in r.stdout
     for f in files:
-        assert wio.read_file_camera(f) == 150.0 and abs(wio.read_file_window(f) - 0.078) < 1e-3, f
+        assert wio.read_file_camera(f) == 87.0 and wio.read_file_window(f) is None, f  # the paper's window
     rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
     assert {r["end"] for r in rows} <= {"crash", "time_limit"} and any(r["end"] == "time_limit" for r in rows)
     assert all(int(r["length"]) <= 4 for r in rows)
@@ -501,7 +501,7 @@ def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
         (("--steps", "0"), "--steps must be positive"),
         (
             ("--recipe", "single"),
-            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, realsense_d435, shipped)",
+            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, shipped, wide150)",
         ),
         (("--learning", "concurrent"), "--learning was removed: train always learns in lockstep"),
         (("--max-rate-hz=30",), "--max-rate-hz was removed"),

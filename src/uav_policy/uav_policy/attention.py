@@ -12,13 +12,16 @@ SCALE_MAX = 4.0  # the overlay's full colour: four times a uniform share
 OVERLAY_MIN_PX = 256  # the overlay's shorter side is upscaled to at least this
 
 
-def attention_map(weights: np.ndarray, grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
+def attention_map(weights: np.ndarray, grid_hw: tuple[int, int], image_hw: tuple[int, int], view=None) -> np.ndarray:
     """(H, W) float32: the mass each image region receives relative to a uniform share (1 = as if uniform, 0 =
     none, 4 = four times its share), the same scale on every frame. `weights` (..., nodes): SAM's attention
     (heads, queries, nodes) or a saliency map (nodes,).
 
-    Node i covers grid cell (i // grid_w, i % grid_w); each cell is upsampled to the image region it sees
-    (nearest neighbour: no mass is smeared onto cells that got none).
+    Node i covers grid cell (i // grid_w, i % grid_w) of the network's input; each cell is drawn on the image
+    region it sees (nearest neighbour: no mass is smeared onto cells that got none). With `view` (the
+    uav_common.frame_stack.CameraView a camera's frames were mapped through: the input cells' borders in the
+    image's pixels) the cells land where they see the camera's image, a camera of another field of view or
+    aspect included; camera pixels outside the trained view get 0. Without it the grid is stretched over the image.
     """
     gh, gw = grid_hw
     dist = received(weights)
@@ -26,7 +29,17 @@ def attention_map(weights: np.ndarray, grid_hw: tuple[int, int], image_hw: tuple
         raise ValueError(f"{dist.size} nodes do not fill a {gh}x{gw} grid")
     rel = (dist * dist.size).reshape(grid_hw).astype(np.float32)
     h, w = image_hw
-    return cv2.resize(rel, (w, h), interpolation=cv2.INTER_NEAREST)
+    if view is None or view.one_to_one:
+        return cv2.resize(rel, (w, h), interpolation=cv2.INTER_NEAREST)
+    out_w, out_h = len(view.edges_x) - 1, len(view.edges_y) - 1
+    # The input cell each image pixel centre falls in (-1 or out_*: outside the trained view), then its grid cell.
+    cx = np.searchsorted(view.edges_x, np.arange(w) + 0.5) - 1  # pixel centres: index + 0.5 (CameraView's convention)
+    cy = np.searchsorted(view.edges_y, np.arange(h) + 0.5) - 1
+    inside_x, inside_y = (cx >= 0) & (cx < out_w), (cy >= 0) & (cy < out_h)
+    gx = np.clip(cx, 0, out_w - 1) * gw // out_w
+    gy = np.clip(cy, 0, out_h - 1) * gh // out_h
+    amap = rel[gy[:, None], gx[None, :]]
+    return np.where(inside_y[:, None] & inside_x[None, :], amap, 0.0).astype(np.float32)
 
 
 def colourise_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:

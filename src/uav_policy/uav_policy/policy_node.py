@@ -536,7 +536,7 @@ class PolicyNode(Node):
     def _publish_map(self, img: Image, depth: np.ndarray, action: int, q: np.ndarray, rows, kind: str, pubs) -> None:
         """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the action and Q margin."""
         pub_map, pub_overlay = pubs
-        amap = attention_map(rows, self.agent.net.grid_hw, depth.shape)
+        amap = attention_map(rows, self.agent.net.grid_hw, depth.shape, self.to_input.view)
         pub_map.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
         if self.publish_overlay and pub_overlay.get_subscription_count() > 0:
             second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]

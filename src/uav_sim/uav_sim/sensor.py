@@ -112,9 +112,10 @@ def preset_for_camera(hfov_deg: float | None) -> str:
 
 
 def sim_args_for_camera(hfov_deg: float | None) -> list[str]:
-    """sim_node arguments for the sensor weights trained behind `hfov_deg` are flown behind: none for the ideal camera."""
+    """sim_node arguments for the sensor weights trained behind `hfov_deg` are flown behind (sim_node's own default is
+    a preset: an ideal camera is named too)."""
     sensor = preset_for_camera(hfov_deg)
-    return [] if sensor == "ideal" else [f"sensor:={sensor}", f"sensor_scale:={TRAINING_SCALE}"]
+    return ["sensor:=ideal"] if sensor == "ideal" else [f"sensor:={sensor}", f"sensor_scale:={TRAINING_SCALE}"]
 
 
 def scaled_size(p: SensorPreset, scale: float) -> tuple[int, int]:

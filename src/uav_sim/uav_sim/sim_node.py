@@ -31,6 +31,7 @@ from uav_common.settings import declare_settings, setting
 
 from .markers import path_msg, path_pose, world_markers
 from .reward import window_fov_rad
+from .sensor import TRAINING_SCALE
 from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
 from .vehicle import HOVER, BodyTwist, twist_error
 from .world import WorldChoice, WorldError
@@ -52,7 +53,10 @@ REMOVED = {
 class SimNodeSettings:
     """sim_node's parameters: the simulator's, the world's and the node's own."""
 
-    sim: SimConfig = SimConfig()
+    # The camera the packaged policy was trained behind (a drone's depth camera), at the scale it was trained at, and
+    # its reward window (the paper's 20 %); the in-process core's default stays the exact camera. Recipes name
+    # theirs (paper, wide150: sensor ideal).
+    sim: SimConfig = SimConfig(sensor="realsense_d435", sensor_scale=TRAINING_SCALE, reward_window_fraction=0.2)
     worlds: WorldChoice = WorldChoice()
     mode: str = setting(
         "lockstep", "lockstep: one step per cmd_vel; realtime: fixed rate with watchdog", choices=("lockstep", "realtime")

@@ -37,8 +37,8 @@ class SimConfig:
     sensor: str = setting(
         "ideal",
         "Depth sensor: ideal (exact depth; the paper's protocol) or a preset camera with its own resolution, field of "
-        "view, range, noise, dropout and edge holes (docs/TRAINING.md); a preset replaces image_width, image_height "
-        "and hfov_deg",
+        "view, range, noise, dropout and edge holes (docs/REAL_CAMERA.md); a preset replaces image_width, image_height "
+        "and hfov_deg. sim_node's default is the camera the packaged policy was trained behind",
         choices=SENSORS,
     )
     sensor_scale: float = setting(
@@ -48,7 +48,7 @@ class SimConfig:
     image_height: int = setting(64, "Depth image height (px); sensor ideal only", 8, 1024)
     hfov_deg: float = setting(
         150.0,
-        "Horizontal field of view (deg; sensor ideal only); the packaged weights were trained at 150, the paper's camera is 90",
+        "Horizontal field of view (deg; sensor ideal only); the wide150 recipe's is 150, the paper's camera 90",
         10.0,
         170.0,
     )
@@ -69,8 +69,9 @@ class SimConfig:
     )
     reward_window_fraction: float = setting(
         0.078,
-        "The reward's central window (beta: its nearest depth), as a share of each image side: 0.078 (5 x 5 px, the "
-        "packaged weights'); the paper's is 0.2; wider than 120 deg the floor enters it unless smaller (a warning says so)",
+        "The reward's central window (beta: its nearest depth), as a share of each image side: the paper's 0.2 (sim_node's "
+        "default); 0.078 (5 x 5 px) for the wide150 recipe: wider than 120 deg the floor enters it unless smaller (a "
+        "warning says so)",
         0.01,
         1.0,
     )

@@ -114,10 +114,13 @@ def agreement(student, teacher_q: np.ndarray, states: np.ndarray) -> float:
     return float((q_of(student, states).argmax(1) == teacher_q.argmax(1)).mean()) if len(states) else float("nan")
 
 
-def collect(env, actor, steps: int, epsilon: float, rng, frames: int, hw) -> np.ndarray:
-    """`steps` states met flying `actor` (a network) with exploration `epsilon`, as stored states."""
+def collect(env, actor, steps: int, epsilon: float, rng, frames: int, hw, desc: str = "") -> np.ndarray:
+    """`steps` states met flying `actor` (a network) with exploration `epsilon`, as stored states (a progress bar on a
+    terminal)."""
+    from tqdm import tqdm
+
     out = np.empty((steps, frames, *hw), FRAMES_DTYPE)
-    for i in range(steps):
+    for i in tqdm(range(steps), desc=desc, unit="step", disable=None, leave=False):
         out[i] = env.state
         if rng.random() < epsilon:
             action = int(rng.integers(len(env.actions)))
@@ -180,7 +183,7 @@ def distill(
     try:
         for r in range(rounds):
             actor = teacher if r == 0 else student
-            fresh = collect(env, actor, steps_per_round, epsilon, rng, cfg.frames, hw)
+            fresh = collect(env, actor, steps_per_round, epsilon, rng, cfg.frames, hw, f"round {r + 1}/{rounds}")
             labels = q_of(teacher, fresh).astype(np.float32)
             agree = agreement(student, labels, fresh)
             states, targets = np.concatenate([states, fresh]), np.concatenate([targets, labels])

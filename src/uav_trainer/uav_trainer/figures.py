@@ -56,7 +56,8 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
             state = flight.env.state
             s = flight.step(0.0)
             rows = explanation(net, state, s.action, s.attention)
-            amap = attention_map(rows, net.grid_hw, s.before.depth_m.shape)
+            view = flight.env.to_input.view if flight.env.to_input is not None else None
+            amap = attention_map(rows, net.grid_hw, s.before.depth_m.shape, view)
             out.append((s.before.depth_m, amap, s.action, s.before.collided))
     finally:
         sim.close()

@@ -4,7 +4,8 @@
 
 The recipe (`--recipe NAME` for params/recipes/NAME.yaml, or `--recipe FILE` for your own) sets the
 nodes' parameters on top of params/*.yaml; `--world`, `--sim-arg` and `--trainer-arg` still win.
-`shipped` (the default) is how the packaged weights were trained; `paper` is the paper's setting.
+`shipped` (the default) is how the packaged weights were trained, behind a RealSense D435-like camera; `wide150`
+the ideal 150 deg camera that met the paper's figures; `paper` the paper's setting.
 trainer_node learns in lockstep with acting: after each step it stores the transition, runs the
 updates replay_ratio allows and only then releases the next frame to policy_node with the new
 weights and epsilon, so a run is, bit for bit, `python -m uav_trainer.inprocess` with the same
@@ -53,8 +54,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--recipe",
         default=DEFAULT_RECIPE,
-        help="a recipe in PARAMS_DIR/recipes (shipped: how the packaged weights were trained; paper: the paper's "
-        f"setting) or a path to your own recipe file (default: {DEFAULT_RECIPE})",
+        help="a recipe in PARAMS_DIR/recipes (shipped: how the packaged weights were trained, behind a depth camera "
+        "like a RealSense D435; wide150: an ideal 150 deg camera; paper: the paper's setting) or a path to your own "
+        f"recipe file (default: {DEFAULT_RECIPE})",
     )
     ap.add_argument("--world", default=None, help="training world, e.g. basic or random_each_episode (default: the recipe's)")
     ap.add_argument("--steps", type=int, default=30000, help="environment steps budget (default: 30000)")
@@ -210,8 +212,13 @@ def main(argv=None) -> int:
             print(f"written before it stopped: {', '.join(map(str, files))}", file=sys.stderr)
         return trainer_code
     if files:
-        camera = sim_values.get("hfov_deg")
-        fly_sim = f"ros2 run uav_sim sim_node --ros-args -p hfov_deg:={float(camera)} & " if camera is not None else ""
+        # The simulator behind the camera the run trained with, for the command that flies the result.
+        sensor, camera = sim_values.get("sensor", "ideal"), sim_values.get("hfov_deg")
+        if sensor != "ideal":
+            sim_p = f"-p sensor:={sensor} -p sensor_scale:={float(sim_values.get('sensor_scale', 1.0))}"
+        else:
+            sim_p = f"-p hfov_deg:={float(camera)}" if camera is not None else ""
+        fly_sim = f"ros2 run uav_sim sim_node --ros-args {sim_p} & " if sim_p else ""
         print(
             f"weights: {', '.join(map(str, files))}\nfly them: {fly_sim}ros2 run uav_policy policy_node --ros-args "
             f"-p model:={a.model} -p weights:={','.join(map(str, files))}"
