@@ -14,6 +14,7 @@ setup(
         ("share/uav_policy/weights", glob("weights/*.md")),
         ("share/uav_policy/weights/sam", glob("weights/sam/*.safetensors")),
         ("share/uav_policy/weights/cnn", glob("weights/cnn/*.safetensors")),
+        ("share/uav_policy/weights/distilled/sam", glob("weights/distilled/sam/*.safetensors")),
         ("share/uav_policy/weights/wide150/sam", glob("weights/wide150/sam/*.safetensors")),
         ("share/uav_policy/weights/wide150/cnn", glob("weights/wide150/cnn/*.safetensors")),
     ],

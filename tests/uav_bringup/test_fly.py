@@ -39,7 +39,9 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
     markers = got["/uav2/world/markers"][1][0].markers
     assert len([m for m in markers if m.ns == "obstacles"]) == 9  # complex
     att = got["/uav2/attention"][1]
-    assert len(att) == len(answered) and att[0].encoding == "32FC1"
+    # Each answer's attention, but perhaps the last: the stop may land between a command and its map.
+    att_stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in att]
+    assert set(att_stamps) <= set(answered) and len(answered) - len(att) in (0, 1) and att[0].encoding == "32FC1"
 
     out = tmp_path / "figures"
     r = subprocess.run(
@@ -53,7 +55,7 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
 
     with Picture.open(out / "attention_flight.png") as png, Picture.open(out / "flight_flight.gif") as gif:
         assert png.width >= 256 and png.height >= 256 and gif.n_frames >= 2, (png.size, gif.n_frames)
-    assert f"({len(frames)} frames, {len(answered)} with attention)" in r.stdout
+    assert f"({len(frames)} frames, {len(att)} with attention)" in r.stdout
 
     r = subprocess.run(
         [str(executable("uav_trainer", "attention_figures")), "--bag", str(bag), "--namespace", "/uav5"],

@@ -509,11 +509,13 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
     assert same_run(str(a), "--packaged", "sam")[0] == 0, "a run's ten files in step order are the packaged ten"
     net = wio.load_file(packaged[3], wio.config_for("sam", packaged[3]))
     with torch.no_grad():
-        net.dueling_head.advantage[-1].bias[0] += 1e-6  # one value of one tensor
-    wio.save_file(net, net.cfg, b / "policy_sam_step24000.safetensors", 150.0, 0.078)
+        net.trunk.net[0].bias[0] += 1e-6  # one value of one tensor
+    camera, window = wio.read_file_camera(packaged[3]), wio.read_file_window(packaged[3])
+    wio.save_file(net, net.cfg, b / "policy_sam_step24000.safetensors", camera, window)
     rc, out = same_run(str(a), str(b))
     assert rc == 1
-    assert "policy_sam_step24000.safetensors: 1 of 33 tensors differ" in out and out.endswith("DIFFERENT\n")
+    tensors = len(net.state_dict())
+    assert f"policy_sam_step24000.safetensors: 1 of {tensors} tensors differ" in out and out.endswith("DIFFERENT\n")
     assert "policy_sam_step23000.safetensors: identical" in out
     (b / "episodes.csv").write_text("episode,env_step,length,reward,end\n1,7,7,-3.001,crash\n")
     rc, out = same_run(str(a), str(b))

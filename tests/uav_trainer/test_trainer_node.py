@@ -59,7 +59,7 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     # As train starts them: the first frame waits for policy and trainer, and the policy answers each frame once
     # the trainer has it and releases it, so no step goes unstored however late discovery matches a topic.
     lockstep = ("-p", "lockstep_republish_s:=60.0", "-p", "wait_for_subscribers:=2")
-    ros.start("uav_sim", "sim_node", *lockstep, "-p", "hfov_deg:=100.0", *window)
+    ros.start("uav_sim", "sim_node", *lockstep, "-p", "sensor:=ideal", "-p", "hfov_deg:=100.0", *window)
     waits = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0")
     policy = ros.start("uav_policy", "policy_node", *waits, *pushes_signed_in(run_dir))
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
@@ -416,7 +416,8 @@ def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_nam
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
     run_dir = tmp_path / "run"
     sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2", "--trainer-arg", "conv_channels:=[8, 16]")
-    r, logs = run_train(run_dir, "101", "--steps", "200", "--input-size", "48", "--frames", "3", *sizes, timeout_s=300)
+    args = ("--recipe", "wide150", "--steps", "200", "--input-size", "48", "--frames", "3")  # an ideal camera: 48 px too
+    r, logs = run_train(run_dir, "101", *args, *sizes, timeout_s=300)
     made = wio.read_file_config(run_dir / "policy_sam.safetensors")
     assert (made.height, made.width, made.frames, made.d_model, made.heads) == (48, 48, 3, 24, 2)
     assert made.conv_channels == (8, 16)  # 12 x 12 nodes from 48 px

@@ -347,7 +347,9 @@ def test_training_refuses_a_camera_whose_reward_window_sees_the_floor(tmp_path, 
 
     run_dir = tmp_path / "wide"
     with pytest.raises(SystemExit) as e:
-        inprocess.main(["--steps", "30", "--sim-arg", "reward_window_fraction:=0.2", "--run-dir", str(run_dir)])
+        inprocess.main(
+            ["--steps", "30", "--recipe", "wide150", "--sim-arg", "reward_window_fraction:=0.2", "--run-dir", str(run_dir)]
+        )
     said = capsys.readouterr().err
     assert e.value.code == 2 and "hfov_deg=150 with 64x64 images shows the floor 1.43 m" in said
     assert "smaller reward_window_fraction (now 0.2)" in said
@@ -482,7 +484,8 @@ def test_inprocess_reads_the_recipe_train_reads_and_takes_trainer_flags(tmp_path
         inprocess.run = real
     (cfg, sim, worlds), (paper_cfg, paper_sim, paper_worlds) = made
     assert (cfg.turn_penalty, cfg.replay_ratio, cfg.snapshots, cfg.learner.learning_rate) == (1.0, 0.5, 9, 0.001)
-    assert (sim.hfov_deg, sim.reward_window_fraction, sim.max_episode_steps) == (150.0, 0.078, 300)
+    assert (sim.sensor, sim.sensor_scale, sim.reward_window_fraction, sim.max_episode_steps) == ("realsense_d435", 0.1, 0.2, 300)
+    assert cfg.sam_readout == "query"
     assert sim.start_yaw_jitter_deg == 180.0
     assert (worlds.world, worlds.mix_world, worlds.mix_world_every) == ("random_each_episode", "basic", 4)
     assert (paper_cfg.turn_penalty, paper_sim.hfov_deg, paper_sim.reward_window_fraction, paper_worlds.world) == (

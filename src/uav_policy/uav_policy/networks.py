@@ -291,14 +291,15 @@ class D3QNSam(nn.Module):
         self.readout = None
         if cfg.sam_readout == "query":
             self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden)
+            self.dueling_head = None  # its own heads, one per query
         elif cfg.sam_readout == "flatten":
             c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
             self.readout = nn.Sequential(
                 nn.Linear(cfg.d_model, c), nn.Flatten(1), nn.Linear(n * c, cfg.cnn_hidden), nn.ReLU(inplace=True)
             )
             self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
-        else:  # the query readout has its own heads, one per query
-            self.dueling_head = None if self.query_readout else DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
+        else:
+            self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
 
     @property
     def grid_hw(self) -> tuple[int, int]:

@@ -138,6 +138,7 @@ class PolicyNode(Node):
         self.outcome_topic = self.resolve_topic_name(contract.OUTCOME_TOPIC)
         self.info_topic = self.resolve_topic_name(contract.CAMERA_INFO_TOPIC)
         self.info_wait_since = None  # the first frame that waited for depth/camera_info
+        self.frame_awaiting_info = None  # the newest frame that waited for it
         self.frames_before_camera_info = 0
         # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
         # service needs its own callback group: a suspended async callback holds its group. Its request
@@ -203,6 +204,10 @@ class PolicyNode(Node):
             self.camera_hfov_deg = contract.camera_info_hfov_deg(msg)
             self._use_camera()
         self._check_camera()
+        if self.frame_awaiting_info is not None:
+            held, self.frame_awaiting_info = self.frame_awaiting_info, None
+            self.frames_in -= 1  # counted when it came
+            self._on("frame", held)
 
     @property
     def trained_hfov_deg(self) -> float | None:
@@ -253,6 +258,7 @@ class PolicyNode(Node):
         stamp = contract.stamp_ns(msg.header.stamp)
         self.frames_in += stream == "frame" and stamp != self.last_stamp  # a frame said again is not new
         if stream == "frame" and self._wait_for_camera_info(msg):
+            self.frame_awaiting_info = msg  # answered when its CameraInfo comes (a lockstep sim waits for it)
             return
         if stream == "frame" and not self.wait_for_trainer and self.count_publishers(self.outcome_topic) == 0:
             self._on_camera_frame(msg, stamp, t_in)

@@ -157,7 +157,7 @@ def distill(
     from .inprocess import sim_settings
     from .recipes import load_recipe
 
-    teacher, cfg, hfov, window = load_teachers(files, model)
+    teacher, cfg, hfov, _ = load_teachers(files, model)
     recipe = load_recipe(recipe_name, params_dir)
     sim_cfg, worlds = sim_settings(recipe.node("sim_node"), seed, cfg.width)
     sim_cfg = with_sensor(sim_cfg)
@@ -198,7 +198,7 @@ def distill(
     finally:
         sim.close()
     out.parent.mkdir(parents=True, exist_ok=True)
-    wio.save_file(student, cfg, out, hfov, window, notes=teacher_notes(files))
+    wio.save_file(student, cfg, out, hfov, wio.read_file_window(files[0]), notes=teacher_notes(files))  # the teachers' own
     summary["states"] = len(states)
     return summary
 
