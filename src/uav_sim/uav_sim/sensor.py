@@ -99,7 +99,7 @@ def preset(name: str) -> SensorPreset | None:
     return PRESETS[name]
 
 
-TRAINING_SCALE = 0.1  # what the sensor recipes render at (params/recipes/realsense_d435.yaml), and weights fly at
+TRAINING_SCALE = 0.1  # what the sensor recipes render at (params/recipes/shipped.yaml), and weights fly at
 
 
 def preset_for_camera(hfov_deg: float | None) -> str:

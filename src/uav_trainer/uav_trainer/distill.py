@@ -1,7 +1,7 @@
 """distill: one network that acts as an ensemble does (policy distillation, DAgger; no ROS).
 
     distill --teachers runs/sam_seed0/policy_sam_step*.safetensors runs/sam_seed0/policy_sam.safetensors \\
-        --recipe realsense_d435 --out runs/distilled/policy_sam.safetensors
+        --recipe shipped --out runs/distilled/policy_sam.safetensors
 
 The teachers (a run's ten files, say) fly as one policy on the mean of their Q-values, as policy_node flies them.
 The student is one network of the same architecture, started from the last teacher file (or from scratch,
