@@ -7,7 +7,7 @@ The teachers (a run's ten files, say) fly as one policy on the mean of their Q-v
 The student is one network of the same architecture, started from the last teacher file (or from scratch,
 `--init random`), and trained to give the ensemble's Q-values on the states the policy actually meets:
 
-- round 0 flies the teachers, rounds 1.. fly the student, each with exploration `--epsilon`, over the training
+- the first DAgger round flies the teachers, the next ones the student, each with exploration `--epsilon`, over the training
   worlds of the recipe the teachers were trained with (its sim_node section: worlds, camera, sensor);
 - every state visited is labelled with the teachers' Q-values and joins the data set (DAgger, Ross et al. 2011);
 - after each round the student fits the whole data set: squared error on the Q-values' differences between
