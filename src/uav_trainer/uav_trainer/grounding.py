@@ -213,15 +213,12 @@ def randomise(modules: list[torch.nn.Module], seed: int) -> None:
     gen = torch.Generator().manual_seed(seed)
     for module in modules:
         for name, p in module.named_parameters():
-            fan_in = p.shape[-1] if p.dim() > 1 else max(1, p.numel())
             if name.endswith("bias"):
                 p.zero_()
             elif p.dim() == 1:  # a LayerNorm's gain: random signs and scales
                 p.copy_(torch.randn(p.shape, generator=gen))
-            else:
-                if p.dim() == 4:
-                    fan_in = p.shape[1] * p.shape[2] * p.shape[3]
-                p.copy_(torch.randn(p.shape, generator=gen) / math.sqrt(fan_in))
+            else:  # fan-in: all but the output dimension (a conv's input channels x kernel)
+                p.copy_(torch.randn(p.shape, generator=gen) / math.sqrt(p[0].numel()))
 
 
 def spearman(a: np.ndarray, b: np.ndarray) -> float:
