@@ -221,7 +221,8 @@ def test_train_with_two_actors_learns_from_both_and_goes_on_when_one_dies(tmp_pa
     try:
         logs = lambda: sorted((tmp_path / "roslog").glob("train_run_*"))  # noqa: E731
         said = r"actors /actor0 (\d+) /actor1 (\d+)"
-        both = lambda: logs() and (m := re.findall(said, (logs()[0] / "trainer.log").read_text())) and min(map(int, m[-1])) >= 20  # noqa: E731
+        log = lambda: logs()[0] / "trainer.log" if logs() else None  # noqa: E731  (the folder comes before the file)
+        both = lambda: log() and log().exists() and (m := re.findall(said, log().read_text())) and min(map(int, m[-1])) >= 20  # noqa: E731
         end = time.monotonic() + 200
         while not both() and train.poll() is None and time.monotonic() < end:
             time.sleep(0.2)
