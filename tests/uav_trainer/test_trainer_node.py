@@ -179,10 +179,9 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
     policies.append(actor(1))  # an actor started later is taken up
     ok = ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 2000 and int(t().get("steps /actor1", 0)) >= 300, 300)
     assert ok, ros.log_of(trainer)[-2000:]
-    for policy in policies:  # both lockstep loops halt; the trainer drains what is in flight
+    for policy in policies:  # both lockstep loops halt; let the trainer drain what is in flight
         ros.stop(policy)
-    sim_steps = lambda: sum(int(by_node[f"/actor{i}/sim_node"]["steps"]) for i in (0, 1))  # noqa: E731
-    ros.spin_until(lambda: int(t()["env_steps"]) == sim_steps(), 30)
+    ros.spin_for(2.0)
     status = t()
     sims = [by_node[f"/actor{i}/sim_node"] for i in (0, 1)]
     for i, sim in enumerate(sims):
