@@ -343,6 +343,18 @@ def evaluate_once(
                 raise TimeoutError(f"evaluation reached only {mon.steps}/{steps} steps in {timeout_s} s")
         if mon.gaps:
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
+        if record_to is not None:
+            # A busy recorder may lag, or miss a message and get it again: the simulator lives on (holding
+            # its last frame and saying it again each lockstep_republish_s) until the bag holds every step.
+            outcome, heard = node.resolve_topic_name(contract.OUTCOME_TOPIC), mon.outcomes
+            asked = time.monotonic()
+            while written.get(outcome, 0) < heard and time.monotonic() < asked + 60.0:
+                executor.spin_once(timeout_sec=0.05)
+            if written.get(outcome, 0) < heard:
+                raise RuntimeError(
+                    f"the recorder wrote {written.get(outcome, 0)} of the {heard} step outcomes within 60 s: "
+                    f"the bag {record_to} is incomplete"
+                )
         # The interventions and insight measured over the flight: the simulator stops first (no step more is
         # flown), then policy_node's next report (every second) is read.
         procs.stop("sim")
@@ -351,16 +363,6 @@ def evaluate_once(
             executor.spin_once(timeout_sec=0.05)
         if "safety_interventions" not in said:
             raise RuntimeError("policy_node did not report its safety interventions on /diagnostics")
-        if record_to is not None:  # a busy recorder may lag: the bag closes once it holds every step
-            outcome = node.resolve_topic_name(contract.OUTCOME_TOPIC)
-            asked = time.monotonic()
-            while written.get(outcome, 0) < mon.outcomes and time.monotonic() < asked + 60.0:
-                executor.spin_once(timeout_sec=0.05)
-            if written.get(outcome, 0) < mon.outcomes:
-                raise RuntimeError(
-                    f"the recorder wrote {written.get(outcome, 0)} of the {mon.outcomes} step outcomes within 60 s: "
-                    f"the bag {record_to} is incomplete"
-                )
     finally:
         procs.stop_all(["policy", "sim", "record"])
         executor.shutdown()
