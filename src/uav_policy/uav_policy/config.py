@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 from uav_common.actions import ActionSettings
+from uav_common.ros_params import ParameterError
 from uav_common.settings import setting
 
 from .networks import MAX_FRAMES, NetConfig
@@ -99,3 +100,36 @@ class PolicySettings:
         3600.0,
     )
     torch_threads: int = setting(1, "Torch intra-op threads (batch-1 inference gains nothing from more)", 1, 256)
+
+    def check(self) -> None:
+        """ParameterError, naming the parameter, for settings that do not go together."""
+        if self.wait_for_trainer and not self.accept_pushes:
+            raise ParameterError("parameter 'wait_for_trainer': frames are released by pushes, so it needs accept_pushes:=true")
+        if self.accept_pushes and not self.push_key_file:
+            raise ParameterError("parameter 'accept_pushes': needs 'push_key_file', the key pushes are signed with")
+        if self.accept_pushes and self.safety.safety:
+            # The trainer learns from `action`, the network's choice: the vehicle must fly exactly that.
+            raise ParameterError(
+                "parameter 'safety': a policy that takes pushes (training) flies the network's own actions; "
+                "set safety:=false (train does)"
+            )
+
+    def describe(self, parameters: int, source: str, device, hfov_deg: float | None) -> str:
+        """policy_node's start-up line: what flies, how, and what explains it."""
+        camera = f", trained with a {hfov_deg:g} deg camera" if hfov_deg is not None else ""
+        sf = self.safety
+        safety = (
+            f"safety layer on (stop after {sf.frame_timeout_s:g} s without camera frames, "
+            f"stop distance {sf.stop_distance_m:g} m); "
+            if sf.safety
+            else "safety layer off; "
+        )
+        lockstep = "answering each frame once trainer_node releases it (lockstep learning); " if self.wait_for_trainer else ""
+        att = "attention on attention, attention/overlay, attention/weights"
+        att = att if self.model == "sam" else "cnn has no attention module: its Grad-CAM saliency on saliency, saliency/overlay"
+        if self.insight_every:
+            att += f"; what it looks at measured every {self.insight_every} frame(s) on /diagnostics"
+        return (
+            f"model {self.model} ({parameters} parameters, {source}{camera}) on {device}; epsilon {self.epsilon}; "
+            f"{safety}{lockstep}{att}"
+        )

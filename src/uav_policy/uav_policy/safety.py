@@ -49,6 +49,14 @@ class Interventions:
     def total(self) -> int:
         return self.stops_no_frames + self.forward_blocked + self.speed_limited + self.yaw_rate_limited
 
+    def values(self, on: bool = True) -> dict:
+        """As /diagnostics reports them (`on`: whether there is a safety layer)."""
+        return {
+            "safety": "on" if on else "off",
+            "safety_interventions": self.total,
+            **{f"safety_{f.name}": getattr(self, f.name) for f in dataclasses.fields(self)},
+        }
+
 
 def corridor_mask(height: int, width: int, hfov_deg: float, half_width_m: float, max_depth_m: float) -> np.ndarray:
     """(H, W, depth threshold) of the network input (square pixels, `hfov_deg`): a cell at depth z is in the

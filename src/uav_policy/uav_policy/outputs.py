@@ -1,0 +1,95 @@
+"""What policy_node publishes for each decision: the network's action (stamped with the frame: the record), the
+command flown (cmd_vel, and cmd_vel_stamped for flight stacks), q_values, and what the decision looks at (SAM's
+attention, the CNN's Grad-CAM saliency: maps on an absolute scale, overlays for a subscriber)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from geometry_msgs.msg import Twist, TwistStamped
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float32MultiArray
+
+from uav_common import contract
+from uav_common.actions import Action
+
+from .attention import attention_map, overlay
+from .pilot import Decision
+
+
+class Outputs:
+    def __init__(self, node: Node, actions: tuple[Action, ...], stamped: bool, overlays: bool, max_range_m: float):
+        self.actions, self.overlays, self.max_range_m = actions, overlays, max_range_m
+        q, pub = contract.STREAM_QOS, node.create_publisher
+        self.cmd = pub(Twist, contract.CMD_VEL_TOPIC, q)
+        self.stamped = pub(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, q) if stamped else None
+        self.base_frame = contract.vehicle_frame(node.get_namespace(), "base_link")  # what action commands move
+        self.action = pub(TwistStamped, contract.ACTION_TOPIC, q)
+        self.q_values = pub(Float32MultiArray, contract.Q_VALUES_TOPIC, 10)
+        self.attention = (pub(Image, contract.ATTENTION_TOPIC, 10), pub(Image, contract.ATTENTION_OVERLAY_TOPIC, 10))
+        self.weights = pub(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, 10)
+        self.saliency = (pub(Image, contract.SALIENCY_TOPIC, 10), pub(Image, contract.SALIENCY_OVERLAY_TOPIC, 10))
+        self.q_label = "action:" + ",".join(a.name for a in actions)
+        self.last_cmd, self.last_cmd_unheard = None, False
+
+    def decision(self, img: Image, d: Decision, command_of) -> None:
+        """The network's choice (the record: it goes out before the command, so whatever is flown is on record)
+        and the command flown: the action's (`command_of(action)`), or what the safety layer made of it."""
+        chosen = Twist()
+        chosen.linear.x, chosen.angular.z = command_of(d.action)
+        stamped = TwistStamped(twist=chosen)
+        stamped.header.stamp, stamped.header.frame_id = img.header.stamp, self.base_frame
+        self.action.publish(stamped)
+        cmd = chosen
+        if d.safety:
+            cmd = Twist()
+            cmd.linear.x, cmd.angular.z = d.linear_x_mps, d.yaw_rate_radps
+        self.command(cmd, img.header.stamp)
+
+    def command(self, cmd: Twist, stamp) -> None:
+        self.last_cmd_unheard = self.cmd.get_subscription_count() == 0
+        self.cmd.publish(cmd)
+        if self.stamped is not None:
+            out = TwistStamped(twist=cmd)
+            out.header.stamp, out.header.frame_id = stamp, self.base_frame
+            self.stamped.publish(out)
+        self.last_cmd = cmd
+
+    def forget(self) -> None:
+        """The source restarted: nothing from before is said again."""
+        self.last_cmd, self.last_cmd_unheard = None, False
+
+    def say_again(self) -> None:
+        """The simulator said an answered frame again, and our command went out before anyone listened (discovery):
+        say it again. A command that had a reliable listener is only late (a busy machine); answering it twice would
+        advance a lockstep sim two steps."""
+        if self.last_cmd_unheard:
+            self.last_cmd_unheard = self.cmd.get_subscription_count() == 0
+            self.cmd.publish(self.last_cmd)
+
+    def explained(self, img: Image, depth: np.ndarray, d: Decision, grid_hw, view) -> Callable | None:
+        """q_values and SAM's attention maps; for the CNN, the saliency publisher `publish(rows)` when someone
+        subscribes (its Grad-CAM costs a backward pass), else None."""
+        self.q_values.publish(contract.q_values_msg(d.q, self.q_label))
+        maps = lambda rows, kind, pubs: self._map(img, depth, d, rows, grid_hw, view, kind, pubs)  # noqa: E731
+        if d.attention is not None:  # SAM: the attention is at hand
+            maps(d.attention, "attention", self.attention)
+            if self.weights.get_subscription_count() > 0:
+                self.weights.publish(contract.attention_weights_msg(d.attention, grid_hw))
+            return None
+        if any(p.get_subscription_count() > 0 for p in self.saliency):
+            return lambda rows: maps(rows, "saliency", self.saliency)
+        return None
+
+    def _map(self, img: Image, depth: np.ndarray, d: Decision, rows, grid_hw, view, kind: str, pubs) -> None:
+        """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the action and Q margin."""
+        pub_map, pub_overlay = pubs
+        amap = attention_map(rows, grid_hw, depth.shape, view)
+        pub_map.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
+        if self.overlays and pub_overlay.get_subscription_count() > 0:
+            q, action = d.q, d.action
+            second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]
+            label = f"{self.actions[action].name.split('_', 1)[0]} Q {q[action]:.2f}, margin {q[action] - second:+.2f}"
+            pub_overlay.publish(contract.rgb_image(img.header, overlay(depth, amap, self.max_range_m, label, kind)))
