@@ -16,9 +16,9 @@ sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_po
 
 from uav_bringup.mavlink import BridgeSettings  # noqa: E402
 from uav_common.settings import fmt, reference_rows, specs  # noqa: E402
-from uav_policy.policy_node import PolicySettings  # noqa: E402
-from uav_sim.sim_node import SimNodeSettings  # noqa: E402
-from uav_trainer.trainer_node import TrainerNodeSettings  # noqa: E402
+from uav_policy.config import PolicySettings  # noqa: E402
+from uav_sim.sim_settings import SimNodeSettings  # noqa: E402
+from uav_trainer.trainer_settings import TrainerNodeSettings  # noqa: E402
 
 NODES = {
     "sim": ("uav_sim", "sim_node", SimNodeSettings),

@@ -143,7 +143,7 @@ def test_a_killed_trainer_resumes_from_its_journal_and_learns_on_in_lockstep(ros
     # A release queued behind 60 MB of forged pushes on a loaded machine may be sent again after
     # release_timeout_s: that is the recovery working, and the counts above show that nothing was lost.
     assert "no longer in lockstep" not in ros.log_of(policy), ros.log_of(policy)[-2000:]
-    assert ros.stop(again) == 0
+    assert ros.stop(again) == 0, ros.log_of(again)[-3000:]
 
 
 def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strangers_are_counted(ros, tmp_path):

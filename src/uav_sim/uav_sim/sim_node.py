@@ -11,7 +11,6 @@ rate with the latest command and a watchdog.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import math
 import time
 
@@ -27,75 +26,18 @@ from visualization_msgs.msg import MarkerArray
 from uav_common import contract
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
-from uav_common.settings import declare_settings, setting
+from uav_common.settings import declare_settings
 
 from .markers import path_msg, path_pose, world_markers
+from .messages import camera_info_msg, odometry_msg
 from .reward import window_fov_rad
-from .sensor import TRAINING_SCALE
-from .simulator import SimConfig, Simulator, StepResult, reward_floor_problem
+from .sim_settings import REMOVED, SimNodeSettings, describe
+from .simulator import Simulator, StepResult, reward_floor_problem
 from .vehicle import HOVER, BodyTwist, twist_error
-from .world import WorldChoice, WorldError
+from .world import WorldError
 
 TRAJECTORY_POSES = 2000  # the longest path kept for the trajectory topic
 TRAJECTORY_PERIOD_S = 0.2  # the trajectory goes out at most this often (wall time), and at episode ends
-
-# Parameters retired, and why: a node given one stops at start-up and says so.
-REMOVED = {
-    "max_rate_hz": "lockstep training waits for learning, so no step-rate cap is needed; use mode:=realtime to watch",
-    "random_start_fraction": "random start places did not help (docs/RESULTS.md); start_yaw_jitter_deg varies the heading",
-    "random_start_clearance_m": "random start places did not help (docs/RESULTS.md)",
-    "redraw_start_heading": "a new heading per layout trained worse (docs/RESULTS.md)",
-    "layout_partitions": "training on partition layouts did not help (docs/RESULTS.md); random_partitions:SEED worlds remain",
-}
-
-
-@dataclasses.dataclass(frozen=True)
-class SimNodeSettings:
-    """sim_node's parameters: the simulator's, the world's and the node's own."""
-
-    # The camera the packaged policy was trained behind (a drone's depth camera), at the scale it was trained at, and
-    # its reward window (the paper's 20 %); the in-process core's default stays the exact camera. Recipes name
-    # theirs (paper, wide150: sensor ideal).
-    sim: SimConfig = SimConfig(sensor="realsense_d435", sensor_scale=TRAINING_SCALE, reward_window_fraction=0.2)
-    worlds: WorldChoice = WorldChoice()
-    mode: str = setting(
-        "lockstep", "lockstep: one step per cmd_vel; realtime: fixed rate with watchdog", choices=("lockstep", "realtime")
-    )
-    watchdog_timeout_s: float = setting(1.0, "realtime: hover when no cmd_vel came for this long (s)", 0.05, 60.0)
-    lockstep_republish_s: float = setting(
-        1.0, "lockstep: publish the current frame again when no command came for this long (s)", 0.05, 60.0
-    )
-    wait_for_subscribers: int = setting(
-        0,
-        "lockstep: hold the first frame until depth and outcome each have this many subscribers (train sets 2, policy "
-        "and trainer, so that the trainer learns from the first step); 0 = at once",
-        0,
-        100,
-    )
-    step_budget: int = setting(
-        0,
-        "lockstep: steps flown before the simulator holds its last frame and takes no more commands (evaluate sets "
-        "it: a measurement of N steps flies exactly N); 0 = no limit",
-        0,
-        10**9,
-    )
-    camera_frame_id: str = setting(
-        "camera_depth_optical_frame", "frame of depth and camera_info (REP 118); prefixed with the namespace"
-    )
-    odom_frame_id: str = setting(
-        "odom", "the world frame: Odometry header, markers and trajectory (REP 105); prefixed with the namespace"
-    )
-    base_frame_id: str = setting("base_link", "Odometry child frame (REP 105); prefixed with the namespace")
-    publish_clock: bool = setting(
-        True,
-        "publish the simulated time on /clock; false when several simulators share a graph (train --actors N with "
-        "N > 1 sets it: each actor's stamps are its own sim time, and no one clock fits them all)",
-    )
-    depth_encoding: str = setting(
-        "32FC1",
-        "depth/image_raw encoding: 32FC1 (metres) or 16UC1 (millimetres, 0 = no return, as camera drivers)",
-        choices=tuple(contract.DEPTH_ENCODINGS),
-    )
 
 
 class SimNode(Node):
@@ -170,15 +112,7 @@ class SimNode(Node):
         else:
             self.create_timer(min(self.republish_s, 0.25), self.on_lockstep_idle)
         self.create_timer(1.0, self.publish_diagnostics)
-        w = st.worlds
-        mixed = f" ('{w.mix_world}' every {w.mix_world_every} episodes)" if w.mix_world_every else ""
-        self.get_logger().info(
-            (f"a new layout every episode{mixed}, first " if layouts else "")
-            + f"world '{world.name}' ({len(world.obstacles)} obstacles, weather rain={world.weather.rain} "
-            f"snow={world.weather.snow} leaves={world.weather.leaves}), mode {self.mode}, "
-            f"{cfg.image_width}x{cfg.image_height} depth ({self.depth_encoding}, {cfg.hfov_deg:g} deg, sensor "
-            f"{cfg.sensor}), step {cfg.step_duration_s} s"
-        )
+        self.get_logger().info(describe(world, layouts, st.worlds, self.mode, cfg, self.depth_encoding))
 
     # -- commands ----------------------------------------------------------------------
     def on_cmd_vel(self, msg: Twist) -> None:
@@ -290,18 +224,9 @@ class SimNode(Node):
                 truncated=r.truncated,
             )
         )
-        self.pub_odom.publish(self.odometry(r, stamp))
-        info = CameraInfo()
-        info.header.stamp = stamp
-        info.header.frame_id = self.frame_id
-        info.width, info.height = cfg.image_width, cfg.image_height
-        info.distortion_model = "plumb_bob"
-        info.d = [0.0] * 5
-        info.k = self.sim.camera.intrinsics.k_matrix()
-        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-        k = info.k
-        info.p = [k[0], 0.0, k[2], 0.0, 0.0, k[4], k[5], 0.0, 0.0, 0.0, 1.0, 0.0]
-        self.pub_info.publish(info)
+        self.pub_odom.publish(odometry_msg(r.pose, self.executed, stamp, self.odom_frame, self.base_frame))
+        k = self.sim.camera.intrinsics.k_matrix()
+        self.pub_info.publish(camera_info_msg(stamp, self.frame_id, cfg.image_width, cfg.image_height, k))
         self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
         self.last_publish_wall = time.monotonic()
 
@@ -318,20 +243,6 @@ class SimNode(Node):
             self.path.clear()
         p = r.pose
         self.path.append(path_pose(self.odom_frame, stamp, p.x_m, p.y_m, p.z_m, p.yaw_rad))
-
-    def odometry(self, r: StepResult, stamp) -> Odometry:
-        msg = Odometry()
-        msg.header.stamp = stamp
-        msg.header.frame_id = self.odom_frame
-        msg.child_frame_id = self.base_frame
-        pose = r.pose
-        msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = pose.x_m, pose.y_m, pose.z_m
-        msg.pose.pose.orientation.z = math.sin(pose.yaw_rad / 2)
-        msg.pose.pose.orientation.w = math.cos(pose.yaw_rad / 2)
-        cmd = self.executed  # the body velocity flown during the step that ended here
-        msg.twist.twist.linear.x, msg.twist.twist.linear.y = cmd.vx_mps, cmd.vy_mps
-        msg.twist.twist.linear.z, msg.twist.twist.angular.z = cmd.vz_mps, cmd.yaw_rate_radps
-        return msg
 
     def publish_diagnostics(self) -> None:
         self.cmd_publishers = self.count_publishers(self.cmd_topic)

@@ -1,0 +1,100 @@
+"""What trainer_node keeps per actor (a sim_node/policy_node pair), without ROS: the release chain (the newest frame
+to release, the push in flight, the weights its policy has) and whether the actor is alive. An actor whose simulator
+says nothing, or whose policy answers no release, for actor_timeout_s is reported once (missing at start-up, lost
+later) and taken up again when it is heard from or answers; a release not answered within release_timeout_s is sent
+again, with the weights. Times are time.monotonic() seconds."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+# The policy refused the learner's weights: it would act on others for the rest of the run, so no step would be in
+# lockstep (each one held for its wait_for_trainer_timeout_s). trainer_node stops; its final checkpoint lets the same
+# command resume once the nodes agree.
+REJECTED_WEIGHTS = (
+    "{policy} rejected the weights of a release: {why}. Stopping: in lockstep the policy must act on this node's "
+    "weights. Give policy_node and trainer_node the same model, frame_stack, input size (policy_node input_width and "
+    "input_height, this node input_size_px) and action_* parameters (train does), then run again to resume from the "
+    "final checkpoint"
+)
+
+
+class ActorState:
+    def __init__(self, index: int, namespace: str, outcome_topic: str):
+        self.index, self.ns, self.outcome_topic = index, namespace, outcome_topic
+        self.label = namespace or "the actor"
+        self.policy = f"{namespace}'s policy_node" if namespace else "policy_node"  # in log lines
+        self.go_stamp = None  # the newest frame to release, once the previous push is answered
+        self.in_flight = None  # the push sent and not answered (a future)
+        self.in_flight_stamp, self.in_flight_since = None, 0.0
+        self.pushed_updates = None  # the update count of the weights this actor's policy has
+        self.last_heard: float | None = None  # its sim's latest message
+        self.unanswered_since: float | None = None  # its policy was sent a release not answered since
+        self.silent: str | None = None  # reported missing or lost: "sim" (said nothing) or "policy" (answered nothing)
+
+    def heard(self, now: float) -> str | None:
+        """Its simulator said something; a line to log when it was silent."""
+        self.last_heard = now
+        if self.silent != "sim":
+            return None
+        self.silent = None
+        if self.unanswered_since is not None:  # its policy gets another actor_timeout_s to answer
+            self.unanswered_since = now
+        return f"{self.label}: its sim_node is heard from, learning from it"
+
+    def weights_due(self, updates: int) -> bool:
+        """Whether the next release carries the weights (they changed since its policy got them)."""
+        due, self.pushed_updates = updates != self.pushed_updates, updates
+        return due
+
+    def sent(self, fut, now: float) -> None:
+        """The release of go_stamp went out as `fut`."""
+        self.in_flight, self.in_flight_stamp, self.in_flight_since, self.go_stamp = fut, self.go_stamp, now, None
+        if self.unanswered_since is None:
+            self.unanswered_since = now
+
+    def answered(self) -> str | None:
+        """The push in flight was answered; a line to log when its policy was counted as lost."""
+        self.in_flight, self.unanswered_since = None, None
+        if self.silent != "policy":
+            return None
+        self.silent = None
+        return f"{self.label}: its policy_node answers again, learning from it"
+
+    def overdue(self, now: float, timeout_s: float) -> str | None:
+        """A release not answered within timeout_s (its simulator not silent) is to be sent again, with the weights:
+        the line to log, after which the caller drops the push in flight; else None."""
+        if self.in_flight is None or self.silent == "sim" or now - self.in_flight_since < timeout_s:
+            return None
+        self.in_flight = None
+        if self.go_stamp is None or self.go_stamp < self.in_flight_stamp:
+            self.go_stamp = self.in_flight_stamp
+        self.pushed_updates = None
+        return (
+            f"{self.policy} did not answer the release of the frame at {self.in_flight_stamp / 1e9:.1f} s "
+            f"sim time within {timeout_s:g} s: sending it again"
+        )
+
+    def check_alive(self, now: float, started: float, timeout_s: float, actors: Sequence[ActorState]) -> tuple[str, str] | None:
+        """(the count to add to: actors_missing or actors_lost, the error to log) when it falls silent now, else None."""
+        if self.silent:
+            return None
+        sim_quiet = now - (self.last_heard if self.last_heard is not None else started) >= timeout_s
+        unanswered = self.unanswered_since is not None and now - self.unanswered_since >= timeout_s
+        if not sim_quiet and not unanswered:
+            return None
+        self.silent = "sim" if sim_quiet else "policy"
+        count = "actors_lost"
+        if self.silent == "policy":
+            what = f"{self.label}: its policy_node has answered no release for {timeout_s:g} s, counted as lost"
+        elif self.last_heard is None:
+            count = "actors_missing"
+            what = (
+                f"{self.label}: nothing from its sim_node on {self.outcome_topic} within {timeout_s:g} s of start-up (is "
+                "it running, on this ROS_DOMAIN_ID, and discoverable from here? docs/TRAINING.md, 'Many actors')"
+            )
+        else:
+            what = f"{self.label}: its sim_node has said nothing for {timeout_s:g} s, counted as lost"
+        others = sum(a.silent is None for a in actors)
+        goes_on = f"training goes on with {others} other actor(s)" if others else "no actor is heard from: training waits"
+        return count, f"{what}; {goes_on}, and takes it up when it comes"
