@@ -18,11 +18,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def in_process(world: str, steps: int) -> float:
+    """The same simulator sim_node runs by default (its camera and sensor model), without ROS."""
+    from uav_sim.sim_settings import SimNodeSettings
     from uav_sim.simulator import Simulator
     from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
-    sim = Simulator(load_world(world))
+    sim = Simulator(load_world(world), SimNodeSettings().sim)
     sim.observe()
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -88,7 +90,10 @@ def main() -> int:
     sys.path.insert(0, str(ROOT / "src" / "uav_sim"))
     base = in_process(a.world, a.steps)
     ros = through_ros(a.world, a.steps, 90 + os.getpid() % 10)
-    print(f"world={a.world} steps={a.steps} (64x64 depth, 20 physics sub-steps per step)")
+    from uav_sim.sim_settings import SimNodeSettings
+
+    cfg = SimNodeSettings().sim
+    print(f"world={a.world} steps={a.steps} (sim_node's default camera and sensor model: {cfg.sensor})")
     print(f"in-process (no ROS)      : {base:8.1f} steps/s")
     print(f"lockstep through ROS 2   : {ros:8.1f} steps/s")
     print(f"ratio ROS / in-process   : {ros / base:8.3f}")

@@ -15,7 +15,7 @@ from uav_policy.networks import NetConfig, build_network
 from uav_trainer.flights import Behaviour, evaluate_once
 
 
-def run_tool(pkg, exe, *args, domain: str, timeout=300):
+def run_tool(pkg, exe, *args, domain: str, timeout=240):
     """An installed tool in the calling test's own ROS domain."""
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     return subprocess.run([str(executable(pkg, exe)), *args], env=env, capture_output=True, text=True, timeout=timeout)

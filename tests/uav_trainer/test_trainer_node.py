@@ -236,7 +236,7 @@ def test_train_with_two_actors_learns_from_both_and_goes_on_when_one_dies(tmp_pa
                 os.kill(int(pid), signal.SIGKILL)
                 killed += 1
         assert killed == 2
-        assert train.wait(timeout=300) == 0, (tmp_path / "train.out").read_text()[-2000:]
+        assert train.wait(timeout=240) == 0, (tmp_path / "train.out").read_text()[-2000:]
     finally:
         if train.poll() is None:
             train.send_signal(signal.SIGINT)
@@ -274,6 +274,7 @@ def log_dir(r, run_dir):
 
 
 @pytest.mark.slow  # a 4000-step learning run, about 140 s on 2 cores: python -m pytest -m slow
+@pytest.mark.timeout(600)  # beyond run_train's own 400 s
 def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch):
     """The main job on a small world: the trained greedy policy must beat epsilon = 1 clearly."""
     run_dir = tmp_path / "run"
@@ -306,7 +307,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     steps, seed, learn = 420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300}
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")]
-    r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=300)
+    r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert "recipes/shipped.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
@@ -375,7 +376,7 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     the realsense_d435 sensor): nine snapshots besides the final weights, flown as one policy."""
     run_dir = tmp_path / "run"
     # With a short time limit (the recipe's is 300): the trainer must count cut episodes, never as crashes.
-    r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=300)
+    r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=240)
     assert (
         "recipes/shipped.yaml (sim_node: world:=random_each_episode mix_world:=basic mix_world_every:=4 "
         "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 sensor:=realsense_d435 sensor_scale:=0.1 "
@@ -418,7 +419,7 @@ def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_s
     run_dir = tmp_path / "run"
     sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2", "--trainer-arg", "conv_channels:=[8, 16]")
     args = ("--recipe", "wide150", "--steps", "200", "--input-size", "48", "--frames", "3")  # an ideal camera: 48 px too
-    r, logs = run_train(run_dir, "101", *args, *sizes, timeout_s=300)
+    r, logs = run_train(run_dir, "101", *args, *sizes, timeout_s=240)
     made = wio.read_file_config(run_dir / "policy_sam.safetensors")
     assert (made.height, made.width, made.frames, made.d_model, made.heads) == (48, 48, 3, 24, 2)
     assert made.conv_channels == (8, 16)  # 12 x 12 nodes from 48 px
@@ -490,7 +491,7 @@ def test_a_failed_run_offers_no_weights_to_fly_least_of_all_an_earlier_runs(tmp_
     os.utime(old, (0, 0))  # long before this run
     cmd = [str(executable("uav_trainer", "train")), "--run-dir", str(run_dir), "--params-dir", str(ROOT / "params")]
     cmd += ["--steps", "60", "--trainer-arg", "lerning_rate:=0.1"]
-    r = subprocess.run(cmd, env=train_env(run_dir, "84"), capture_output=True, text=True, timeout=300)
+    r = subprocess.run(cmd, env=train_env(run_dir, "84"), capture_output=True, text=True, timeout=240)
     assert r.returncode == 2, r.stdout[-1000:] + r.stderr[-1000:]
     assert "fly them" not in r.stdout and str(old) not in r.stdout + r.stderr
     assert "trainer_node exited with code 2" in r.stderr

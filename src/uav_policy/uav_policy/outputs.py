@@ -86,9 +86,12 @@ class Outputs:
     def _map(self, img: Image, depth: np.ndarray, d: Decision, rows, grid_hw, view, kind: str, pubs) -> None:
         """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the action and Q margin."""
         pub_map, pub_overlay = pubs
+        to_overlay = self.overlays and pub_overlay.get_subscription_count() > 0
+        if pub_map.get_subscription_count() == 0 and not to_overlay:
+            return  # drawn for no one (a training run's policy): not on the per-step path
         amap = attention_map(rows, grid_hw, depth.shape, view)
         pub_map.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
-        if self.overlays and pub_overlay.get_subscription_count() > 0:
+        if to_overlay:
             q, action = d.q, d.action
             second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]
             label = f"{self.actions[action].name.split('_', 1)[0]} Q {q[action]:.2f}, margin {q[action] - second:+.2f}"
