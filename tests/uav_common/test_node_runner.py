@@ -51,6 +51,14 @@ def test_an_error_raised_after_shutdown_began_exits_cleanly():
     assert "closed" in p.stdout and "Traceback" not in p.stderr
 
 
+def test_an_error_raised_a_moment_before_the_shutdown_it_goes_with_exits_cleanly():
+    # rclpy shuts the context down on Ctrl-C from its own signal thread: the error in the main thread can come first.
+    raise_line = "import rclpy, threading; threading.Timer(0.2, rclpy.shutdown).start(); "
+    p = run_node(raise_line + "raise RuntimeError(\"Unable to convert call argument '0'\")")
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "closed" in p.stdout and "Traceback" not in p.stderr
+
+
 def test_a_real_error_in_a_callback_still_fails_with_its_traceback():
     p = run_node('raise SystemError("a real bug")')
     assert p.returncode == 1

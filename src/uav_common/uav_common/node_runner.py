@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -36,7 +37,7 @@ def run(node_factory, args=None) -> int:
     except Exception as e:
         # Shutting down (Ctrl-C invalidates the context) while rclpy takes a message, pybind11 may
         # raise a bare RuntimeError ("Unable to convert call argument '0'"): the shutdown, not a bug.
-        if rclpy.ok() and not interrupted(e):
+        if not interrupted(e) and not shutting_down():
             raise
     finally:
         if node is not None:
@@ -62,6 +63,18 @@ def in_thread(executor, fn) -> Future:
 
     threading.Thread(target=work, daemon=True).start()
     return fut
+
+
+def shutting_down(within_s: float = 1.0, context=None) -> bool:
+    """Whether the context is shut down, or goes down within `within_s`. rclpy shuts it down on Ctrl-C from its
+    own signal thread, while the KeyboardInterrupt lands in the main thread: an error that Ctrl-C caused there
+    can come a moment before the shutdown it goes with. An error of our own comes with no shutdown."""
+    end = time.monotonic() + within_s
+    while rclpy.ok(context=context):
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def interrupted(e: BaseException | None) -> bool:
