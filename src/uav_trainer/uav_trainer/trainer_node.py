@@ -192,8 +192,8 @@ class TrainerNode(Node):
         request = push_request(blob, self.training.epsilon(actor.index), actor.go_stamp, key=self.push_key, seq=self.push_seq)
         fut = actor.push_client.call_async(request)
         t0 = time.perf_counter()
+        actor.sent(fut, time.monotonic())  # in flight before its answer can be heard
         fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(actor, f, t0, b is not None))
-        actor.sent(fut, time.monotonic())
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
