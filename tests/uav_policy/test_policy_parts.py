@@ -13,7 +13,7 @@ from uav_policy.agent import Agent
 from uav_policy.answer_stats import AnswerStats
 from uav_policy.camera_control import CameraControl
 from uav_policy.camera_input import CAMERA_INFO_WAIT_S, CameraInput
-from uav_policy.networks import NetConfig, build_network
+from uav_policy.networks import NetConfig, QEnsemble, build_network
 from uav_policy.pilot import Pilot
 from uav_policy.push import push_text, write_key
 from uav_policy.push_receiver import PushReceiver, Refused
@@ -136,7 +136,7 @@ def test_pushes_are_taken_only_signed_in_sequence_releasing_nothing_too_far_and_
     key_file = write_key(tmp_path / "push.key")
     key = bytes.fromhex(key_file.read_text().strip())
     link = SimulatorLink(5, hold=True, wait_timeout_s=10.0, log=Log())
-    r = PushReceiver(str(key_file), link.gate, 0.1, Log())
+    r = PushReceiver(str(key_file), link.gate, 5.0, Log())  # a period no loaded machine's pass comes near
     with pytest.raises(Refused, match="signature does not match"):
         r.authenticate(push_text(None, 0.5, key=b"k" * 32, seq=1))
     assert r.authenticate(push_text(None, 0.5, key=key, seq=1)).epsilon == 0.5
@@ -153,6 +153,13 @@ def test_pushes_are_taken_only_signed_in_sequence_releasing_nothing_too_far_and_
     assert r.seconds_per_flop > 0
     blob = wio.to_bytes(build_network(NetConfig(), seed=0), NetConfig())
     r.check_cost(blob, NetConfig())  # the network flown answers within the period
+    first = r.load(blob, NetConfig(), reuse=True)  # no spare yet: built
+    r.retire(first)
+    assert r.load(blob, NetConfig(), reuse=False) is not first and r.spare is None  # the worker may still read it
+    r.retire(first)
+    assert r.load(blob, NetConfig(), reuse=True) is first  # written over: a copy, not a build
+    r.retire(QEnsemble([first, build_network(NetConfig(), seed=1)]))
+    assert r.spare is None
     r.control_period_s = 1e-9
     with pytest.raises(ValueError, match="control period"):
         r.check_cost(blob, NetConfig())

@@ -40,6 +40,38 @@ def test_equal_networks_give_equal_bytes():
     assert wio.read_header_camera(only) == 120.0
 
 
+def test_the_bytes_are_those_safetensors_writes_from_torch():
+    """to_bytes hands safetensors numpy views (faster); the file is the one its torch writer makes, header sorted."""
+    net = build_network(SAM, seed=4)
+    meta = {"format": wio.FORMAT, "config": SAM.to_json(), "camera_hfov_deg": repr(87.0)}
+    reference = st_save({k: v.contiguous() for k, v in net.state_dict().items()}, metadata=meta)
+    (n,) = struct.unpack("<Q", reference[:8])
+    header = json.dumps(json.loads(reference[8 : 8 + n]), sort_keys=True, separators=(",", ":")).encode()
+    header += b" " * (-len(header) % 8)
+    assert wio.to_bytes(net, SAM, 87.0) == struct.pack("<Q", len(header)) + header + reference[8 + n :]
+
+
+def test_a_push_is_loaded_into_a_spare_network_of_its_architecture_only():
+    x = torch.rand(1, 5, 64, 64) * 10
+    pushed = wio.to_bytes(build_network(SAM, seed=5), SAM)
+    fresh = wio.load_bytes(pushed, SAM)
+    spare = build_network(SAM, seed=6)
+    loaded = wio.load_bytes(pushed, SAM, into=spare)
+    assert loaded is spare and torch.equal(loaded(x)[0], fresh(x)[0])
+    other = NetConfig(model="sam", d_model=60)
+    kept = build_network(other, seed=6)
+    before = {k: v.clone() for k, v in kept.state_dict().items()}
+    assert wio.load_bytes(pushed, SAM, into=kept) is not kept  # another architecture: built anew
+    assert all(torch.equal(before[k], v) for k, v in kept.state_dict().items())
+    t = tensors_of(pushed)
+    name = "dueling_head.value.2.weight"
+    bad = dict(t, **{name: t[name].clone().index_fill_(1, torch.tensor([3]), float("inf"))})  # one value
+    spare_before = {k: v.clone() for k, v in spare.state_dict().items()}
+    with pytest.raises(wio.WeightsError, match=f"'{name}' has non-finite"):
+        wio.load_bytes(rewrap(bad), SAM, into=spare)
+    assert all(torch.equal(spare_before[k], v) for k, v in spare.state_dict().items())  # a refused push writes nothing
+
+
 def test_rejects_the_other_architecture():
     with pytest.raises(wio.WeightsError, match="model 'cnn'.*runs model 'sam'"):
         wio.load_bytes(blob("cnn"), SAM)

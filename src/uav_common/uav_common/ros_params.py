@@ -63,8 +63,12 @@ class NodeOwned:
         node.add_on_set_parameters_callback(check)
 
     def set(self, value) -> None:
+        """Take `value` (a set of the value it has is skipped: it would announce nothing new, at a cost on every
+        push)."""
         from rclpy.parameter import Parameter
 
+        if self.node.get_parameter(self.name).value == value:
+            return
         self._own = True  # the executors here are single-threaded: no other set runs in between
         try:
             result = self.node.set_parameters([Parameter(self.name, value=value)])[0]

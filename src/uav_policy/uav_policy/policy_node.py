@@ -230,16 +230,14 @@ class PolicyNode(Node):
             try:
                 blob = push.weights
                 if blob is not None:
-                    self.receiver.check_cost(blob, self.cfg)
-                    # The trainer owns the layer sizes: a push may bring others (the interface must match).
-                    load = lambda: wio.load_bytes(blob, self.cfg, sizes_from_blob=True)  # noqa: E731
+                    reuse = not self.explainer.busy.locked()  # the worker may still measure the network replaced
+                    load = lambda: self.receiver.load(blob, self.cfg, reuse)  # noqa: E731
                     # A release is awaited by the frame it releases, so it loads here (a few ms): a worker thread's
                     # result wakes this executor only at its next event, up to a timer period later.
                     net = load() if push.release_stamp_ns is not None else await in_thread(self.executor, load)
                     self._swap_in(net, blob)
                 if push.epsilon is not None:
                     self.epsilon = push.epsilon
-                    self.epsilon_param.set(push.epsilon)  # ros2 param get and /diagnostics agree
                 response.success = True
                 response.message = f"swapped in {len(blob)} bytes in {1e3 * (time.perf_counter() - t0):.1f} ms" if blob else "ok"
             except ValueError as e:  # WeightsError included
@@ -250,11 +248,14 @@ class PolicyNode(Node):
         if released:
             for joined in self.link.gate.release(push.release_stamp_ns):
                 self._act(joined["frame"], joined["outcome"], time.perf_counter())
+        if response.success and push.epsilon is not None:  # after the answer: ros2 param get and /diagnostics agree
+            self.epsilon_param.set(push.epsilon)
         return response
 
     def _swap_in(self, net: torch.nn.Module, blob: bytes) -> None:
         replaced = self.agent.net
         self.agent.swap(net)
+        self.receiver.retire(replaced)
         if isinstance(replaced, QEnsemble):
             self.get_logger().info(f"pushed weights replace the ensemble of {len(replaced.members)} networks")
         if net.cfg != self.cfg:

@@ -11,6 +11,7 @@ import math
 import time
 
 import numpy as np
+import torch
 
 from . import weights as wio
 from .networks import NetConfig, QEnsemble, forward_flops
@@ -27,6 +28,7 @@ class PushReceiver:
         self.key: bytes | None = None
         self.last_seq = -1
         self.seconds_per_flop = 0.0  # this machine's inference time per operation (time_inference)
+        self.spare = None  # the network the last push replaced: the next push of its architecture is loaded into it
         self.accepted = self.rejected = self.unauthenticated = self.releases_refused = 0
 
     def time_inference(self, agent) -> None:
@@ -71,6 +73,18 @@ class PushReceiver:
                 f"the pushed architecture ({flops / 1e6:.0f} MFLOP a frame) would take about {1e3 * seconds:.0f} ms a "
                 f"frame here, more than the {1e3 * self.control_period_s:.0f} ms control period (control_rate_hz)"
             )
+
+    def load(self, blob: bytes, cfg: NetConfig, reuse: bool) -> torch.nn.Module:
+        """The pushed network: priced (check_cost), checked and loaded (weights.load_bytes; the trainer owns the
+        layer sizes, the interface must match `cfg`). `reuse`: the spare is written over when it has the pushed
+        architecture (False while anything may still read it)."""
+        self.check_cost(blob, cfg)
+        spare, self.spare = (self.spare if reuse else None), None
+        return wio.load_bytes(blob, cfg, sizes_from_blob=True, into=spare)
+
+    def retire(self, net: torch.nn.Module) -> None:
+        """`net` is no longer flown: the spare of the next load."""
+        self.spare = None if isinstance(net, QEnsemble) else net
 
     def reject(self, why: str, released: bool) -> str:
         """A push whose weights or epsilon were not taken (counted, logged); the answer's message. A well-formed
