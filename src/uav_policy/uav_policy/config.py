@@ -91,7 +91,7 @@ class PolicySettings:
     wait_for_trainer: bool = setting(
         False,
         "Lockstep learning (train sets true): answer a frame only once trainer_node releases it over ~/push_weights "
-        "(after its updates from the step that produced the frame, with their weights and epsilon)",
+        "(with the weights of its updates so far and the epsilon; the trainer learns while the policy acts)",
     )
     wait_for_trainer_timeout_s: float = setting(
         10.0,

@@ -207,10 +207,6 @@ class SimNode(Node):
         stamp = contract.stamp_from_seconds(r.sim_time_s)
         if self.pub_clock is not None:
             self.pub_clock.publish(Clock(clock=stamp))
-        if self.sim.world is not self.marked_world:  # the first frame, or a new layout this episode
-            self.marked_world = self.sim.world
-            self.pub_markers.publish(world_markers(self.sim.world, self.odom_frame, stamp))
-        self.publish_path(r, stamp)
         cfg = self.cfg
         self.pub_outcome.publish(
             contract.make_outcome(
@@ -224,11 +220,17 @@ class SimNode(Node):
                 truncated=r.truncated,
             )
         )
-        self.pub_odom.publish(odometry_msg(r.pose, self.executed, stamp, self.odom_frame, self.base_frame))
+        # The outcome, the camera and the frame first (a frame is mapped through the CameraInfo before it): a
+        # lockstep step waits for them; the rest goes out meanwhile.
         k = self.sim.camera.intrinsics.k_matrix()
         self.pub_info.publish(camera_info_msg(stamp, self.frame_id, cfg.image_width, cfg.image_height, k))
         self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
         self.last_publish_wall = time.monotonic()
+        self.pub_odom.publish(odometry_msg(r.pose, self.executed, stamp, self.odom_frame, self.base_frame))
+        if self.sim.world is not self.marked_world:  # the first frame, or a new layout this episode
+            self.marked_world = self.sim.world
+            self.pub_markers.publish(world_markers(self.sim.world, self.odom_frame, stamp))
+        self.publish_path(r, stamp)
 
     def publish_path(self, r: StepResult, stamp) -> None:
         """The path flown in this episode; sent only to listeners, at most every TRAJECTORY_PERIOD_S and

@@ -92,14 +92,19 @@ def run(
     training.add_first(flight.env.last_input)
     t0 = time.perf_counter()
     try:
+        decision = flight.decide(training.epsilon())
         while not training.budget_done and not training.failed:
-            step = flight.step(training.epsilon())
+            step = flight.execute(decision)
             r = step.after
             frame = flight.env.last_input  # on the network's input, as policy_node gives it
             if r.truncated:
                 training.add_truncated(frame)
             else:
                 training.add_step(step.action, r.beta_m, r.collided, frame)
+            if not training.budget_done:
+                # The policy acts on the new frame before this step's updates, as over ROS, where trainer_node
+                # releases the frame first and learns while the policy acts and the simulator steps.
+                decision = flight.decide(training.epsilon())
             for path in training.learn_due():
                 log(f"step {training.env_steps}: weights snapshot {path}")
             if on_step is not None and on_step(training):

@@ -14,7 +14,7 @@ import numpy as np
 
 from uav_common.actions import PAPER_ACTIONS, Action
 from uav_policy.agent import Agent
-from uav_policy.pilot import Pilot
+from uav_policy.pilot import Decision, Pilot
 from uav_policy.safety import SafetyLayer
 from uav_sim.simulator import Simulator, StepResult
 from uav_sim.stacked_sim import StackedSim
@@ -55,7 +55,14 @@ class Flight:
         return self.env.last
 
     def step(self, epsilon: float = 0.0) -> Step:
-        d = self.pilot.decide(self.env.state, self.env.last_input, epsilon)
+        return self.execute(self.decide(epsilon))
+
+    def decide(self, epsilon: float = 0.0) -> Decision:
+        """The decision on the frames so far (the simulator does not move)."""
+        return self.pilot.decide(self.env.state, self.env.last_input, epsilon)
+
+    def execute(self, d: Decision) -> Step:
+        """Fly decision `d` (made by `decide` on the current frames) one step."""
         before = self.env.last
         after = self.env.step_command(d.linear_x_mps, d.yaw_rate_radps) if d.safety else self.env.step(d.action)
         return Step(d.action, d.q, d.attention, before, after, d.safety)

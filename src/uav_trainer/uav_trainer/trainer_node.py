@@ -2,10 +2,10 @@
 
 Joins depth/image_raw, step_outcome and the policy's action by exact stamp into transitions (uav_trainer.pairing;
 the reward from uav_sim.reward); anything that does not pair is counted on /diagnostics and in the log, never
-guessed. Learning is in lockstep with acting (policy_node needs wait_for_trainer:=true; train sets it): after each
-step is stored, the updates replay_ratio allows run at once (uav_trainer.training), then one push on
-policy_node/push_weights carries the new weights, the exact epsilon and the frame's release, so the policy acts on
-each frame exactly as the in-process loop does (for a seed, the same episodes and weights as `inprocess`).
+guessed. Learning is in lockstep with acting (policy_node needs wait_for_trainer:=true; train sets it): each stored
+step's frame is released on policy_node/push_weights with the weights so far and the exact epsilon, then the updates
+replay_ratio allows run (uav_trainer.training) while the policy acts and the simulator steps: the policy acts as the
+in-process loop does (for a seed, the same episodes and weights as `inprocess`), and the updates overlap the step.
 
 With `actors` (namespaces, e.g. [/actor0, /actor1]; `train --actors N` sets them) it learns from several
 sim_node/policy_node pairs, each joined on its own, into its lane of one replay memory, each released with its own
@@ -173,17 +173,20 @@ class TrainerNode(Node):
 
     # -- learning ----------------------------------------------------------------------
     def _on_ready(self, actor: Actor, stamp: int) -> None:
-        """The step that produced `actor`'s frame `stamp` is stored. Learn what replay_ratio allows now, write due
-        snapshots, then release the frame to the actor's policy with the new weights and its epsilon. After the
-        budget's last step nothing is released: _service_tick stops the node."""
-        for path in self.training.learn_due():
+        """`actor`'s step to frame `stamp` is stored: release the frame, then learn (_send_go). After the budget's last
+        step nothing is released, the last updates are made and _service_tick stops the node."""
+        if not (self.training.failed or self.training.budget_done):
+            actor.go_stamp = stamp
+            return self._send_go(actor)
+        self._learn()
+
+    def _learn(self) -> None:
+        for path in self.training.learn_due():  # the updates replay_ratio allows now, then the snapshots due
             self.get_logger().info(f"step {self.training.env_steps}: weights snapshot {path}")
-        if self.training.failed or self.training.budget_done:
-            return
-        actor.go_stamp = stamp
-        self._send_go(actor)
 
     def _send_go(self, actor: Actor) -> None:
+        """Release the frame with the weights so far and its epsilon, then learn. A release that waits (for the
+        push in flight or the service) holds the learning back: its weights are those before this step's updates."""
         if actor.go_stamp is None or actor.in_flight is not None or not actor.push_client.service_is_ready():
             return  # _service_tick retries; a push in flight is answered before the next release goes
         blob = self.training.weights_blob() if actor.weights_due(self.training.learner.updates) else None
@@ -194,17 +197,18 @@ class TrainerNode(Node):
         t0 = time.perf_counter()
         actor.sent(fut, time.monotonic())  # in flight before its answer can be heard
         fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(actor, f, t0, b is not None))
+        self._learn()  # while the policy acts and the simulator steps
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
         if self.training.failed and self.exit_code == 0:
             self.get_logger().error(self.training.failed)
             self.exit_code = 3
-            self._shutdown()
+            rclpy.try_shutdown(context=self.context)
             return
         if self.training.budget_done and not self._closed:
             self.get_logger().info(f"step budget of {self.cfg.total_steps} reached")
-            self._shutdown()
+            rclpy.try_shutdown(context=self.context)
             return
         now = time.monotonic()
         for actor in self.actors:
@@ -235,7 +239,7 @@ class TrainerNode(Node):
             if res is not None and self.exit_code == 0:  # close() writes the final checkpoint: the command resumes
                 self.get_logger().error(REJECTED_WEIGHTS.format(policy=actor.policy, why=res.message))
                 self.exit_code = 3
-                self._shutdown()
+                rclpy.try_shutdown(context=self.context)
                 return
             self.get_logger().error(f"policy rejected pushed weights: {res.message if res else 'no answer'}")
             actor.pushed_updates = None  # the next release carries the weights again
@@ -265,9 +269,6 @@ class TrainerNode(Node):
         failed = self.training.failed
         self.pub_diag.publish(contract.diagnostics(self, "uav_trainer", "ERROR" if failed else "OK", failed or "training", st))
         self.get_logger().info(progress_line(row, st, self.training, self.actors))
-
-    def _shutdown(self) -> None:
-        rclpy.try_shutdown(context=self.context)
 
     def close(self) -> None:
         """Stop learning and write the final checkpoint and weights (also on Ctrl-C)."""
