@@ -175,10 +175,11 @@ class TrainerNode(Node):
     def _on_ready(self, actor: Actor, stamp: int) -> None:
         """`actor`'s step to frame `stamp` is stored: release the frame, then learn (_send_go). After the budget's last
         step nothing is released, the last updates are made and _service_tick stops the node."""
-        if not (self.training.failed or self.training.budget_done):
+        if self.training.failed or self.training.budget_done:
+            self._learn()
+        else:
             actor.go_stamp = stamp
-            return self._send_go(actor)
-        self._learn()
+            self._send_go(actor)
 
     def _learn(self) -> None:
         for path in self.training.learn_due():  # the updates replay_ratio allows now, then the snapshots due
