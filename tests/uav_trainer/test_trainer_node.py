@@ -51,7 +51,7 @@ def pushes_signed_in(run_dir):
 def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
     diag = diagnostics(ros)
     actions = set()
-    ros.node.create_subscription(
+    heard = ros.node.create_subscription(
         TwistStamped, contract.ACTION_TOPIC, lambda m: actions.add(contract.stamp_ns(m.header.stamp)), deep_qos()
     )
     run_dir = tmp_path / "run"
@@ -62,6 +62,9 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     ros.start("uav_sim", "sim_node", *lockstep, "-p", "sensor:=ideal", "-p", "hfov_deg:=100.0", *window)
     waits = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0")
     policy = ros.start("uav_policy", "policy_node", *waits, *pushes_signed_in(run_dir))
+    # Nothing flows before the trainer listens (wait_for_subscribers): our count of the policy's actions misses none
+    # once its publisher has matched us.
+    assert ros.spin_until(lambda: heard.get_publisher_count() > 0, 60)
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5")
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
     ok = ros.spin_until(lambda: int(diag.get("uav_trainer", {}).get("env_steps", 0)) >= 1000, 300)
