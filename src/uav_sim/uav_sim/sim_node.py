@@ -131,9 +131,9 @@ class SimNode(Node):
             return
         self.last_cmd_wall = time.monotonic()
         if self.mode == "lockstep":
-            if self.step_budget and self.sim.total_steps >= self.step_budget:
+            if self.budget_flown():
                 self.commands_ignored += 1
-                self.get_logger().info(f"step budget of {self.step_budget} steps flown: holding the last frame", once=True)
+                self.get_logger().info(f"step budget of {self.step_budget} steps flown: holding position", once=True)
                 return
             self.advance(cmd)
         else:
@@ -141,6 +141,9 @@ class SimNode(Node):
             if self.watchdog_active:
                 self.get_logger().info("cmd_vel is back: watchdog released")
                 self.watchdog_active = False
+
+    def budget_flown(self) -> bool:
+        return self.mode == "lockstep" and 0 < self.step_budget <= self.sim.total_steps
 
     def on_cmd_vel_with_info(self, msg: Twist, info: dict) -> None:
         """Count the commands lost before this one (a gap in its publisher's sequence numbers; several publishers
@@ -221,10 +224,12 @@ class SimNode(Node):
             )
         )
         # The outcome, the camera and the frame first (a frame is mapped through the CameraInfo before it): a
-        # lockstep step waits for them; the rest goes out meanwhile.
-        k = self.sim.camera.intrinsics.k_matrix()
-        self.pub_info.publish(camera_info_msg(stamp, self.frame_id, cfg.image_width, cfg.image_height, k))
-        self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
+        # lockstep step waits for them; the rest goes out meanwhile. Once the step budget is flown no frame goes
+        # out: there is nothing more to answer (and so nothing decided or measured beyond the budget).
+        if not self.budget_flown():
+            k = self.sim.camera.intrinsics.k_matrix()
+            self.pub_info.publish(camera_info_msg(stamp, self.frame_id, cfg.image_width, cfg.image_height, k))
+            self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
         self.last_publish_wall = time.monotonic()
         self.pub_odom.publish(odometry_msg(r.pose, self.executed, stamp, self.odom_frame, self.base_frame))
         if self.sim.world is not self.marked_world:  # the first frame, or a new layout this episode

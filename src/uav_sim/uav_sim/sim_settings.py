@@ -47,8 +47,9 @@ class SimNodeSettings:
     )
     step_budget: int = setting(
         0,
-        "lockstep: steps flown before the simulator holds its last frame and takes no more commands (evaluate sets "
-        "it: a measurement of N steps flies exactly N); 0 = no limit",
+        "lockstep: steps flown before the simulator holds position and takes no more commands; the last step's outcome "
+        "and odometry go out, but no frame to answer (evaluate sets it: a measurement of N steps flies and explains exactly "
+        "N); 0 = no limit",
         0,
         10**9,
     )

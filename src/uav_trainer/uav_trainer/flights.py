@@ -315,7 +315,7 @@ def evaluate_once(
                     f"world:={world}",
                     f"seed:={seed}",
                     f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}",
-                    f"step_budget:={steps}",  # exactly the steps measured, so /diagnostics covers no step more
+                    f"step_budget:={steps}",  # exactly the steps measured: no frame after the last to answer
                     *sim_args,
                 ]
                 + sim_extra
@@ -345,7 +345,7 @@ def evaluate_once(
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
         if record_to is not None:
             # A busy recorder may lag, or miss a message and get it again: the simulator lives on (holding
-            # its last frame and saying it again each lockstep_republish_s) until the bag holds every step.
+            # position and saying the last step's outcome again each lockstep_republish_s) until the bag holds every step.
             outcome, heard = node.resolve_topic_name(contract.OUTCOME_TOPIC), mon.outcomes
             asked = time.monotonic()
             while written.get(outcome, 0) < heard and time.monotonic() < asked + 60.0:
