@@ -210,9 +210,16 @@ def main() -> int:
     if a.updates_only:
         return 0
     if not a.skip_ros:
-        base = inprocess_throughput(a.ros_steps)
-        print(f"in-process training, train's default recipe (1 thread): {base:.1f} env steps/s once learning")
+        # In process before and after the ROS run (this machine's speed drifts by 10 % within minutes): the ratio
+        # is against their mean.
+        before = inprocess_throughput(a.ros_steps)
         env_rate, upd_rate = ros_throughput(a.ros_steps, 220 + os.getpid() % 10)
+        after = inprocess_throughput(a.ros_steps)
+        base = (before + after) / 2
+        print(
+            f"in-process training, train's default recipe (1 thread): {base:.1f} env steps/s once learning "
+            f"({before:.1f} before the ROS run, {after:.1f} after)"
+        )
         print(
             f"ROS training, learning in lockstep: {env_rate:.1f} env steps/s ({env_rate / base:.2f}x in-process), "
             f"{upd_rate:.1f} updates/s, replay ratio {upd_rate / max(env_rate, 1e-9):.3f}"

@@ -1,5 +1,7 @@
 """The Gymnasium interface to the simulator: the checker's rules, seeding, the paper's reward, and vector envs."""
 
+import os
+
 import gymnasium
 import numpy as np
 import pytest
@@ -58,9 +60,11 @@ def test_a_collision_terminates_with_the_papers_penalty_and_a_time_limit_truncat
         env.close()
 
 
-def test_a_vector_of_simulators_in_subprocesses_steps_in_parallel():
+def test_a_vector_of_simulators_steps_in_two_subprocesses():
     envs = gymnasium.make_vec(ENV_ID, num_envs=2, vectorization_mode="async")
     try:
+        pids = {p.pid for p in envs.processes}
+        assert len(pids) == 2 and os.getpid() not in pids and all(p.is_alive() for p in envs.processes)
         obs, info = envs.reset(seed=[5, 6])
         assert obs.shape == (2, 5, 64, 64) and not np.array_equal(obs[0], obs[1])
         obs, reward, terminated, truncated, info = envs.step(np.array([0, 3]))

@@ -379,6 +379,7 @@ def test_turn_penalty_applies_to_turning_actions_only_when_asked(tmp_path):
     for t in (paper, shaped):
         t.add_first(frame)
     base = step_reward(8.0, False)
+    assert base == pytest.approx(3.0 + 8.0 / 5)  # the paper's safe-step reward at 8 m, by hand
     assert [paper.add_step(a, 8.0, False, frame) for a in range(4)] == [base] * 4
     assert [shaped.add_step(a, 8.0, False, frame) for a in range(4)] == [base, base - 0.75, base - 0.75, base]
     assert shaped.add_step(1, 8.0, True, frame) == -10.0  # a crash costs the same either way

@@ -24,9 +24,15 @@ class Agent:
     def __init__(self, net: torch.nn.Module, cfg: NetConfig, device: str = "cpu", seed: int = 0):
         self.cfg = cfg
         self.device = torch.device(device)
-        self._net = net.to(self.device).eval()
+        self._net = self._ready(net)
         self._lock = threading.Lock()
         self.rng = np.random.default_rng(seed)
+
+    def _ready(self, net: torch.nn.Module) -> torch.nn.Module:
+        """`net` on this agent's device, in eval mode (moved and switched only when needed: a push every other step)."""
+        if any(t.device != self.device for t in net.parameters()):
+            net = net.to(self.device)
+        return net.eval() if net.training else net
 
     @property
     def net(self) -> torch.nn.Module:
@@ -34,7 +40,7 @@ class Agent:
 
     def swap(self, net: torch.nn.Module) -> None:
         """Replace the network atomically: an act() in flight finishes with the old one."""
-        net = net.to(self.device).eval()
+        net = self._ready(net)
         with self._lock:
             self._net = net
 

@@ -10,13 +10,14 @@ and `message` say whether it was taken, and why not.
 
 Why this service type: it is the standard one whose request is a single string, which rclpy converts in
 one copy (200 MB: under a second), so an oversize push is refused by its length before anything is
-decoded. Every SetParameters request carries a BYTE_ARRAY field, which rclpy converts byte by byte
-before any callback can look at it (200 MB: 61 s with the executor stalled, 2.6 GB of memory).
+decoded (benchmarks/bench_policy.py). Every SetParameters request carries a BYTE_ARRAY field, which rclpy
+converts byte by byte before any callback can look at it (200 MB: 61 s with the executor stalled, 2.6 GB of
+memory, measured once when the service was chosen).
 
 The Fast DDS in the PyPI wheels has no security plugins, so anyone on the domain can call the service:
 the key, which `train` writes for each run (mode 0600) and hands to both nodes, is what keeps them out.
-trainer_node's lockstep learning sends weights, epsilon and release after each step's updates, so the
-policy acts on the network that learnt from the step that produced the frame, as the in-process loop does.
+trainer_node's lockstep learning releases each stored frame with the weights of every update so far and the
+exact epsilon, then makes that step's updates while the policy acts, as the in-process loop orders them.
 """
 
 from __future__ import annotations
