@@ -16,8 +16,8 @@ memory, measured once when the service was chosen).
 
 The Fast DDS in the PyPI wheels has no security plugins, so anyone on the domain can call the service:
 the key, which `train` writes for each run (mode 0600) and hands to both nodes, is what keeps them out.
-trainer_node's lockstep learning releases each stored frame with the weights of every update so far and the
-exact epsilon, then makes that step's updates while the policy acts, as the in-process loop orders them.
+trainer_node's lockstep learning releases each stored frame with the exact epsilon and the weights the learner had
+at the release before, then makes that step's updates while the policy acts, as the in-process loop orders them.
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ class ActorState:
         self.go_stamp = None  # the newest frame to release, once the previous push is answered
         self.in_flight = None  # the push sent and not answered (a future)
         self.in_flight_stamp, self.in_flight_since = None, 0.0
-        self.pushed_updates = None  # the update count of the weights this actor's policy has
+        self.pushed_version = None  # the version of the released weights this actor's policy has (Training.released_weights)
         self.last_heard: float | None = None  # its sim's latest message
         self.unanswered_since: float | None = None  # its policy was sent a release not answered since
         self.silent: str | None = None  # reported missing or lost: "sim" (said nothing) or "policy" (answered nothing)
@@ -42,9 +42,9 @@ class ActorState:
             self.unanswered_since = now
         return f"{self.label}: its sim_node is heard from, learning from it"
 
-    def weights_due(self, updates: int) -> bool:
+    def weights_due(self, version: int) -> bool:
         """Whether the next release carries the weights (they changed since its policy got them)."""
-        due, self.pushed_updates = updates != self.pushed_updates, updates
+        due, self.pushed_version = version != self.pushed_version, version
         return due
 
     def sent(self, fut, now: float) -> None:
@@ -69,7 +69,7 @@ class ActorState:
         self.in_flight = None
         if self.go_stamp is None or self.go_stamp < self.in_flight_stamp:
             self.go_stamp = self.in_flight_stamp
-        self.pushed_updates = None
+        self.pushed_version = None
         return (
             f"{self.policy} did not answer the release of the frame at {self.in_flight_stamp / 1e9:.1f} s "
             f"sim time within {timeout_s:g} s: sending it again"

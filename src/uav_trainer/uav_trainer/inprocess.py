@@ -18,7 +18,9 @@ import torch
 
 from uav_common.actions import PAPER_ACTIONS, turning_indices
 from uav_common.settings import SettingError, add_flags, build, given_flags, refuse_retired_flags, specs
+from uav_policy import weights as wio
 from uav_policy.agent import Agent
+from uav_policy.networks import build_network
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem, with_sensor
 from uav_sim.world import WorldChoice, WorldError
@@ -87,12 +89,25 @@ def run(
     training.reward_window_fraction = None if paper_window else sim_cfg.reward_window_fraction
     log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}, window {sim_cfg.reward_window_fraction:g}")
     sim = Simulator(first, sim_cfg, next_worlds=layouts)
-    agent = Agent(training.learner.online, training.net_cfg, str(training.learner.device), seed=cfg.seed)
-    flight = Flight(sim, agent, training.net_cfg.frames)
+    # The policy's own network, answering each frame with the weights its release carries (as over ROS).
+    acting = Agent(build_network(training.net_cfg, seed=cfg.seed), training.net_cfg, str(training.learner.device), seed=cfg.seed)
+    flight = Flight(sim, acting, training.net_cfg.frames)
     training.add_first(flight.env.last_input)
+    loaded = None  # the version of the released weights the acting network has
+
+    def decide():
+        nonlocal loaded
+        version, blob = training.released_weights()
+        if version != loaded:
+            wio.load_bytes(blob, training.net_cfg, into=acting.net)
+            loaded = version
+        decision = flight.decide(training.epsilon())
+        training.after_release()
+        return decision
+
     t0 = time.perf_counter()
     try:
-        decision = flight.decide(training.epsilon())
+        decision = decide()
         while not training.budget_done and not training.failed:
             step = flight.execute(decision)
             r = step.after
@@ -104,7 +119,7 @@ def run(
             if not training.budget_done:
                 # The policy acts on the new frame before this step's updates, as over ROS, where trainer_node
                 # releases the frame first and learns while the policy acts and the simulator steps.
-                decision = flight.decide(training.epsilon())
+                decision = decide()
             for path in training.learn_due():
                 log(f"step {training.env_steps}: weights snapshot {path}")
             if on_step is not None and on_step(training):

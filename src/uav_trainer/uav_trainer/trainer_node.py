@@ -3,9 +3,9 @@
 Joins depth/image_raw, step_outcome and the policy's action by exact stamp into transitions (uav_trainer.pairing;
 the reward from uav_sim.reward); anything that does not pair is counted on /diagnostics and in the log, never
 guessed. Learning is in lockstep with acting (policy_node needs wait_for_trainer:=true; train sets it): each stored
-step's frame is released on policy_node/push_weights with the weights so far and the exact epsilon, then the updates
-replay_ratio allows run (uav_trainer.training) while the policy acts and the simulator steps: the policy acts as the
-in-process loop does (for a seed, the same episodes and weights as `inprocess`), and the updates overlap the step.
+step's frame is released on policy_node/push_weights with the exact epsilon and the weights as at the release before
+(Training.released_weights), then the updates replay_ratio allows run while the policy acts and the simulator steps,
+as in process (for a seed, the same episodes and weights as `inprocess`): no frame waits for an update's weights.
 
 With `actors` (namespaces, e.g. [/actor0, /actor1]; `train --actors N` sets them) it learns from several
 sim_node/policy_node pairs, each joined on its own, into its lane of one replay memory, each released with its own
@@ -67,10 +67,8 @@ class Actor(ActorState):
         # The camera's field of view goes into every weights file (policy_node warns on a mismatch).
         node.create_subscription(CameraInfo, topic(contract.CAMERA_INFO_TOPIC), node._on_camera_info, 10)
         self.push_client = node.create_client(PushService, topic(f"{policy}/push_weights"))
-        # whether policy_node waits for releases, asked once (None: not yet known)
         self.get_param_client = node.create_client(GetParameters, topic(f"{policy}/get_parameters"))
-        self.policy_waits: bool | None = None
-        self.wait_query = None
+        self.policy_waits, self.wait_query = None, None  # whether policy_node waits for releases, asked once
 
     def on_frame(self, msg: Image) -> None:
         self._heard()
@@ -186,11 +184,12 @@ class TrainerNode(Node):
             self.get_logger().info(f"step {self.training.env_steps}: weights snapshot {path}")
 
     def _send_go(self, actor: Actor) -> None:
-        """Release the frame with the weights so far and its epsilon, then learn. A release that waits (for the
-        push in flight or the service) holds the learning back: its weights are those before this step's updates."""
+        """Release the frame with its epsilon and the released weights, then learn. A release that waits (for the push
+        in flight or the service) holds the learning back, so every release goes out before its step's updates."""
         if actor.go_stamp is None or actor.in_flight is not None or not actor.push_client.service_is_ready():
             return  # _service_tick retries; a push in flight is answered before the next release goes
-        blob = self.training.weights_blob() if actor.weights_due(self.training.learner.updates) else None
+        version, blob = self.training.released_weights()  # None below: its policy has them
+        blob = blob if actor.weights_due(version) else None
         # Larger than any number sent before, also by this run before a restart: the policy refuses replays.
         self.push_seq = max(self.push_seq + 1, time.time_ns())
         request = push_request(blob, self.training.epsilon(actor.index), actor.go_stamp, key=self.push_key, seq=self.push_seq)
@@ -198,6 +197,7 @@ class TrainerNode(Node):
         t0 = time.perf_counter()
         actor.sent(fut, time.monotonic())  # in flight before its answer can be heard
         fut.add_done_callback(lambda f, t0=t0, b=blob: self._push_done(actor, f, t0, b is not None))
+        self.training.after_release()  # the weights the next release carries, made while this frame is answered
         self._learn()  # while the policy acts and the simulator steps
 
     # -- services: pushes and epsilon -----------------------------------------------------
@@ -243,7 +243,7 @@ class TrainerNode(Node):
                 rclpy.try_shutdown(context=self.context)
                 return
             self.get_logger().error(f"policy rejected pushed weights: {res.message if res else 'no answer'}")
-            actor.pushed_updates = None  # the next release carries the weights again
+            actor.pushed_version = None  # the next release carries the weights again
         self._send_go(actor)
 
     def _scan_for_unknown_actors(self) -> None:

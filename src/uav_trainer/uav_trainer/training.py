@@ -149,7 +149,7 @@ NOMINAL_BUDGET = 30000
 # trainer_node parameters retired, and what replaces them: a node given one stops and says so.
 RETIRED = {
     "lockstep_learning": "trainer_node always learns in lockstep with acting (concurrent learning trained weaker policies)",
-    "push_interval_updates": "every frame release carries the newest weights (lockstep learning)",
+    "push_interval_updates": "every frame release carries the weights of the release before (lockstep learning)",
     "save_weights_every_steps": "use 'snapshots' (how many, one every thirtieth of total_steps)",
     "save_weights_from_step": "use 'snapshots' (how many, one every thirtieth of total_steps)",
     **{
@@ -246,6 +246,8 @@ class Training:
         # The depth camera's field of view, recorded in every weights file written; None until the
         # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
         self.camera_hfov_deg: float | None = None
+        self._released: tuple[int, bytes] | None = None  # released_weights
+        self._released_made = None  # the update count and camera its blob was made with
         # The reward window, recorded when it is not the paper's 20 % (inprocess.run sets it; over ROS
         # the window is sim_node's and trainer_node reads it back from step_outcome's field of view).
         self.reward_window_fraction: float | None = None
@@ -510,6 +512,24 @@ class Training:
 
     def weights_blob(self) -> bytes:
         return wio.to_bytes(self.learner.online, self.net_cfg, self.camera_hfov_deg, self.reward_window_fraction)
+
+    # -- the weights a frame is answered with ------------------------------------------------
+    def released_weights(self) -> tuple[int, bytes]:
+        """(version, safetensors blob) of the weights the next released frame is answered with: the learner's as they
+        were when the frame before it was released (after_release). A step's updates run while its frame is answered,
+        and the weights they make go out with the frame after next, so that no frame waits for them. The version
+        grows with each new blob: a policy that has it is not sent it again."""
+        if self._released is None:  # the first release: the weights as they are
+            self.after_release()
+        return self._released
+
+    def after_release(self) -> None:
+        """A frame was released: the next release carries the learner's weights as they are now (serialised once per
+        update and camera; over ROS while the policy acts and the simulator steps)."""
+        made = (self.learner.updates, self.camera_hfov_deg, self.reward_window_fraction)
+        if self._released is None or self._released_made != made:
+            version = self._released[0] + 1 if self._released else 0
+            self._released, self._released_made = (version, self.weights_blob()), made
 
     # -- outputs ------------------------------------------------------------------------
     def counters(self) -> dict:
