@@ -697,3 +697,26 @@ def test_an_inprocess_run_whose_final_weights_cannot_be_written_says_so_and_exit
     assert any(journal_at_final) and not journal_at_final[-1], "the journal, there mid-run, was freed before the final write"
     assert checkpoint.latest(run_dir / "checkpoints") is not None
     assert "weights: " not in capsys.readouterr().out
+
+
+def test_a_release_carries_the_weights_the_learner_had_at_the_release_before(tmp_path):
+    """Lockstep learning's order (trainer_node and the in-process loop): release a frame, then learn; the weights a
+    step's updates make are taken at the next release and go out with the one after, so no frame waits for them."""
+    t = Training(small_cfg(learning_starts=4, replay_ratio=1.0), tmp_path, log=lambda s: None)
+    rng = np.random.default_rng(0)
+    t.add_first(rng.uniform(1, 9, (64, 64)).astype(np.float32))
+    initial = t.weights_blob()
+    sent, learnt = [], []  # what each step's release carries; the weights after each step's updates
+    for _ in range(8):
+        t.add_step(0, 8.0, False, rng.uniform(1, 9, (64, 64)).astype(np.float32))
+        sent.append(t.released_weights())
+        t.after_release()
+        t.learn_due()
+        learnt.append(t.weights_blob())
+    assert t.learner.updates >= 3 and len(set(learnt)) == 1 + t.learner.updates, "one update a step, once started"
+    assert sent[0][1] == sent[1][1] == initial
+    for k in range(2, 8):
+        assert sent[k][1] == learnt[k - 2], f"step {k} is answered with the weights after step {k - 2}'s updates"
+    versions = [v for v, _ in sent]
+    assert versions == sorted(versions) and len(set(versions)) == len({b for _, b in sent}), "a new blob, a new version"
+    t.close()

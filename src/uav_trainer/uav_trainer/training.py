@@ -246,11 +246,11 @@ class Training:
         # The depth camera's field of view, recorded in every weights file written; None until the
         # caller says (inprocess.run from its SimConfig, trainer_node from depth/camera_info).
         self.camera_hfov_deg: float | None = None
-        self._released: tuple[int, bytes] | None = None  # released_weights
-        self._released_made = None  # the update count and camera its blob was made with
         # The reward window, recorded when it is not the paper's 20 % (inprocess.run sets it; over ROS
         # the window is sim_node's and trainer_node reads it back from step_outcome's field of view).
         self.reward_window_fraction: float | None = None
+        self._released: tuple[int, bytes] | None = None  # released_weights
+        self._released_made = None  # the update count and camera its blob was made with
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device))
         shape = (self.net_cfg.height, self.net_cfg.width)
