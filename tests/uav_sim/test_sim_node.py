@@ -152,6 +152,7 @@ def test_time_limit_ends_episodes_with_a_nan_outcome_and_the_step_budget_sends_n
     rec.cmd.publish(twist(vx=1.0))  # one past the budget: taken, not flown
     assert ros.spin_until(lambda: "step budget of 7 steps flown: holding position" in ros.log_of(proc), 10)
     # The last step's outcome is said again (lockstep_republish_s), its frame never: nothing answers a step beyond.
+    assert ros.spin_until(lambda: len(rec.distinct_frames()) == 7, 5), "a frame before the budget's end is missing"
     said = len(rec.by_topic["outcome"])
     assert ros.spin_until(lambda: len(rec.by_topic["outcome"]) > said, 5), "the last outcome is said again"
     assert rec.distinct_frames() == stamps[:7] and len(set(rec.stamps("outcome"))) == 8
