@@ -184,11 +184,11 @@ def _expected_tensors(cfg: NetConfig) -> dict[str, torch.Tensor]:
 def load_bytes(
     blob: bytes, expected: NetConfig, sizes_from_blob: bool = False, into: torch.nn.Module | None = None
 ) -> torch.nn.Module:
-    """A network with the blob's weights, after checking everything; never touches a live net.
+    """A network with the blob's weights, after checking everything (nothing is written before every check passed).
     `sizes_from_blob`: take the layer sizes (networks.SIZE_FIELDS) and SAM readout from the blob's header instead of
-    `expected`; the network's `cfg` then says which were built. `into`: a network no longer in use, written over
-    when it has the blob's architecture (a copy instead of a build: weight pushes come every other step); else
-    a new one is built."""
+    `expected`; the network's `cfg` then says which were built. `into`: a network nothing reads meanwhile (policy_node's
+    spare, the in-process loop's acting copy), written over when it has the blob's architecture (a copy instead of a
+    build: weight pushes come every other step); else a new one is built."""
     if not isinstance(blob, (bytes, bytearray)) or len(blob) == 0:
         raise WeightsError("weights are empty")
     if len(blob) > MAX_BYTES:
