@@ -26,6 +26,7 @@ setup(
             "evaluate = uav_trainer.evaluate:main",
             "grounding = uav_trainer.grounding:main",
             "distill = uav_trainer.distill:main",
+            "choose = uav_trainer.selection:main",
             "plot_curves = uav_trainer.plots:main",
             "attention_figures = uav_trainer.figures:main",
         ],

@@ -3,6 +3,7 @@
 import csv
 import os
 import subprocess
+from pathlib import Path
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
@@ -14,7 +15,9 @@ from uav_common import contract
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_policy.push import PushService, push_request
-from uav_trainer.flights import ENSEMBLE_SEP, evaluate_once
+from uav_sim.world import VALIDATION_WORLDS
+from uav_trainer import selection
+from uav_trainer.flights import evaluate_once
 from uav_trainer.trainer_node import TrainerNode
 from uav_trainer.training import snapshot_steps
 
@@ -374,12 +377,16 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
     assert "did not release the frame" not in ros.log_of(policy), "the refused release must not wait for the timeout"
 
 
-def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten_files_fly_as_one_policy(tmp_path, monkeypatch):
+def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_it_names_one_file_chosen_on_validation(
+    tmp_path, monkeypatch
+):
     """Without --recipe, train sets up what the packaged weights were trained with (params/recipes/shipped.yaml, behind
-    the realsense_d435 sensor): nine snapshots besides the final weights, flown as one policy."""
+    the realsense_d435 sensor): nine snapshots besides the final weights, of which it names one, chosen on the
+    validation worlds, and prints the command that flies that one file."""
     run_dir = tmp_path / "run"
     # With a short time limit (the recipe's is 300): the trainer must count cut episodes, never as crashes.
-    r, logs = run_train(run_dir, "74", "--steps", "60", "--sim-arg", "max_episode_steps:=4", timeout_s=240)
+    args = ("--steps", "60", "--sim-arg", "max_episode_steps:=4", "--validation-steps", "5")
+    r, logs = run_train(run_dir, "74", *args, timeout_s=240)
     assert (
         "recipes/shipped.yaml (sim_node: world:=random_each_episode mix_world:=basic mix_world_every:=4 "
         "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 sensor:=realsense_d435 sensor_scale:=0.1 "
@@ -395,7 +402,11 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     # Redirected output gets progress lines (a bar only on a terminal); the run's last row ends exploration.
     assert "progress: 60/60 steps (100%)" in r.stdout and "steps/s, ETA" in r.stdout
     assert float(list(csv.DictReader(open(run_dir / "metrics.csv")))[-1]["epsilon"]) == pytest.approx(0.05)
-    assert f"-p model:=sam -p weights:={','.join(map(str, files))}" in r.stdout
+    assert f"weights written: {', '.join(map(str, files))}" in r.stdout
+    chosen = selection.read_chosen(run_dir)
+    assert chosen.steps == 5 * len(VALIDATION_WORLDS) and Path(chosen.weights) in files
+    assert f"weights: {chosen.weights} (chosen of 10 on the validation worlds: {chosen.crashes} crashes" in r.stdout
+    assert r.stdout.rstrip().endswith(f"-p model:=sam -p weights:={chosen.weights}"), r.stdout[-500:]
     for f in files:
         assert wio.read_file_camera(f) == 87.0 and wio.read_file_window(f) is None, f  # the paper's window
     rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
@@ -404,8 +415,8 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_its_ten
     # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
     assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
     monkeypatch.setenv("ROS_DOMAIN_ID", "74")
-    flown = evaluate_once("sam", ENSEMBLE_SEP.join(map(str, files)), "basic", 20)
-    assert flown.steps == 20
+    flown = evaluate_once("sam", chosen.weights, "basic", 20)  # the printed command's file, through the nodes
+    assert flown.steps == 20 and flown.weights == chosen.weights
 
 
 def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_name_their_replacement():

@@ -25,7 +25,9 @@ nodes/TOPK_SHARE of each head, unmixed, reach the dueling head, weighted by thei
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
-Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10).
+Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10). With `feature_norm`
+the features the heads read (the CNN's hidden layer, SAM's pooled vector or, with `query`, each attended vector)
+pass a LayerNorm first (Bjorck et al. 2022 trace seed variance to features that saturate early in training).
 
 QEnsemble (an extension; evaluate --ensemble K): several networks of one model (seeds, or one run's
 snapshots) act as one by the mean of their Q-values; its attention is every member's heads side by
@@ -81,6 +83,7 @@ class NetConfig:
     cnn_hidden: int = 128
     head_hidden: int = 64
     sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten | attend (cnn: always max)
+    feature_norm: bool = False  # LayerNorm on the features the dueling heads read (both models)
 
     def __post_init__(self):
         # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)
@@ -89,6 +92,8 @@ class NetConfig:
             object.__setattr__(self, "sam_readout", "max")
 
     def validate(self) -> None:
+        if type(self.feature_norm) is not bool:
+            raise ValueError(f"feature_norm must be true or false, got {self.feature_norm!r}")
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         if self.sam_readout not in SAM_READOUTS:
@@ -207,10 +212,11 @@ class AttentionPooling(nn.Module):
 class QueryReadout(nn.Module):
     """Frame-dependent queries, one per action and one for the value, over the unmixed nodes (see the module doc)."""
 
-    def __init__(self, d_model: int, heads: int, actions: int, hidden: int):
+    def __init__(self, d_model: int, heads: int, actions: int, hidden: int, feature_norm: bool = False):
         super().__init__()
         self.heads, self.d_head, self.actions = heads, d_model // heads, actions
         self.queries = nn.Linear(d_model, (actions + 1) * d_model)
+        self.feature_norm = nn.LayerNorm(d_model) if feature_norm else nn.Identity()
         self.norm = nn.LayerNorm(d_model)
         self.kv = nn.Linear(d_model, 2 * d_model)
         self.hidden = nn.Sequential(nn.Linear(d_model, hidden), nn.ReLU(inplace=True))
@@ -224,7 +230,8 @@ class QueryReadout(nn.Module):
         q = self.queries(mixed.mean(dim=1)).view(b, m, self.heads, self.d_head).transpose(1, 2)  # (b, h, m, d_head)
         k, v = self.kv(self.norm(unmixed)).view(b, n, 2, self.heads, self.d_head).permute(2, 0, 3, 1, 4)
         weights = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.d_head), dim=-1)  # (b, h, m, n)
-        h = self.hidden((weights @ v).transpose(1, 2).reshape(b, m, d))  # (b, m, hidden): one vector per query
+        attended = self.feature_norm((weights @ v).transpose(1, 2).reshape(b, m, d))
+        h = self.hidden(attended)  # (b, m, hidden): one vector per query
         a = (h[:, : self.actions] * self.advantage).sum(dim=-1) + self.advantage_bias
         return self.value(h[:, self.actions]) + a - a.mean(dim=-1, keepdim=True), weights
 
@@ -254,12 +261,14 @@ class TopKPooling(nn.Module):
 class DuelingHead(nn.Module):
     """Q = V + A - mean(A)."""
 
-    def __init__(self, d_in: int, hidden: int, actions: int):
+    def __init__(self, d_in: int, hidden: int, actions: int, feature_norm: bool = False):
         super().__init__()
+        self.norm = nn.LayerNorm(d_in) if feature_norm else nn.Identity()
         self.value = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1))
         self.advantage = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, actions))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
+        features = self.norm(features)
         a = self.advantage(features)
         return self.value(features) + a - a.mean(dim=-1, keepdim=True)
 
@@ -290,16 +299,16 @@ class D3QNSam(nn.Module):
             self.pooling = TopKPooling(cfg.d_model, cfg.heads, max(1, self.trunk.grid_h * self.trunk.grid_w // TOPK_SHARE))
         self.readout = None
         if cfg.sam_readout == "query":
-            self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden)
+            self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden, cfg.feature_norm)
             self.dueling_head = None  # its own heads, one per query
         elif cfg.sam_readout == "flatten":
             c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
             self.readout = nn.Sequential(
                 nn.Linear(cfg.d_model, c), nn.Flatten(1), nn.Linear(n * c, cfg.cnn_hidden), nn.ReLU(inplace=True)
             )
-            self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
+            self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions, cfg.feature_norm)
         else:
-            self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions)
+            self.dueling_head = DuelingHead(cfg.d_model, cfg.head_hidden, cfg.actions, cfg.feature_norm)
 
     @property
     def grid_hw(self) -> tuple[int, int]:
@@ -340,7 +349,7 @@ class D3QNCnn(nn.Module):
         self.trunk = ConvTrunk(cfg)
         flat = self.trunk.out_channels * self.trunk.grid_h * self.trunk.grid_w
         self.hidden = nn.Sequential(nn.Linear(flat, cfg.cnn_hidden), nn.ReLU(inplace=True))
-        self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions)
+        self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions, cfg.feature_norm)
 
     @property
     def grid_hw(self) -> tuple[int, int]:

@@ -326,9 +326,14 @@ def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
 
 
 def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
-    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS) and SAM readout: the architecture a file made
+    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout and feature norm: the architecture a file made
     as `made` is loaded with."""
-    return dataclasses.replace(cfg, sam_readout=made.sam_readout, **{name: getattr(made, name) for name in SIZE_FIELDS})
+    return dataclasses.replace(
+        cfg,
+        sam_readout=made.sam_readout,
+        feature_norm=made.feature_norm,
+        **{name: getattr(made, name) for name in SIZE_FIELDS},
+    )
 
 
 def load_files(paths: list, model: str) -> torch.nn.Module:

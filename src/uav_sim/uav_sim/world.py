@@ -15,6 +15,8 @@ Format (`format: uav_sim_world/1`), all lengths in metres, angles in degrees:
 Built-in worlds live in the package's `worlds/` folder (installed to share/uav_sim/worlds);
 `random` (or `random:SEED`) makes a seeded procedural layout for held-out testing;
 `random_partitions[:SEED]` the same with long partitions among the boxes (held-out evaluation);
+`validation:K` (K = 0..99) is a validation world, seeded layouts with partitions, doorways or weather
+that nothing trains or tests on (VALIDATION_WORLDS, the set every choice is made on);
 `random_each_episode` (sim_node) flies a new one every episode, for training.
 """
 
@@ -38,6 +40,15 @@ BUILTIN_WORLDS = ("basic", "complex", "turbulent")
 EACH_EPISODE = "random_each_episode"  # sim_node: a new training layout every episode
 PARTITIONS = "random_partitions"  # procedural layouts where half of the boxes are 2-3 m partitions
 TRAINING_LAYOUTS_FROM = 1000  # random:0..999 are never trained on (test and validation layouts)
+# The validation worlds: validation:K is built from the layout seed VALIDATION_SEEDS_FROM + K, so its layouts are
+# neither the training stream's (random:1000 onward) nor the held-out tests' (random:0..899, random_partitions:0..899,
+# of which docs/RESULTS.md reports 0..2), and the test worlds (basic, complex, turbulent) are files.
+VALIDATION = "validation"
+VALIDATION_SEEDS_FROM = 900
+VALIDATION_MAX = 100  # validation:0..99
+# Families by K % 4: a plain layout, partitions among the boxes, cross walls with doorways, a plain layout in weather.
+VALIDATION_FAMILIES = ("layout", "partitions", "doorways", "weather")
+VALIDATION_WORLDS = tuple(f"{VALIDATION}:{k}" for k in range(8))  # the set `evaluate --worlds validation` and train fly
 
 
 class WorldError(ValueError):
@@ -235,6 +246,14 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
     if not isinstance(name_or_path, str) or not name_or_path:
         raise WorldError("world must be a non-empty string: a built-in name or a file path")
     kind, colon, seed_text = name_or_path.partition(":")
+    if kind == VALIDATION:
+        try:
+            k = int(seed_text)
+        except ValueError:
+            k = -1
+        if not 0 <= k < VALIDATION_MAX:
+            raise WorldError(f"world '{name_or_path}': a validation world is '{VALIDATION}:K' with K in 0..{VALIDATION_MAX - 1}")
+        return validation_world(k)
     if kind in ("random", PARTITIONS):
         if colon:
             try:
@@ -249,7 +268,7 @@ def load_world(name_or_path: str, seed: int = 0, _depth: int = 0) -> World:
         if not path.suffix and os.sep not in name_or_path:
             raise WorldError(
                 f"unknown world '{name_or_path}': expected one of {', '.join(BUILTIN_WORLDS)}, "
-                "'random[:SEED]', 'random_partitions[:SEED]', or a path to a .yaml world file"
+                "'random[:SEED]', 'random_partitions[:SEED]', 'validation:K', or a path to a .yaml world file"
             )
     try:
         text = path.read_text()
@@ -310,6 +329,51 @@ def procedural_world(seed: int, n_obstacles: int | None = None, partitions: bool
     return World(name, length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
 
 
+def validation_world(k: int) -> World:
+    """Validation world K: from layout seed VALIDATION_SEEDS_FROM + K, of family VALIDATION_FAMILIES[K % 4]."""
+    seed = VALIDATION_SEEDS_FROM + k
+    family = VALIDATION_FAMILIES[k % len(VALIDATION_FAMILIES)]
+    if family == "doorways":
+        w = doorway_world(seed)
+    else:
+        w = procedural_world(seed, partitions=family == "partitions")
+    if family == "weather":
+        rng = np.random.default_rng([seed, 1])  # its own stream: the layout is random:SEED's
+        w = dataclasses.replace(
+            w, weather=Weather(int(rng.integers(20, 51)), int(rng.integers(20, 51)), int(rng.integers(10, 31)))
+        )
+    return dataclasses.replace(w, name=f"{VALIDATION}:{k}")
+
+
+def doorway_world(seed: int) -> World:
+    """A seeded room crossed by one or two walls, each with a doorway 1.4-2.0 m wide, and a few pillars
+    between them: a structure the training layouts (free-standing boxes and cylinders) never show."""
+    rng = np.random.default_rng([seed, 2])
+    length = float(rng.uniform(14.0, 20.0))
+    width = float(rng.uniform(8.0, 12.0))
+    start = (-length / 2 + 2.0, float(rng.uniform(-width / 4, width / 4)), 1.0)
+    walls = 2 if length >= 16.0 else 1
+    first, last = start[0] + 3.5, length / 2 - 2.5
+    xs = [first + (last - first) * (i + 0.5) / walls for i in range(walls)]
+    obstacles, doors = [], []
+    for x in xs:
+        gap = float(rng.uniform(1.4, 2.0))
+        gy = float(rng.uniform(-width / 2 + 1.0 + gap / 2, width / 2 - 1.0 - gap / 2))
+        doors.append((x, gy))
+        for lo, hi in ((-width / 2, gy - gap / 2), (gy + gap / 2, width / 2)):
+            obstacles.append(Obstacle("box", x, (lo + hi) / 2, 3.0, size_x_m=0.2, size_y_m=hi - lo))
+    pillars, tries = int(rng.integers(2, 5)), 0
+    while pillars and tries < 200:
+        tries += 1
+        x = float(rng.uniform(start[0] + 2.5, length / 2 - 1.0))
+        y = float(rng.uniform(-width / 2 + 1.0, width / 2 - 1.0))
+        clear = all(abs(x - wx) > 1.0 for wx in xs) and all(math.hypot(x - dx, y - dy) > 2.0 for dx, dy in doors)
+        if clear and math.hypot(x - start[0], y - start[1]) >= 2.5:
+            obstacles.append(Obstacle("cylinder", x, y, 3.0, radius_m=float(rng.uniform(0.15, 0.4))))
+            pillars -= 1
+    return World(f"doorways:{seed}", length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
+
+
 def training_layouts(seed: int, world: World | None = None, world_every: int = 0) -> Iterator[World]:
     """The procedural layouts a run with this seed trains on, one per episode:
     random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear.
@@ -331,7 +395,8 @@ class WorldChoice:
 
     world: str = setting(
         "basic",
-        f"World: basic, complex, turbulent, random[:SEED], random_partitions[:SEED], a path to a world .yaml file, or "
+        f"World: basic, complex, turbulent, random[:SEED], random_partitions[:SEED], validation:K, a path to a world "
+        ".yaml file, or "
         f"{EACH_EPISODE} (training: a new seeded procedural layout every episode, random:1000+100000*seed onward)",
     )
     mix_world: str = setting("basic", f"world:={EACH_EPISODE} with mix_world_every: the world flown between the layouts")

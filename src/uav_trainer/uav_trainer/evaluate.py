@@ -42,6 +42,20 @@ from .flights import (
 from .tables import pool, read_results_csvs, write_tables
 
 
+def expand_worlds(names: list[str]) -> list[str]:
+    """The worlds named, with 'validation' standing for the validation set; each is checked to load
+    (ValueError naming the one that does not)."""
+    from uav_sim.world import VALIDATION, VALIDATION_WORLDS, WorldError, load_world
+
+    worlds = [w for name in names for w in (VALIDATION_WORLDS if name == VALIDATION else (name,))]
+    for w in worlds:
+        try:
+            load_world(w)
+        except WorldError as e:
+            raise ValueError(str(e)) from None
+    return list(dict.fromkeys(worlds))
+
+
 def main(argv=None) -> int:
     from uav_policy.weights import UNRECORDED_HFOV_DEG
 
@@ -53,7 +67,13 @@ def main(argv=None) -> int:
         default=None,
         help="weights files (one per training seed); for several models give MODEL=PATH; default: the packaged weights",
     )
-    ap.add_argument("--worlds", nargs="+", default=["basic", "complex", "turbulent"])
+    ap.add_argument(
+        "--worlds",
+        nargs="+",
+        default=["basic", "complex", "turbulent"],
+        help="worlds to fly (default: the test worlds); 'validation' stands for the validation worlds "
+        "(uav_sim.world.VALIDATION_WORLDS), on which every choice is made (docs/WORLDS.md)",
+    )
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--epsilon", type=float, default=0.0)
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (weather, start jitter)")
@@ -72,6 +92,14 @@ def main(argv=None) -> int:
         "file flies with the camera it was trained with (its header), else the sim default",
     )
     ap.add_argument("--repeats", type=int, default=1, help="runs per weight file and world (sim seeds --seed + i), pooled")
+    ap.add_argument(
+        "--until-crashes",
+        type=int,
+        default=0,
+        metavar="N",
+        help="stop a weights file's repeats in a world once N crashes are counted (0: fly all): with --repeats R and "
+        "--steps S each row flies until N crashes or R x S steps, long enough to resolve a 2x difference at N about 20",
+    )
     ap.add_argument(
         "--ensemble",
         type=int,
@@ -133,6 +161,12 @@ def main(argv=None) -> int:
         ap.error("--insight-every must be >= 0 (0: never)")
     if a.repeats < 1 or a.steps < 1:
         ap.error("--repeats and --steps must be >= 1")
+    if a.until_crashes < 0:
+        ap.error("--until-crashes must be >= 0 (0: fly every repeat)")
+    try:
+        a.worlds = expand_worlds(a.worlds)
+    except ValueError as e:
+        ap.error(f"--worlds: {e}")
     if a.ensemble < 1:
         ap.error("--ensemble must be >= 1")
     try:
@@ -173,6 +207,11 @@ def main(argv=None) -> int:
         )
     else:
         protocol = "Every episode starts at the world's start pose (the paper's protocol)."
+    if a.until_crashes:
+        protocol += (
+            f" A row stops at its {a.until_crashes}th crash (--until-crashes; over ROS at the end of that repeat):"
+            " its steps are its own."
+        )
     if a.sim_arg:
         protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
     if hfov_deg is None:
@@ -247,7 +286,7 @@ def main(argv=None) -> int:
     total = len(runs) * len(a.worlds) * a.steps * a.repeats
     with tqdm(total=total, unit="step", dynamic_ncols=True, disable=None) as bar:
 
-        def measure(model: str, weights: str, world: str, seed: int, group: int) -> EvalResult:
+        def measure(model: str, weights: str, world: str, seed: int, group: int, max_crashes: int = 0) -> EvalResult:
             jitter = a.start_yaw_jitter_deg
             if not a.inprocess:
                 bag = Path(a.record) / bag_name(model, world, group, seed) if a.record else None
@@ -281,6 +320,7 @@ def main(argv=None) -> int:
                 reward_window_fraction=win,
                 insight_every=a.insight_every,
                 safety=a.safety,
+                max_crashes=max_crashes,
                 **sensor,
             )
             bar.update(a.steps)
@@ -291,7 +331,14 @@ def main(argv=None) -> int:
             weights = ENSEMBLE_SEP.join(files)  # the weights column: "" for the packaged weights
             for world in a.worlds:
                 bar.set_description(f"{model} {world} {Path(files[0]).name if files else 'packaged'}")
-                r = pool([measure(model, weights, world, a.seed + i, group) for i in range(a.repeats)])
+                flown = []
+                for i in range(a.repeats):
+                    left = a.until_crashes - sum(f.crashes for f in flown) if a.until_crashes else 0
+                    flown.append(measure(model, weights, world, a.seed + i, group, left))
+                    if a.until_crashes and sum(f.crashes for f in flown) >= a.until_crashes:
+                        bar.update(a.steps * (a.repeats - 1 - i))  # the repeats this row no longer needs
+                        break
+                r = pool(flown)
                 results.append(r)
                 # One line per row, on a terminal and in a log alike: with its place in the whole and an ETA.
                 elapsed = time.monotonic() - t0

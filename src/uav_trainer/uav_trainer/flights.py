@@ -414,6 +414,7 @@ def evaluate_inprocess(
     sensor_scale: float | None = None,
     insight_every: int = 1,
     safety: bool = False,
+    max_crashes: int = 0,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
 
@@ -427,7 +428,7 @@ def evaluate_inprocess(
     preset_for_camera) at the recipes' scale, else the ideal camera. What the decisions look at is measured on every
     `insight_every`-th step (policy_node's parameter; 0 = never). With `safety` the commands pass policy_node's
     safety layer (its default settings), as `evaluate --safety` flies them through the node; its interventions
-    are counted."""
+    are counted. `max_crashes` N > 0 ends the flight at its N-th crash (the result's steps are those flown)."""
     from uav_policy import weights as wio
     from uav_policy.agent import Agent
     from uav_policy.safety import SafetyLayer, SafetySettings
@@ -504,6 +505,9 @@ def evaluate_inprocess(
             else:
                 dist += math.hypot(r.pose.x_m - before.x_m, r.pose.y_m - before.y_m)
             behaviour.step(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad, r.collided)
+            if max_crashes and crashes >= max_crashes:
+                steps = step
+                break
     finally:
         sim.close()
     return EvalResult(

@@ -1,5 +1,7 @@
-"""Result tables: runs pooled per policy, means with 95 % t-intervals over policies beside the paper's
-numbers (results.md), the rows as results.csv, and those rows read back (`--from-csv`)."""
+"""Result tables: runs pooled per policy, each policy's crash count with its exact Poisson interval, the
+interquartile mean over policies (training seeds) with its stratified-bootstrap interval and the worst seed
+beside the paper's numbers (results.md, uav_trainer.stats), the rows as results.csv, and those rows read
+back (`--from-csv`)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,8 @@ import numpy as np
 
 from uav_policy.insight import InsightSummary
 
-from .flights import TURN_DEG, EvalResult
+from .flights import ENSEMBLE_SEP, TURN_DEG, EvalResult
+from .stats import Rate, aggregate
 
 # The insight columns of results.csv, in InsightSummary's order (frames first).
 INSIGHT_COLUMNS = ("insight_frames", *InsightSummary.NAMES)
@@ -118,6 +121,46 @@ def pooled_table(results, models, worlds, title: str, column: str, cell, intro: 
     return [*lines, ""]
 
 
+def seed_world_matrix(results: list[EvalResult], model: str, worlds: list[str], key) -> np.ndarray | None:
+    """(weight files x worlds) of key(result) for a model, or None unless every file flew every world once."""
+    files = list(dict.fromkeys(r.weights for r in results if r.model == model))
+    cell = {(r.weights, r.world): key(r) for r in results if r.model == model}
+    if not files or len(cell) != sum(1 for r in results if r.model == model):
+        return None
+    if any((f, w) not in cell for f in files for w in worlds):
+        return None
+    return np.array([[cell[f, w] for w in worlds] for f in files])
+
+
+def crash_count_table(results: list[EvalResult], models: list[str], worlds: list[str]) -> list[str]:
+    """One row per policy: crashes / steps and the rate per 1000 steps with its exact Poisson 95 % interval."""
+    lines = [
+        "### Crashes per policy: count / steps, per 1000 steps [exact Poisson 95 %]",
+        "",
+        "| model | weights | " + " | ".join(worlds) + " |",
+        "|" + "---|" * (2 + len(worlds)),
+    ]
+    for m in models:
+        for weights in dict.fromkeys(r.weights for r in results if r.model == m):
+            row = {r.world: r for r in results if r.model == m and r.weights == weights}
+            cells = [count_cell(row[w]) if w in row else "-" for w in worlds]
+            lines.append(f"| D3QN-{m.upper()} | {short_weights(weights)} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def count_cell(r: EvalResult) -> str:
+    return f"{r.crashes} / {r.steps}: {Rate(r.crashes, r.steps)}"
+
+
+def short_weights(weights: str) -> str:
+    """A weights column as a table shows it: the packaged set, one file's name or a group's first and size."""
+    if not weights:
+        return "packaged"
+    files = weights.split(ENSEMBLE_SEP)
+    name = f"{Path(files[0]).parent.name}/{Path(files[0]).name}"
+    return name if len(files) == 1 else f"{name} + {len(files) - 1} more"
+
+
 def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol: str = "") -> tuple[Path, Path]:
     """results.csv (one row per run) and results.md (Tables 1-2 and distance, mean ± 95% CI over seeds)."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -132,6 +175,8 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                 "steps",
                 "crashes",
                 "crashes_per_1000",
+                "crashes_per_1000_low",
+                "crashes_per_1000_high",
                 "mean_reward",
                 "distance_m",
                 "distance_between_crashes_m",
@@ -156,6 +201,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     r.steps,
                     r.crashes,
                     f"{1000 * r.crashes / r.steps:.2f}",
+                    *(f"{v:.2f}" for v in Rate(r.crashes, r.steps).interval_per_1000),
                     f"{r.mean_reward:.4f}",
                     f"{r.distance_m:.2f}",
                     f"{r.distance_between_crashes_m:.2f}",
@@ -169,27 +215,40 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
     models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
     worlds = list(dict.fromkeys(r.world for r in results))
     lines = [
-        f"Exploit-only (epsilon 0) evaluation, {steps} lockstep steps per run; mean ± 95% CI over the "
-        "weight files (training seeds); n = runs per cell." + (f" {protocol}" if protocol else ""),
+        f"Exploit-only (epsilon 0) evaluation, {steps} lockstep steps per run"
+        + (" at most (each row's steps are its own)" if any(r.steps != steps for r in results) else "")
+        + "; over the weight files (training seeds) the interquartile mean (IQM) with its stratified-bootstrap 95 % "
+        "interval and the worst seed (docs/RESULTS.md, 'How we measure'); n = weight files per cell."
+        + (f" {protocol}" if protocol else ""),
         "",
     ]
-    for title, key, digits, idx in (  # idx: the column of PAPER
-        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2, 0),
-        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3, 1),
+    lines += crash_count_table(results, models, worlds)
+    for title, key, digits, idx, worst in (  # idx: the column of PAPER
+        ("Table 1: crashes per 1000 steps", lambda r: 1000 * r.crashes / r.steps, 2, 0, "max"),
+        ("Table 2: mean reward per step", lambda r: r.mean_reward, 3, 1, "min"),
     ):
         lines += [f"### {title}", ""]
         lines += [
-            "| world | " + " | ".join(f"D3QN-{m.upper()} | paper" for m in models) + " |",
-            "|" + "---|" * (1 + 2 * len(models)),
+            "| world | " + " | ".join(f"D3QN-{m.upper()} IQM [95 %] | worst seed | paper" for m in models) + " |",
+            "|" + "---|" * (1 + 3 * len(models)),
         ]
         for world in worlds:
             cells = []
             for m in models:
                 vals = [key(r) for r in results if r.model == m and r.world == world]
-                cells.append(f"{fmt(*mean_ci95(vals), digits)} (n={len(vals)})" if vals else "-")
+                agg = aggregate(vals, worst) if vals else None
+                cells += [agg.cell(digits), f"{agg.worst:.{digits}f}"] if agg else ["-", "-"]
                 paper = PAPER.get((m, world))
                 cells.append(str(paper[idx]) if paper else "-")
             lines.append(f"| {world} | " + " | ".join(cells) + " |")
+        if len(worlds) > 1:  # all worlds at once: seeds x worlds, resampled over seeds within each world
+            cells = []
+            for m in models:
+                matrix = seed_world_matrix(results, m, worlds, key)
+                agg = aggregate(matrix, worst) if matrix is not None else None
+                cells += [agg.cell(digits), f"{agg.worst:.{digits}f}"] if agg else ["-", "-"]
+                cells.append("-")
+            lines.append("| all worlds | " + " | ".join(cells) + " |")
         lines.append("")
     # Distance between crashes pooled over runs: runs without a crash would otherwise be dropped.
     lines += pooled_table(results, models, worlds, "Distance flown between crashes (m), pooled over runs", "", distance_cell)

@@ -18,7 +18,9 @@ training goes on with the others; none of them publishes /clock. Actors on other
 same trainer: docs/TRAINING.md, "Many actors".
 
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
-policy_<model>.safetensors and the recipe's snapshots). Ctrl-C stops the trainer first, which saves
+policy_<model>.safetensors and the recipe's snapshots). At the end it chooses one of those files on the
+validation worlds (uav_trainer.selection, `choose`; validation.csv) and prints the command that flies it.
+Ctrl-C stops the trainer first, which saves
 a final checkpoint with the replay memory, then the policy and the simulator. Running it again with
 the same run directory resumes where it stopped.
 """
@@ -38,6 +40,7 @@ from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 from uav_policy.push import write_key
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
+from .selection import VALIDATION_STEPS
 from .training import snapshot_file, snapshot_steps
 
 RETIRED_FLAGS = {
@@ -107,7 +110,17 @@ def main(argv=None) -> int:
         default=None,
         help=f"depth frames in the state for policy_node and trainer_node (1 to {MAX_FRAMES}; default: params/*.yaml's, 5)",
     )
+    ap.add_argument(
+        "--validation-steps",
+        type=int,
+        default=VALIDATION_STEPS,
+        metavar="N",
+        help=f"at the end, fly each weights file the run wrote N steps in each validation world and name the one with "
+        f"the fewest crashes (default: {VALIDATION_STEPS}; 0: name the final weights without choosing)",
+    )
     a = ap.parse_args(argv)
+    if a.validation_steps < 0:
+        ap.error("--validation-steps must be >= 0 (0: no choice, the final weights)")
     if a.steps <= 0:
         ap.error("--steps must be positive")
     if not 1 <= a.actors <= MAX_ACTORS:
@@ -213,7 +226,8 @@ def main(argv=None) -> int:
         if files:
             print(f"written before it stopped: {', '.join(map(str, files))}", file=sys.stderr)
         return trainer_code
-    if files:
+    if files and not interrupted():
+        chosen, why = name_one(run_dir, a.model, files, a.validation_steps)
         # The simulator behind the camera the run trained with, for the command that flies the result.
         sensor, camera = sim_values.get("sensor", "ideal"), sim_values.get("hfov_deg")
         if sensor != "ideal":
@@ -222,12 +236,30 @@ def main(argv=None) -> int:
             sim_p = f"-p hfov_deg:={float(camera)}" if camera is not None else ""
         fly_sim = f"ros2 run uav_sim sim_node --ros-args {sim_p} & " if sim_p else ""
         print(
-            f"weights: {', '.join(map(str, files))}\nfly them: {fly_sim}ros2 run uav_policy policy_node --ros-args "
-            f"-p model:={a.model} -p weights:={','.join(map(str, files))}"
+            f"weights written: {', '.join(map(str, files))}\nweights: {chosen} ({why})\nfly it: {fly_sim}ros2 run "
+            f"uav_policy policy_node --ros-args -p model:={a.model} -p weights:={chosen}"
         )
+    elif files:
+        print(f"stopped before the budget: weights so far {', '.join(map(str, files))}; the same command resumes")
     else:
         print(f"this run wrote no weights in {run_dir}", file=sys.stderr)
     return code if not interrupted() else 130
+
+
+def name_one(run_dir: Path, model: str, files: list[Path], steps: int) -> tuple[Path, str]:
+    """The one file a run ships, and why: chosen on the validation worlds (steps > 0), else the final weights."""
+    from .selection import choose_run
+
+    final = run_dir / f"policy_{model}.safetensors"
+    if steps == 0 or len(files) == 1:
+        why = "the run's only weights file" if len(files) == 1 else "the final weights, not chosen (--validation-steps 0)"
+        return (final if final in files else files[-1]), why
+    import torch
+
+    torch.set_num_threads(1)
+    c = choose_run(run_dir, model, steps, log=lambda line: print(line, flush=True), again=True, files=files)
+    table = run_dir / "validation.csv"
+    return Path(c.weights), f"chosen of {len(files)} on the validation worlds: {c.crashes} crashes in {c.steps} steps; {table}"
 
 
 def _read_lines(path: Path) -> list[str]:

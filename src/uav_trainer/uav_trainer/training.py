@@ -87,6 +87,9 @@ class TrainerConfig:
         "attention shown forms the Q-values; the shipped recipe); policy_node takes it from the weights",
         choices=SAM_READOUTS,
     )
+    feature_norm: bool = setting(
+        False, "LayerNorm on the features the dueling heads read (both models); policy_node takes it from the weights"
+    )
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
     frames: int = setting(
         NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
@@ -237,6 +240,7 @@ class Training:
         self.net_cfg = NetConfig(
             model=cfg.model,
             sam_readout=cfg.sam_readout,
+            feature_norm=cfg.feature_norm,
             height=cfg.input_size_px,
             width=cfg.input_size_px,
             frames=cfg.frames,
