@@ -2,6 +2,7 @@
 (heartbeats, LOCAL_POSITION_NED, ATTITUDE) and records every message the bridge sends."""
 
 import math
+import os
 import socket
 import threading
 import time
@@ -42,10 +43,17 @@ def test_ned_pose_becomes_a_rep105_enu_pose_with_a_flu_body():
 class Autopilot:
     """A scripted autopilot: heartbeats while `beating`, position and attitude, and a record of what it receives."""
 
-    def __init__(self, port: int):
+    def __init__(self, port: int, system: int = 1, north_m: float = 1.0, key: bytes | None = None):
         from pymavlink import mavutil
 
-        self.link = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+        if key is not None and mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
+            os.environ["MAVLINK20"] = "1"  # signing is MAVLink 2's: this process speaks it from here on
+            mavutil.set_dialect(mavutil.current_dialect)
+
+        self.link = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=system, source_component=1)
+        if key is not None:  # signs what it sends (MAVLink 2); takes what it receives unsigned too
+            self.link.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda _mav, _id: True)
+        self.north_m = north_m
         self.received: list[tuple[float, object]] = []
         self.beating = True
         self.running = True
@@ -62,15 +70,21 @@ class Autopilot:
                     m.heartbeat_send(
                         MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_OFFBOARD, 4
                     )
-                    m.local_position_ned_send(0, 1.0, 2.0, -3.0, 0.0, 1.0, 0.0)
+                    m.local_position_ned_send(0, self.north_m, 2.0, -3.0, 0.0, 1.0, 0.0)
                     m.attitude_send(0, 0.0, 0.0, math.pi / 2, 0.0, 0.0, 0.0)
                 next_beat = now + 0.2
             msg = self.link.recv_match(blocking=True, timeout=0.05)
             if msg is not None and msg.get_type() != "BAD_DATA":
                 self.received.append((time.monotonic(), msg))
 
+    def received_setpoints(self):
+        """Every setpoint this autopilot's socket received, whichever system it targets."""
+        return [(t, m) for t, m in self.received if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
+
     def setpoints(self, since: float = 0.0):
-        return [(t, m) for t, m in self.received if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and t >= since]
+        """The setpoints that target this autopilot."""
+        mine = self.link.mav.srcSystem
+        return [(t, m) for t, m in self.received_setpoints() if t >= since and m.target_system == mine]
 
     def close(self):
         self.running = False
@@ -158,3 +172,97 @@ def test_a_bad_url_stops_the_bridge_at_start_up_naming_it():
     assert r.returncode == 2 and "parameter 'url'" in r.stderr, r.stderr
     r = run_to_exit("uav_bringup", "mavlink_bridge", "-p", "rate_hz:=1.0")
     assert r.returncode == 2 and "rate_hz" in r.stderr, r.stderr
+
+
+def bridge_diagnostics(ros):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    seen = {}
+
+    def take(msg):
+        for status in msg.status:
+            if status.name.endswith("mavlink_bridge"):
+                seen.update({kv.key: kv.value for kv in status.values}, level=status.level)
+
+    ros.node.create_subscription(DiagnosticArray, "/diagnostics", take, 10)
+    return seen
+
+
+def start_bridge(ros, port: int, *params: str):
+    args = [f"url:=udpin:127.0.0.1:{port}", "rate_hz:=20.0", "heartbeat_timeout_s:=1.0", *params]
+    return ros.start("uav_bringup", "mavlink_bridge", *(x for p in args for x in ("-p", p)))
+
+
+@pytest.mark.parametrize("target", [1, 0])
+def test_two_autopilots_on_one_link_the_bridge_commands_and_reports_one_vehicle(ros, target):
+    """Systems 2 and 1 on one UDP link, system 2 heard first: with target_system 1 every setpoint targets 1 and odom is
+    vehicle 1's (north 10 m); with the default (0), the first heard, system 2 (north 20 m), and never a switch."""
+    port = free_udp_port()
+    proc = start_bridge(ros, port, f"target_system:={target}")
+    odom = []
+    ros.node.create_subscription(Odometry, "odom", odom.append, 10)
+    diag = bridge_diagnostics(ros)
+    second = Autopilot(port, system=2, north_m=20.0)
+    first = None
+    try:
+        # The bridge hears system 2 alone before system 1 speaks.
+        assert ros.spin_until(lambda: second.setpoints() or "is not the commanded vehicle" in ros.log_of(proc), 20)
+        first = Autopilot(port, system=1, north_m=10.0)
+        want = target or 2
+        t0 = time.monotonic()
+        late = lambda: [t for t, _ in first.received_setpoints() if t > t0 + 1.0]  # noqa: E731 (both hear every one)
+        assert ros.spin_until(lambda: len(late()) >= 20 and len(odom) >= 10, 30), ros.log_of(proc)
+        targets = {m.target_system for ap in (first, second) for _, m in ap.received_setpoints()}
+        assert targets == {want}, f"setpoints targeted systems {targets}"
+        norths = {round(o.pose.pose.position.y, 3) for o in odom}
+        assert norths == {10.0 if want == 1 else 20.0}, f"odom mixed vehicles: north {norths}"
+        other = 2 if want == 1 else 1
+        assert ros.spin_until(lambda: diag.get("other_systems_seen") == str(other), 10), diag
+        assert int(diag["other_system_messages_ignored"]) > 10 and diag["target_system"] == str(want)
+        assert f"commanding system {want}, component 1" in ros.log_of(proc)
+        # The commanded vehicle falls silent: the stream stops; the other vehicle is never taken instead.
+        (first if want == 1 else second).beating = False
+        assert ros.spin_until(lambda: "heartbeat lost" in ros.log_of(proc), 20), ros.log_of(proc)
+        t_lost = time.monotonic()
+        ros.spin_for(1.5)
+        assert not [m for ap in (first, second) for t, m in ap.received_setpoints() if t > t_lost + 0.2]
+    finally:
+        second.close()
+        if first is not None:
+            first.close()
+
+
+def test_signed_links_refuse_unsigned_and_wrongly_signed_autopilots(ros, tmp_path):
+    """signing_key_file: an unsigned autopilot and one signing with another key are refused and counted (no setpoint
+    goes to them, no odom comes from them); one with the key is commanded, and what the bridge sends is signed."""
+    key = bytes(range(32))
+    (tmp_path / "key").write_text(key.hex() + "\n")
+    port = free_udp_port()
+    proc = start_bridge(ros, port, f"signing_key_file:={tmp_path / 'key'}")
+    odom = []
+    ros.node.create_subscription(Odometry, "odom", odom.append, 10)
+    diag = bridge_diagnostics(ros)
+    for who in (dict(), dict(key=bytes(32))):  # unsigned, then signed with another key
+        ap = Autopilot(port, **who)
+        try:
+            counter = "unsigned_refused" if not who else "bad_signature_refused"
+            assert ros.spin_until(lambda c=counter: int(diag.get(c, 0)) >= 10, 20), diag
+            assert not ap.setpoints() and not odom and diag["target_system"] == "-", "a refused autopilot is never taken"
+        finally:
+            ap.close()
+    ap = Autopilot(port, key=key)
+    try:
+        assert ros.spin_until(lambda: len(ap.setpoints()) >= 10 and odom, 20), ros.log_of(proc)
+        assert ap.link.mav.signing.sig_count >= 10, "the bridge signs what it sends"
+        assert "(signed)" in ros.log_of(proc) and diag["signing"] == "on"
+    finally:
+        ap.close()
+
+
+def test_a_bad_signing_key_stops_the_bridge_naming_it(tmp_path):
+    from conftest import run_to_exit
+
+    (tmp_path / "short").write_bytes(b"0123")
+    for path, said in ((tmp_path / "short", "holds 4 bytes"), (tmp_path / "none", "cannot read")):
+        r = run_to_exit("uav_bringup", "mavlink_bridge", "-p", f"signing_key_file:={path}")
+        assert r.returncode == 2 and "parameter 'signing_key_file'" in r.stderr and said in r.stderr, r.stderr

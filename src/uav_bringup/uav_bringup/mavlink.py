@@ -55,6 +55,22 @@ class BridgeSettings:
     publish_odometry: bool = setting(
         True, "Publish the autopilot's LOCAL_POSITION_NED and ATTITUDE as odom (nav_msgs/Odometry, REP 105 frames)"
     )
+    target_system: int = setting(
+        0,
+        "The vehicle commanded and reported: its MAVLink system id; 0 = the first autopilot heard, then kept (another "
+        "system's messages are ignored and counted; a lost target stops the stream, never switches vehicle)",
+        0,
+        255,
+    )
+    target_component: int = setting(
+        0, "The autopilot's component id within target_system; 0 = the first heard, then kept (usually 1)", 0, 255
+    )
+    signing_key_file: str = setting(
+        "",
+        "MAVLink 2 signing: a file holding the 32-byte secret (raw, or 64 hex digits), the key ArduPilot's SETUP_SIGNING "
+        "and pymavlink use; outgoing messages are signed, unsigned or wrongly signed ones refused and counted; "
+        "'' = no signing",
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,28 +122,58 @@ def send_setpoint(mav, target_system: int, target_component: int, sp: Setpoint, 
 
 @dataclasses.dataclass
 class Autopilot:
-    """What the autopilot's heartbeats said, and when."""
+    """The one vehicle the bridge commands and reports, and what its heartbeats said.
 
-    system: int = 0
+    `target_system` / `target_component` 0 take the first autopilot heard and keep it: once locked, messages
+    from any other system (or another component of the system) are never taken, only counted in `foreign`."""
+
+    target_system: int = 0
+    target_component: int = 0
+    system: int = 0  # the vehicle locked on (0: none yet)
     component: int = 0
     autopilot: int = -1
     mode: str = "-"
     armed: bool = False
     last_heartbeat: float | None = None  # time.monotonic() of the last one
     heartbeats: int = 0
+    foreign: dict = dataclasses.field(default_factory=dict)  # system id -> its messages ignored
+
+    def ours(self, msg) -> bool:
+        """True for a message of the commanded vehicle; another system's is counted in `foreign`. Before a
+        heartbeat has locked a vehicle, only a heartbeat (heard()) can be taken."""
+        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        wanted = self.system or self.target_system
+        if wanted and src != wanted:
+            self.foreign[src] = self.foreign.get(src, 0) + 1
+            return False
+        return bool(self.system) and comp == self.component
 
     def heard(self, msg, now: float) -> bool:
-        """Take a HEARTBEAT; True when it is the autopilot's (not another GCS's or companion's)."""
+        """Take a HEARTBEAT; True when it is the commanded vehicle's autopilot (not another vehicle's, a GCS's or a
+        companion's). The first one that fits target_system/target_component locks the vehicle."""
         if msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER) or msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return False
+        if not self.system:
+            src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+            if self.target_system and src != self.target_system:
+                self.foreign[src] = self.foreign.get(src, 0) + 1
+                return False
+            if self.target_component and comp != self.target_component:
+                return False
+            self.system, self.component = src, comp
+        elif not self.ours(msg):
             return False
         from pymavlink import mavutil
 
-        self.system, self.component = msg.get_srcSystem(), msg.get_srcComponent()
         self.autopilot = msg.autopilot
         self.mode = mavutil.mode_string_v10(msg)
         self.armed = bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
         self.last_heartbeat, self.heartbeats = now, self.heartbeats + 1
         return True
+
+    @property
+    def foreign_systems(self) -> str:
+        return ", ".join(str(s) for s in sorted(self.foreign)) or "-"
 
     def alive(self, now: float, timeout_s: float) -> bool:
         return self.last_heartbeat is not None and now - self.last_heartbeat <= timeout_s
@@ -149,9 +195,57 @@ class Autopilot:
         return f"{state}: the pilot must {' and '.join(todo)} (the bridge never does)"
 
 
-def connect(url: str, baud: int, source_system: int, source_component: int):
-    """A pymavlink connection; ValueError naming the url when it cannot be opened."""
+def read_signing_key(path: str) -> bytes:
+    """The 32-byte MAVLink 2 signing secret in `path`: 32 raw bytes, or 64 hex digits (whitespace around them
+    ignored). ValueError saying why not."""
+    import os
+
+    try:
+        data = open(os.path.expanduser(path), "rb").read(200)
+    except OSError as e:
+        raise ValueError(f"cannot read '{path}': {e.strerror or e}") from None
+    if len(data) == 32:
+        return data
+    try:
+        key = bytes.fromhex(data.decode("ascii").strip())
+    except (UnicodeDecodeError, ValueError):
+        key = b""
+    if len(key) != 32:
+        raise ValueError(f"'{path}' holds {len(data)} bytes: a signing key is 32 raw bytes or 64 hex digits")
+    return key
+
+
+class SigningCounts:
+    """Incoming messages refused by MAVLink 2 signing, read from pymavlink's counters."""
+
+    def __init__(self, mav):
+        self.signing = mav.signing
+
+    @property
+    def bad_signature(self) -> int:
+        return self.signing.badsig_count
+
+    @property
+    def unsigned(self) -> int:  # refused without a signature (a refused bad signature counts in both of pymavlink's)
+        return self.signing.reject_count - self.signing.badsig_count
+
+
+def sign(link, key: bytes) -> SigningCounts:
+    """Sign everything sent on `link` with `key` and refuse every incoming message not signed with it."""
+    link.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda _mav, _msg_id: False)
+    return SigningCounts(link.mav)
+
+
+def connect(url: str, baud: int, source_system: int, source_component: int, mavlink2: bool = False):
+    """A pymavlink connection; ValueError naming the url when it cannot be opened. `mavlink2` speaks MAVLink 2 from
+    the first message (signing needs it; otherwise pymavlink starts with 1 and follows the autopilot to 2)."""
+    import os
+
     from pymavlink import mavutil
+
+    if mavlink2 and not os.environ.get("MAVLINK20"):
+        os.environ["MAVLINK20"] = "1"  # pymavlink picks the protocol of its dialect module from this
+        mavutil.set_dialect(mavutil.current_dialect)
 
     try:
         return mavutil.mavlink_connection(

@@ -6,6 +6,10 @@ Streams the newest command as a body-frame velocity and yaw-rate setpoint at rat
 frame conversion), zero velocity when cmd_vel has been silent for cmd_timeout_s, and nothing while the autopilot's
 heartbeat is lost. It never arms, takes off or switches modes: it says on /diagnostics and in its log what the pilot
 must do. With publish_odometry the autopilot's position and attitude come back as `odom` (REP 105).
+
+One vehicle: `target_system` (0: the first autopilot heard, then kept); other systems' messages are ignored and
+counted. With `signing_key_file`, MAVLink 2 signing: every message out is signed, every unsigned or wrongly signed
+message in refused and counted (docs/REAL_CAMERA.md, "Flying a real vehicle").
 """
 
 from __future__ import annotations
@@ -33,10 +37,16 @@ class MavlinkBridge(Node):
         super().__init__("mavlink_bridge", **node_options)
         self.st = st = declare_settings(self, mavlink.BridgeSettings)
         try:
-            self.mav = mavlink.connect(st.url, st.baud, st.source_system, st.source_component)
+            key = mavlink.read_signing_key(st.signing_key_file) if st.signing_key_file else None
+        except ValueError as e:
+            raise ParameterError(f"parameter 'signing_key_file': {e}") from None
+        try:
+            self.mav = mavlink.connect(st.url, st.baud, st.source_system, st.source_component, mavlink2=key is not None)
         except ValueError as e:
             raise ParameterError(f"parameter 'url': {e}") from None
-        self.autopilot = mavlink.Autopilot()
+        self.signing = mavlink.sign(self.mav, key) if key is not None else None
+        self.autopilot = mavlink.Autopilot(st.target_system, st.target_component)
+        self.foreign_told: set[int] = set()
         self.start = time.monotonic()
         self.command = mavlink.ZERO
         self.last_cmd: float | None = None
@@ -55,8 +65,10 @@ class MavlinkBridge(Node):
         self.create_timer(1.0 / st.rate_hz, self._tick)
         self.create_timer(HEARTBEAT_PERIOD_S, lambda: mavlink.send_heartbeat(self.mav.mav))
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._diagnose)
+        which = f"system {st.target_system}" if st.target_system else "the first autopilot heard"
         self.get_logger().info(
-            f"MAVLink on {st.url}: waiting for the autopilot's heartbeat; setpoints at {st.rate_hz:g} Hz from "
+            f"MAVLink on {st.url}{' (signed)' if self.signing else ''}: waiting for the heartbeat of {which}; "
+            f"setpoints at {st.rate_hz:g} Hz from "
             f"{contract.CMD_VEL_STAMPED_TOPIC if st.stamped else contract.CMD_VEL_TOPIC} (zero after {st.cmd_timeout_s:g} s "
             "without a command). This bridge never arms or switches modes."
         )
@@ -80,16 +92,24 @@ class MavlinkBridge(Node):
             if msg is None:
                 return
             kind = msg.get_type()
-            if kind == "HEARTBEAT" and self.autopilot.heard(msg, now):
-                advice = self.autopilot.advice()
-                if advice != self.advice:
-                    self.advice = advice
-                    self.get_logger().info(advice)
-            elif kind == "ATTITUDE":
-                self.attitude = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
-                self.yaw_ned = msg.yaw
-            elif kind == "LOCAL_POSITION_NED" and self.pub_odom is not None:
-                self._publish_odometry(msg)
+            if kind == "HEARTBEAT":
+                if self.autopilot.heard(msg, now):
+                    advice = self.autopilot.advice()
+                    if advice != self.advice:
+                        self.advice = advice
+                        self.get_logger().info(advice)
+            elif kind in ("ATTITUDE", "LOCAL_POSITION_NED") and self.autopilot.ours(msg):
+                if kind == "ATTITUDE":
+                    self.attitude = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+                    self.yaw_ned = msg.yaw
+                elif self.pub_odom is not None:
+                    self._publish_odometry(msg)
+            for system in set(self.autopilot.foreign) - self.foreign_told:
+                self.foreign_told.add(system)
+                self.get_logger().warning(
+                    f"MAVLink system {system} is not the commanded vehicle (system {self.autopilot.system or '-'}): "
+                    "its messages are ignored"
+                )
 
     def _tick(self) -> None:
         now = time.monotonic()
@@ -98,7 +118,10 @@ class MavlinkBridge(Node):
         if alive != self.streaming:
             self.streaming = alive
             if alive:
-                self.get_logger().info(f"{self.autopilot.name} heard (system {self.autopilot.system}): streaming setpoints")
+                ap = self.autopilot
+                self.get_logger().info(
+                    f"{ap.name} heard: commanding system {ap.system}, component {ap.component}; streaming setpoints"
+                )
             else:
                 self.get_logger().error(
                     f"{self.autopilot.name} heartbeat lost for {self.st.heartbeat_timeout_s:g} s: "
@@ -148,6 +171,13 @@ class MavlinkBridge(Node):
             "setpoints_sent": self.sent,
             "zero_setpoints_sent": self.zeros_sent,
             "non_finite_commands": self.bad_commands,
+            "target_system": ap.system or "-",
+            "target_component": ap.component or "-",
+            "other_systems_seen": ap.foreign_systems,
+            "other_system_messages_ignored": sum(ap.foreign.values()),
+            "signing": "on" if self.signing else "off",
+            "unsigned_refused": self.signing.unsigned if self.signing else 0,
+            "bad_signature_refused": self.signing.bad_signature if self.signing else 0,
             "last_command_frd": ", ".join(
                 f"{v:.2f}" for v in (self.command.vx, self.command.vy, self.command.vz, self.command.yaw_rate)
             ),
