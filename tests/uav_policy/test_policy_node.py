@@ -5,6 +5,7 @@ import signal
 import time
 
 import numpy as np
+import pytest
 import torch
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import TwistStamped
@@ -382,21 +383,34 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
     short.data = short.data[:100]  # says 64x64, carries 25 floats
     wrong = good()
     wrong.encoding = "rgb8"
-    send(2, short)
-    send(3, wrong)
-    send(4, good())
-    assert ros.spin_until(lambda: len(w.actions) == 2, 10), ros.log_of(proc)
-    assert w.action_stamps() == [1_000_000_000, 4_000_000_000]  # the malformed frames got no answer
+    narrow = good()
+    narrow.step = 4 * 63  # rows shorter than the width says
+    empty = good()
+    empty.height, empty.data = 0, b""
+    absurd = good()
+    absurd.height, absurd.width, absurd.step = 1_000_000, 1_000_000, 4_000_000  # 4 TB said, 16 KiB carried
+    # Each hostile frame gets no answer, and the valid frame right after it does.
+    for sec, bad in enumerate((short, wrong, narrow, empty, absurd), start=2):
+        send(10 * sec, bad)
+        send(10 * sec + 1, good())
+        assert ros.spin_until(lambda sec=sec: w.action_stamps()[-1:] == [(10 * sec + 1) * 10**9], 10), ros.log_of(proc)
+    assert w.action_stamps() == [10**9] + [(10 * s + 1) * 10**9 for s in range(2, 7)]  # the malformed frames got no answer
+    # What each one is told (the node's warning is throttled: the log shows the first of a burst).
+    told = ((wrong, "got 'rgb8'"), (narrow, "step 252 is smaller"), (empty, "empty size 64x0"))
+    told += ((absurd, "expected 4000000000000"),)
+    for bad, said in told:
+        with pytest.raises(ValueError, match=said):
+            contract.image_to_depth(bad)
     values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
-    assert ros.spin_until(lambda: values(diag[-1])["malformed_frames"] == "2", 5), [values(d) for d in diag]
+    assert ros.spin_until(lambda: values(diag[-1])["malformed_frames"] == "5", 5), [values(d) for d in diag]
     warned = next(d for d in diag if values(d)["malformed_frames"] != "0")  # the two may fall into two reports
     assert warned.level == DiagnosticStatus.WARN and "malformed depth frame(s) ignored" in warned.message, warned.message
     last = values(diag[-1])
-    assert last["frames_answered"] == "2" and last["model"] == "cnn" and "packaged pretrained weights" in last["weights"]
+    assert last["frames_answered"] == "6" and last["model"] == "cnn" and "packaged pretrained weights" in last["weights"]
     # With no more malformed frames the next report is OK again; the count stays.
     n = len(diag)
     assert ros.spin_until(lambda: len(diag) > n + 1, 5)
-    assert diag[-1].level == DiagnosticStatus.OK and values(diag[-1])["malformed_frames"] == "2"
+    assert diag[-1].level == DiagnosticStatus.OK and values(diag[-1])["malformed_frames"] == "5"
     assert proc.poll() is None and "ignoring malformed depth frame" in ros.log_of(proc)
 
 
@@ -560,6 +574,57 @@ def test_a_restarted_simulator_is_answered_again(ros):
     after = lambda: [s for s in w.action_stamps()[n:] if s < last]  # noqa: E731
     assert ros.spin_until(lambda: len(after()) >= 10, 30), "policy_node did not answer the restarted simulator"
     assert after()[:3] == [0, 500_000_000, 1_000_000_000], "answered from the new simulator's first frame on"
+
+
+def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
+    """Frames of a second camera (another frame_id) on the depth topic are dropped and counted, with an ERROR on
+    /diagnostics: the network input after them is the first camera's alone. Once the first camera has been silent
+    for camera_switch_s, the second is taken with a new stack."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from sensor_msgs.msg import Range
+
+    w = Watch(ros)
+    diag = []
+    ros.node.create_subscription(
+        DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
+    )
+    pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.STREAM_QOS)
+    pub_out = ros.node.create_publisher(Range, contract.OUTCOME_TOPIC, contract.STREAM_QOS)
+    proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "camera_switch_s:=1.0")
+    ready = lambda: pub_img.get_subscription_count() and pub_out.get_subscription_count() and diag  # noqa: E731
+    assert ros.spin_until(ready, 30), ros.log_of(proc)
+
+    def send(sec: int, camera: str, depth_m: float, outcome: bool = True) -> None:
+        img = contract.depth_to_image(np.full((64, 64), depth_m, np.float32), Time(sec=sec), camera)
+        if outcome:
+            pub_out.publish(Range(header=img.header, range=5.0))
+        pub_img.publish(img)
+
+    values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
+    for sec in (1, 2):
+        send(sec, "cam_a", 4.0)
+        assert ros.spin_until(lambda n=sec: len(w.q) == n, 10), ros.log_of(proc)
+    for sec in (3, 4):  # the second camera, its frames alternating with the first's
+        send(sec, "cam_b", 0.6, outcome=False)
+        ros.spin_for(0.2)
+        send(sec + 2, "cam_a", 4.0)
+        assert ros.spin_until(lambda n=sec: len(w.q) == n, 10), ros.log_of(proc)
+    assert w.action_stamps() == [s * 10**9 for s in (1, 2, 5, 6)], "the other camera's frames are not answered"
+    assert list(w.q[2].data) == list(w.q[3].data) == list(w.q[1].data), "the stack holds the first camera alone"
+    assert ros.spin_until(lambda: values(diag[-1])["other_camera_frames_dropped"] == "2", 5), [values(d) for d in diag]
+    last = diag[-1]
+    assert last.level == DiagnosticStatus.ERROR and "another camera (cam_b)" in last.message, last.message
+    assert values(last)["camera_frame_id"] == "cam_a" and values(last)["other_camera_frame_ids"] == "cam_b"
+    assert "dropping depth frames of camera 'cam_b'" in ros.log_of(proc)
+    # The first camera stops for good: after camera_switch_s the second is taken, on a stack of its own.
+    ros.spin_for(1.2)
+    for sec in (7, 8):
+        send(sec, "cam_b", 0.6)
+        assert ros.spin_until(lambda n=sec - 2: len(w.q) == n, 10), ros.log_of(proc)
+    assert list(w.q[4].data) == list(w.q[5].data) != list(w.q[3].data), "a new stack: the second camera's frames alone"
+    assert ros.spin_until(lambda: values(diag[-1])["camera_switches"] == "1", 5)
+    assert values(diag[-1])["camera_frame_id"] == "cam_b" and "taking it, with a new frame stack" in ros.log_of(proc)
+    assert ros.spin_until(lambda: diag[-1].level != DiagnosticStatus.ERROR, 5), "the ERROR lasts while foreign frames come"
 
 
 def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):

@@ -45,6 +45,11 @@ class CameraControl:
         self.pending = (item, now)
         return now - self.last_answer >= JITTER * self.control_period_s
 
+    def new_stack(self) -> None:
+        """Another camera is taken: nothing of the last one's is stacked with its frames or answered."""
+        self.sampled.clear()
+        self.pending = None
+
     def take(self) -> tuple[object, np.ndarray]:
         """The pending frame's item and the sampled state it is answered on."""
         (item, arrived), self.pending = self.pending, None

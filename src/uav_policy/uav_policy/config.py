@@ -100,6 +100,13 @@ class PolicySettings:
         3600.0,
     )
     torch_threads: int = setting(1, "Torch intra-op threads (batch-1 inference gains nothing from more)", 1, 256)
+    camera_switch_s: float = setting(
+        2.0,
+        "Frames of another frame_id than the stacked camera's are dropped (ERROR on /diagnostics); that camera is taken, "
+        "with a new stack, once the stacked one has sent nothing for this long (s)",
+        0.1,
+        3600.0,
+    )
 
     def check(self) -> None:
         """ParameterError, naming the parameter, for settings that do not go together."""

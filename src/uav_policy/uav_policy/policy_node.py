@@ -1,13 +1,10 @@
 """policy_node: flies the quadrotor with D3QN-SAM or D3QN-CNN and publishes what it attends to.
 
-Wiring only; each job has its module: frames onto the network's input through depth/camera_info (camera_input);
-a simulator's frames joined with their step outcomes, stacked, and held for the trainer in lockstep learning
-(simulator_link); a camera alone answered at most control_rate_hz on a stack sampled one step apart, with a stop
-when frames stop (camera_control); the decision and the safety layer (pilot, safety); what goes out: cmd_vel,
-action, q_values, SAM's attention or the CNN's Grad-CAM saliency (outputs); what decisions look at, measured on
-/diagnostics (explainer, insight); signed weight pushes from trainer_node (push, push_receiver); the answers
-counted (answer_stats). It flies the packaged weights, or the 'weights' files as one policy on their mean
-Q-values; a flying policy takes nothing from the network (accept_pushes is train's).
+Wiring only; each job has its module: frames onto the network's input (camera_input), one camera per stack
+(camera_identity); a simulator's frames joined with their outcomes, stacked, held for lockstep learning
+(simulator_link); a camera alone answered at most control_rate_hz, with a stop when frames stop (camera_control);
+the decision and safety layer (pilot, safety); cmd_vel, action, q_values, attention or Grad-CAM (outputs); what
+decisions look at (explainer, insight); signed weight pushes (push, push_receiver); answers counted (answer_stats).
 """
 
 from __future__ import annotations
@@ -31,6 +28,7 @@ from . import weights as wio
 from .agent import Agent, resolve_device
 from .answer_stats import AnswerStats
 from .camera_control import CameraControl
+from .camera_identity import CameraIdentity
 from .camera_input import CameraInput
 from .config import RETIRED, PolicySettings
 from .explainer import Explainer
@@ -85,6 +83,7 @@ class PolicyNode(Node):
         period = 1.0 / st.control_rate_hz
         self.control = CameraControl(st.frame_stack, st.step_duration_s, period, st.safety.frame_timeout_s, log)
         self.link = SimulatorLink(st.frame_stack, st.wait_for_trainer, st.wait_for_trainer_timeout_s, log)
+        self.identity = CameraIdentity(st.camera_switch_s, log, stacks=(self.control, self.link))  # one camera a stack
         self.agent = Agent(net, self.cfg, device, st.seed)
         self.pilot = Pilot(self.agent, self.actions, st.step_duration_s, self.safety)
         self.receiver = PushReceiver(st.push_key_file, self.link.gate, period, log)
@@ -128,6 +127,8 @@ class PolicyNode(Node):
         t_in = time.perf_counter()
         stamp = contract.stamp_ns(msg.header.stamp)
         if stream == "frame":
+            if not self.identity.admit(msg.header.frame_id, time.monotonic()):
+                return  # another camera's frame on this topic
             self.stats.received += stamp != self.link.last_stamp  # a frame said again is not new
             offered = lambda: self.count_publishers(self.info_topic) > 0  # noqa: E731
             if self.camera.should_wait(msg.height, msg.width, time.monotonic(), offered):
@@ -215,7 +216,6 @@ class PolicyNode(Node):
         self.explainer.explain(net, state, d.q, d.attention, self.stats.answered, saliency, inline)
         self.stats.answer(t_in, t0, t_out)
 
-    # -- weight pushes ------------------------------------------------------------------
     async def _on_push(self, request, response):
         t0 = time.perf_counter()
         response.success = False
@@ -267,13 +267,11 @@ class PolicyNode(Node):
         self.receiver.accepted += 1
         self.source = f"pushed weights ({len(blob)} bytes)"
 
-    # -- diagnostics --------------------------------------------------------------------
     def publish_diagnostics(self) -> None:
-        """1 Hz on /diagnostics: frames answered, malformed frames ignored, weight pushes; WARN while
-        malformed frames arrive, frames go unanswered or stopped, or the camera differs from the weights'."""
+        """1 Hz: frames answered or ignored, pushes; ERROR while another camera's frames come, WARN on other problems."""
         now = time.monotonic()
         problems, answers = self.stats.report(now, waiting=bool(self.link.gate.held))
-        problems += [p for p in (self.control.problem(now), self.camera.problem()) if p]
+        problems += [p for p in (self.identity.problem(now), self.control.problem(now), self.camera.problem()) if p]
         vals = {
             "model": self.cfg.model,
             "weights": self.source,
@@ -284,12 +282,14 @@ class PolicyNode(Node):
             "source": "camera" if self.control.active else "simulator" if self.stats.answered else "-",
             "camera_restarts": self.control.restarts,
             **self.camera.values(),
+            **self.identity.values(),
             **(self.safety.counts if self.safety else Interventions()).values(on=self.safety is not None),
             "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)",
             **self.explainer.values(),
         }
         message = "; ".join(problems) or ("acting" if self.stats.recent else "waiting for depth frames")
-        self.pub_diag.publish(contract.diagnostics(self, "uav_policy", "WARN" if problems else "OK", message, vals))
+        level = "ERROR" if self.identity.problem(now) else "WARN" if problems else "OK"
+        self.pub_diag.publish(contract.diagnostics(self, "uav_policy", level, message, vals))
 
 
 def main(args=None) -> int:

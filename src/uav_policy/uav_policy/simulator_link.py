@@ -43,6 +43,10 @@ class SimulatorLink:
             return None, restarted
         return joined, restarted
 
+    def new_stack(self) -> None:
+        """Another camera is taken: its frames start a new stack."""
+        self.stack = FrameStack(self.stack.frames)
+
     def state(self, net_in: np.ndarray, new_episode: bool) -> np.ndarray:
         """The stack with a frame's network input on top: the state it is answered on."""
         return self.stack.reset(net_in) if new_episode or self.stack.empty else self.stack.push(net_in)
