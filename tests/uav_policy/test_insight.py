@@ -97,3 +97,57 @@ def test_summaries_pool_by_frames_and_survive_diagnostics():
     assert back == a and InsightSummary.from_values({}) is None
     assert InsightSummary(10, 1, 0.1, 1, 0.5, 0.0, 1).values()["insight_faithfulness"] == "inf"
     assert InsightSummary.pool([a, None]) is None, "a run not measured leaves the pool unmeasured"
+
+
+class NearAnywhere(torch.nn.Module):
+    """Turns (action 1) when any pixel of the newest frame is nearer than 2 m, else flies on (action 0): its decision
+    depends on every cell, so the cell the obstacle is in is what it depends on."""
+
+    grid_hw = (8, 8)
+
+    def __init__(self):
+        super().__init__()
+        self.dummy = torch.nn.Parameter(torch.zeros(1))
+
+    def forward(self, x):
+        near = (torch.nan_to_num(x[:, -1], posinf=10.0).flatten(1).min(dim=1).values < 2.0).float()
+        return torch.stack([1 - near, near, torch.zeros_like(near), torch.zeros_like(near)], dim=1), None
+
+
+def scene(rng, rows=range(8)) -> tuple[np.ndarray, int]:
+    """A state with one obstacle cell at 1 m (in one of `rows`) before an 8 m background, and its node index."""
+    state = np.full((5, 64, 64), 8.0, np.float32)
+    node = int(rng.choice(list(rows))) * 8 + int(rng.integers(0, 8))
+    r, c = divmod(node, 8)
+    state[:, 8 * r : 8 * r + 8, 8 * c : 8 * c + 8] = 1.0
+    return state, node
+
+
+def test_a_map_that_follows_what_the_decision_reads_is_faithful_against_random_and_mean_map_cells():
+    """The explanation is the obstacle's cell: masking it changes the decision every time, random cells and the
+    mean map's top cells seldom."""
+    rng, net, meter = np.random.default_rng(1), NearAnywhere(), Insight((8, 8), seed=0)
+    for _ in range(150):
+        state, node = scene(rng)
+        rows = np.full((1, 64), 0.01 / 63)
+        rows[0, node] = 0.99
+        meter.observe(net, state, 1, rows)
+    s = meter.summary()
+    assert s.deletion_top == 1.0 and s.faithfulness > 4 and s.faithfulness_vs_mean_map > 4, s
+
+
+def test_a_fixed_map_with_a_skip_path_scores_one_against_the_mean_map_however_it_scores_against_random_cells():
+    """A fixed floor band (the bottom rows, ranked by a fixed gradient) whatever is seen, while the decision reads
+    every cell: obstacles often in the band make it look faithful against random cells; against the mean map, whose
+    top cells are the band itself, it scores 1."""
+    rng, net, meter = np.random.default_rng(2), NearAnywhere(), Insight((8, 8), seed=0)
+    band = np.zeros(64)
+    band[48:] = np.linspace(2.0, 1.0, 16)  # the bottom two rows, fixed ranks
+    band /= band.sum()
+    for _ in range(150):
+        state, _ = scene(rng, rows=(6, 6, 7, 3))
+        meter.observe(net, state, 1, band[None])
+    s = meter.summary()
+    assert s.faithfulness > 2, f"the fixed band passes the random-cell test: {s.faithfulness:.2f}"
+    assert s.faithfulness_vs_mean_map == pytest.approx(1.0, abs=0.02), s
+    assert s.map_correlation == 1.0

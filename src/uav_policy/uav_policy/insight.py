@@ -12,6 +12,9 @@ Measured per frame and summarised by `Insight` (policy_node's /diagnostics, eval
   whatever is seen; a map that does not vary at all counts as 1);
 - faithfulness, a deletion test: how often the greedy action changes when the image regions of the top-k
   explained nodes are masked to "no return", against masking k random nodes; the ratio of the two rates;
+- faithfulness against the mean map: the same, against masking the top-k nodes of the mean of the maps seen
+  before (a position-only baseline: a fixed prior, the same band on every frame, scores about 1 here however
+  it scores against random nodes);
 - grounding: the explanation's mass on pixels nearer than NEAR_M against their share of the image (1 = no
   preference; above 1 = looks at what is near); `mass_ratio` and `increase_on` measure it on an object placed in a
   scene (uav_trainer.grounding's counterfactual test).
@@ -128,22 +131,36 @@ def masked_states(
     return out
 
 
+def top_nodes(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The top 10 % of the nodes by mass; nodes of equal mass are taken in random order, not by index."""
+    d = received(dist)
+    shuffled = rng.permutation(d.size)
+    return shuffled[np.argsort(-d[shuffled], kind="stable")[: top_count(d.size)]]
+
+
 @torch.no_grad()
 def deletion_test(
-    net: torch.nn.Module, state: np.ndarray, dist: np.ndarray, action: int, grid_hw, rng: np.random.Generator
-) -> tuple[bool, float]:
+    net: torch.nn.Module,
+    state: np.ndarray,
+    dist: np.ndarray,
+    action: int,
+    grid_hw,
+    rng: np.random.Generator,
+    prior: np.ndarray | None = None,
+) -> tuple[bool, float, bool | None]:
     """(does masking the top-k explained nodes change the greedy action, the share of RANDOM_DRAWS masks of
-    k random nodes that change it), k = the top 10 % of the nodes."""
+    k random nodes that change it, does masking the top-k nodes of `prior` change it (None without a prior)),
+    k = the top 10 % of the nodes."""
     d = received(dist)
     k = top_count(d.size)
-    shuffled = rng.permutation(d.size)  # nodes of equal mass are taken in random order, not by index
-    top = shuffled[np.argsort(-d[shuffled], kind="stable")[:k]]
-    sets = [top] + [rng.choice(d.size, size=k, replace=False) for _ in range(RANDOM_DRAWS)]
+    sets = [top_nodes(d, rng)] + [rng.choice(d.size, size=k, replace=False) for _ in range(RANDOM_DRAWS)]
+    if prior is not None:
+        sets.append(top_nodes(prior, rng))
     x = torch.from_numpy(masked_states(state, sets, grid_hw))
     device = next(net.parameters()).device
     q, _ = net(x.to(device))
     changed = q.argmax(dim=1).cpu().numpy() != action
-    return bool(changed[0]), float(changed[1:].mean())
+    return bool(changed[0]), float(changed[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(changed[-1])
 
 
 def grad_cam(net: torch.nn.Module, state: np.ndarray, action: int) -> np.ndarray:
@@ -183,17 +200,28 @@ class InsightSummary:
     deletion_top: float  # share of frames whose action changes with the top-k nodes masked
     deletion_random: float  # ... with k random nodes masked
     near_ratio: float  # mass on near pixels over their share (mean over frames with something near); nan if none
+    deletion_mean_map: float = math.nan  # ... with the top-k nodes of the mean map so far masked (nan: not measured)
+
+    @staticmethod
+    def ratio(top: float, baseline: float) -> float:
+        """top / baseline (inf when only the top-k masks change the action; nan when none do)."""
+        if baseline > 0:
+            return top / baseline
+        return math.inf if top > 0 else math.nan
 
     @property
     def faithfulness(self) -> float:
-        """deletion_top / deletion_random (inf when only the top-k masks change the action; nan when none do)."""
-        if self.deletion_random > 0:
-            return self.deletion_top / self.deletion_random
-        return math.inf if self.deletion_top > 0 else math.nan
+        """deletion_top / deletion_random."""
+        return self.ratio(self.deletion_top, self.deletion_random)
 
-    FIELDS = ("entropy", "top_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
+    @property
+    def faithfulness_vs_mean_map(self) -> float:
+        """deletion_top / deletion_mean_map: about 1 for a map that is a fixed prior."""
+        return self.ratio(self.deletion_top, self.deletion_mean_map)
+
+    FIELDS = ("entropy", "top_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio", "deletion_mean_map")
     # Their names in values() (after "insight_") and in evaluate's results.csv, in FIELDS' order.
-    NAMES = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio")
+    NAMES = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio", "deletion_mean_map")
 
     @staticmethod
     def from_values(values: dict) -> InsightSummary | None:
@@ -222,7 +250,9 @@ class InsightSummary:
         f = lambda v: "-" if math.isnan(v) else f"{v:.3f}"  # noqa: E731
         out = {"insight_frames": str(self.frames)}
         out.update({f"insight_{n}": f(getattr(self, k)) for k, n in zip(self.FIELDS, self.NAMES, strict=True)})
-        out["insight_faithfulness"] = "inf" if math.isinf(self.faithfulness) else f(self.faithfulness)
+        for name in ("faithfulness", "faithfulness_vs_mean_map"):
+            v = getattr(self, name)
+            out[f"insight_{name}"] = "inf" if math.isinf(v) else f(v)
         return out
 
 
@@ -232,20 +262,24 @@ class Insight:
     def __init__(self, grid_hw: tuple[int, int], window: int | None = None, seed: int = 0):
         self.grid_hw = grid_hw
         self.rng = np.random.default_rng(seed)
-        self.frames = collections.deque(maxlen=window)  # (map, entropy, top share, top changed, random changed, near)
+        # (map, entropy, top share, top changed, random changed, near, mean map's top changed or None)
+        self.frames = collections.deque(maxlen=window)
 
     def observe(self, net, state: np.ndarray, action: int, rows: np.ndarray) -> None:
-        """Measure one decision: `state` (frames, H, W) in metres, its greedy `action`, and the `explanation` of it."""
+        """Measure one decision: `state` (frames, H, W) in metres, its greedy `action`, and the `explanation` of it.
+        The mean-map baseline is the mean of the maps observed before it (none for the first frame)."""
         dist = received(rows)
-        top, rand = deletion_test(net, state, dist, action, self.grid_hw, self.rng)
+        prior = np.mean([f[0] for f in self.frames], axis=0) if self.frames else None
+        top, rand, by_prior = deletion_test(net, state, dist, action, self.grid_hw, self.rng, prior)
         near = near_ratio(dist, state[-1], self.grid_hw)
-        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near))
+        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near, by_prior))
 
     def summary(self) -> InsightSummary | None:
         if not self.frames:
             return None
-        maps, ent, share, top, rand, near = zip(*self.frames, strict=True)
+        maps, ent, share, top, rand, near, by_prior = zip(*self.frames, strict=True)
         near = [n for n in near if n is not None]
+        by_prior = [b for b in by_prior if b is not None]
         return InsightSummary(
             len(maps),
             float(np.mean(ent)),
@@ -254,4 +288,5 @@ class Insight:
             float(np.mean(top)),
             float(np.mean(rand)),
             float(np.mean(near)) if near else math.nan,
+            float(np.mean(by_prior)) if by_prior else math.nan,
         )

@@ -349,7 +349,7 @@ def main(argv=None) -> int:
                     + (f", {r.interventions} safety interventions" if r.interventions >= 0 else "")
                     + (
                         f"; looks at: entropy {r.insight.entropy:.2f}, map correlation {r.insight.map_correlation:.2f}, "
-                        f"faithfulness {r.insight.faithfulness:.2f}"
+                        f"faithfulness {r.insight.faithfulness:.2f} (vs the mean map {r.insight.faithfulness_vs_mean_map:.2f})"
                         if r.insight
                         else ""
                     )

@@ -186,13 +186,15 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                 "safety_interventions",
                 *INSIGHT_COLUMNS,
                 "faithfulness",
+                "faithfulness_vs_mean_map",
             ]
         )
         for r in results:
             i = r.insight
-            insight = [""] * (len(INSIGHT_COLUMNS) + 1)
+            insight = [""] * (len(INSIGHT_COLUMNS) + 2)
             if i is not None:
-                insight = [i.frames, *(f"{getattr(i, k):.4f}" for k in InsightSummary.FIELDS), f"{i.faithfulness:.4f}"]
+                insight = [i.frames, *(f"{getattr(i, k):.4f}" for k in InsightSummary.FIELDS)]
+                insight += [f"{i.faithfulness:.4f}", f"{i.faithfulness_vs_mean_map:.4f}"]
             w.writerow(
                 [
                     r.model,
@@ -312,11 +314,13 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
         "Every step measured. Entropy: per query, normalised (1 = uniform). Top 10 %: the mass on the top tenth of "
         "the nodes (0.1 = uniform). Map correlation: median correlation of each frame's map with the run's mean map "
         "(1 = the same map whatever is seen). Deletion: the share of steps whose action changes when the top 10 % "
-        "of nodes, or as many random ones, read 'no return'; faithfulness = top / random. Near: the mass on pixels "
-        "nearer than 3 m over their share of the image (1 = no preference).",
+        "of nodes, as many random ones, or the top 10 % of the mean of the maps before it read 'no return'; "
+        "faithfulness = top / random, and top / mean map (a fixed prior scores about 1 against the mean map). Near: the "
+        "mass on pixels nearer than 3 m over their share of the image (1 = no preference).",
         "",
-        "| model | world | entropy | top 10 % | map correlation | deletion top / random | faithfulness | near |",
-        "|---|---|---|---|---|---|---|---|",
+        "| model | world | entropy | top 10 % | map correlation | deletion top / random / mean map | faithfulness "
+        "| faithfulness vs mean map | near |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for m in models:
         for world in worlds:
@@ -325,10 +329,12 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
                 continue
             cell = lambda k, got=got: fmt(*mean_ci95([getattr(i, k) for i in got if not math.isnan(getattr(i, k))]), 2)  # noqa: E731
             top, rand = (float(np.mean([getattr(i, k) for i in got])) for k in ("deletion_top", "deletion_random"))
-            faith = InsightSummary(0, 0, 0, 0, top, rand, 0).faithfulness
+            prior = [i.deletion_mean_map for i in got if not math.isnan(i.deletion_mean_map)]
+            by_prior = float(np.mean(prior)) if prior else math.nan
             lines.append(
                 f"| D3QN-{m.upper()} | {world} | {cell('entropy')} | {cell('top_share')} | {cell('map_correlation')} "
-                f"| {top:.3f} / {rand:.3f} | {faith:.2f} | {cell('near_ratio')} |"
+                f"| {top:.3f} / {rand:.3f} / {by_prior:.3f} | {InsightSummary.ratio(top, rand):.2f} "
+                f"| {InsightSummary.ratio(top, by_prior) if prior else math.nan:.2f} | {cell('near_ratio')} |"
             )
     return [*lines, ""]
 
