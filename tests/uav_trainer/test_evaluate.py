@@ -242,9 +242,13 @@ def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, 
     assert "cannot read it" in capsys.readouterr().err
     (tmp_path / "good.csv").write_text(head + good)
     assert main(["--from-csv", str(tmp_path / "good.csv"), "--out", str(tmp_path / "ok")]) == 0
-    row = (tmp_path / "ok" / "results.csv").read_text().splitlines()[1].split(",")
-    assert row[:5] == ["sam", "basic", "a.safetensors", "1000", "2"] and row[10:13] == ["-1", "-1", "-1"]
-    assert row[13:] == [""] * 8, "a row measured before the insight columns existed has none"
+    head_out, line = (tmp_path / "ok" / "results.csv").read_text().splitlines()[:2]
+    row = dict(zip(head_out.split(","), line.split(","), strict=True))
+    assert [row[k] for k in ("model", "world", "weights", "steps", "crashes")] == ["sam", "basic", "a.safetensors", "1000", "2"]
+    assert (row["crashes_per_1000_low"], row["crashes_per_1000_high"]) == ("0.24", "7.22"), "its exact Poisson interval"
+    assert [row[k] for k in ("turn_steps", "cells_visited", "safety_interventions")] == ["-1", "-1", "-1"]
+    later = list(row)[list(row).index("insight_frames") :]
+    assert len(later) == 10 and all(row[k] == "" for k in later), "a row measured before the insight columns existed has none"
 
 
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):
