@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
 """Copy trained weights files into uav_policy's packaged weights, recording their training camera.
 
-    python scripts/package_weights.py runs/sam_seed4/policy_sam_step{21..29}000.safetensors \\
-        runs/sam_seed4/policy_sam.safetensors --model sam
+    choose runs/sam_seed{0..4} --across-runs        # names one file, chosen on the validation worlds
+    python scripts/package_weights.py runs/sam_seed2/policy_sam_step25000.safetensors --model sam
 
-Replaces the files of src/uav_policy/weights/<model>/ with <model>_00.safetensors,
-<model>_01.safetensors, ... in the order given (policy_node flies several as one policy, acting on
-the mean of their Q-values): the same tensors, with the camera field of view and the reward
+Replaces the files of src/uav_policy/weights/<model>/ with <model>_00.safetensors (and <model>_01, ... when
+several files are given: policy_node flies several as one policy, acting on the mean of their Q-values;
+the packaged defaults are one network each): the same tensors, with the camera field of view and the reward
 window the run was trained with in the metadata. Files written before the trainers recorded the
 camera lack it: give --camera-hfov-deg then. Each file is written atomically. Rebuild with colcon
 afterwards so the installed package has them too.

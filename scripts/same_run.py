@@ -7,8 +7,9 @@
 
 Without --tables: the two run folders' episodes.csv (byte for byte) and every policy_*.safetensors
 file the first run wrote, tensor by tensor (a file the second lacks is reported). With --packaged
-MODEL: the run's snapshots in step order, then its final weights, against the weights packaged with
-uav_policy for MODEL, in their order (the packaged files are a run's ten files). With --tables A B:
+MODEL: the file the run chose on the validation worlds (its validation.csv, written by `choose`) against the
+one network packaged with uav_policy for MODEL; for a packaged set of several files, the run's snapshots in
+step order, then its final weights, against them in their order. With --tables A B:
 the evaluate rows of the first run in table A against the rows of the second run in table B, every
 column but the weights paths (a row belongs to a run when all its weights files lie in that run's
 folder; the folders need not exist). Prints one line per item and 'same' or 'DIFFERENT' last; exits
@@ -71,10 +72,25 @@ def run_files(run: Path, model: str) -> list[Path]:
     return [p for _, p in sorted(snaps)] + ([final] if final.exists() else [])
 
 
+def chosen_file(run: Path) -> Path | None:
+    """The weights file a run's validation.csv marks as chosen, or None."""
+    path = run / "validation.csv"
+    if not path.is_file():
+        return None
+    _, rows = read_csv(str(path), ("weights", "chosen"), "a choose validation.csv")
+    rows = [r for r in rows if r["chosen"] == "1"]
+    return run / rows[0]["weights"] if len(rows) == 1 and rows[0].get("weights") else None
+
+
 def compare_packaged(run: Path, model: str) -> list[tuple[str, str | None]]:
     from uav_policy.weights import packaged_weights
 
     mine, packaged = run_files(run, model), packaged_weights(model)
+    if len(packaged) == 1:  # one network: the file the run chose
+        chosen = chosen_file(run)
+        if chosen is None:
+            return [(str(run), "no validation.csv naming one chosen file (run `choose` on it)")]
+        return [(f"{chosen.name} (chosen) = packaged {packaged[0].name}", same_weights(chosen, packaged[0]))]
     if len(mine) != len(packaged):
         return [(str(run), f"{len(mine)} weights files against {len(packaged)} packaged for {model}")]
     return [(f"{p.name} = packaged {q.name}", same_weights(p, q)) for p, q in zip(mine, packaged, strict=True)]

@@ -32,7 +32,8 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
     answered = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in actions]
     assert len(answered) >= 20, f"only {len(answered)} steps flown in 12 s"
     assert set(answered) <= frames, "every command answers a recorded frame"
-    assert len(frames) - len(answered) in (0, 1), "every recorded frame was answered but perhaps the last"
+    # A frame the simulator says again (lockstep_republish_s, on a loaded machine) is answered again with the same stamp.
+    assert len(frames) - len(set(answered)) in (0, 1), "every recorded frame was answered but perhaps the last"
     assert depth[0].header.frame_id == "uav2/camera_depth_optical_frame"
     assert got["/uav2/odom"][1][0].header.frame_id == "uav2/odom"
     assert actions[0].header.frame_id == "uav2/base_link"
@@ -41,7 +42,7 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
     att = got["/uav2/attention"][1]
     # Each answer's attention, but perhaps the last: the stop may land between a command and its map.
     att_stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in att]
-    assert set(att_stamps) <= set(answered) and len(answered) - len(att) in (0, 1) and att[0].encoding == "32FC1"
+    assert set(att_stamps) <= set(answered) and len(set(answered)) - len(set(att_stamps)) in (0, 1) and att[0].encoding == "32FC1"
 
     out = tmp_path / "figures"
     r = subprocess.run(

@@ -153,7 +153,7 @@ def test_attention_figures_are_written(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and gif.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
 
 
-PACKAGED_FILES = {"sam": 10, "cnn": 10}  # how many networks each packaged policy is
+PACKAGED_FILES = {"sam": 1, "cnn": 1}  # how many networks each packaged policy is (one each, chosen on validation)
 
 
 @pytest.mark.parametrize("model", ["sam", "cnn"])
@@ -504,27 +504,30 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
         assert r.returncode in (0, 1), r.stderr
         return r.returncode, r.stdout
 
-    packaged = wio.packaged_weights("sam")
-    assert len(packaged) == 10
+    (packaged,) = wio.packaged_weights("sam")
     a, b = tmp_path / "a", tmp_path / "b"
     for run in (a, b):
         run.mkdir()
         (run / "episodes.csv").write_text("episode,env_step,length,reward,end\n1,7,7,-3.000,crash\n")
-        names = [f"policy_sam_step{n}.safetensors" for n in range(21000, 30000, 1000)] + ["policy_sam.safetensors"]
-        for name, src in zip(names, packaged, strict=True):
-            shutil.copy(src, run / name)
+        for name in [f"policy_sam_step{n}.safetensors" for n in range(21000, 30000, 1000)] + ["policy_sam.safetensors"]:
+            shutil.copy(packaged, run / name)
     rc, out = same_run(str(a), str(b))
     assert rc == 0 and out.endswith("same\n") and "policy_sam_step29000.safetensors: identical" in out
-    assert same_run(str(a), "--packaged", "sam")[0] == 0, "a run's ten files in step order are the packaged ten"
-    net = wio.load_file(packaged[3], wio.config_for("sam", packaged[3]))
+    assert "no validation.csv" in same_run(str(a), "--packaged", "sam")[1]
+    (a / "validation.csv").write_text("weights,steps,crashes,complete,chosen\npolicy_sam_step24000.safetensors,4000,8,1,1\n")
+    rc, out = same_run(str(a), "--packaged", "sam")
+    assert rc == 0 and "policy_sam_step24000.safetensors (chosen) = packaged sam_00.safetensors: identical" in out, out
+    net = wio.load_file(packaged, wio.config_for("sam", packaged))
     with torch.no_grad():
         net.trunk.net[0].bias[0] += 1e-6  # one value of one tensor
-    camera, window = wio.read_file_camera(packaged[3]), wio.read_file_window(packaged[3])
+    camera, window = wio.read_file_camera(packaged), wio.read_file_window(packaged)
     wio.save_file(net, net.cfg, b / "policy_sam_step24000.safetensors", camera, window)
     rc, out = same_run(str(a), str(b))
     assert rc == 1
     tensors = len(net.state_dict())
     assert f"policy_sam_step24000.safetensors: 1 of {tensors} tensors differ" in out and out.endswith("DIFFERENT\n")
+    (b / "validation.csv").write_bytes((a / "validation.csv").read_bytes())
+    assert same_run(str(b), "--packaged", "sam")[0] == 1, "the chosen file differs from the packaged one"
     assert "policy_sam_step23000.safetensors: identical" in out
     (b / "episodes.csv").write_text("episode,env_step,length,reward,end\n1,7,7,-3.001,crash\n")
     rc, out = same_run(str(a), str(b))
