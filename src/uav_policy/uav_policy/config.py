@@ -27,7 +27,7 @@ class PolicySettings:
     weights: str = setting(
         "",
         "safetensors weights file, or several separated by commas, flown as one policy on the mean of their Q-values "
-        "(e.g. a run's snapshots and final weights, as train prints them); a folder: its .safetensors files; empty: "
+        "(e.g. a run's snapshots and final weights); a folder: its .safetensors files; empty: "
         "the packaged weights",
     )
     epsilon: float = setting(
