@@ -89,7 +89,8 @@ def test_policy_answers_each_frame_once_and_explains_it(ros):
     frames = sorted(set(w.frame_stamps()))
     # Every action answers a published frame, and every frame but the newest got an answer.
     # Topics are ordered only within themselves: an action may arrive here before its frame does.
-    assert {a for a in acts if a <= frames[-1]} <= set(frames)
+    # Our reader may also match the simulator's publisher after the policy's: from the first frame heard on.
+    assert {a for a in acts if frames[0] <= a <= frames[-1]} <= set(frames)
     assert all(a - frames[-1] <= 1_000_000_000 for a in acts), "an action answered a frame never published"
     answered = set(acts)
     # Frames newer than the newest action read here may have their answer still in flight, and
@@ -159,19 +160,15 @@ def test_a_stalled_policy_does_not_answer_a_repeated_frame_twice(ros):
     policy.send_signal(signal.SIGSTOP)  # a busy machine: the sim says its frame again about 10 times
     ros.spin_for(0.5)
     policy.send_signal(signal.SIGCONT)
-    assert ros.spin_until(lambda: len(actions) >= 80, 60), ros.log_of(policy)
-    ros.spin_for(0.3)
     step_ns = 500_000_000
-    checked = 0
-    for stamp, executed in sorted(odoms.items()):
-        answered = actions.get(stamp - step_ns)  # the command the policy chose for the previous frame
-        if answered is None:
-            continue
+    # Steps whose odometry and the answer to the frame before both reached this reader (it may match the
+    # publishers late, and a loaded machine may drop a message of a deep queue): at least 60 after the stall.
+    pairs = lambda: [(stamp, odoms[stamp], actions[stamp - step_ns]) for stamp in sorted(odoms) if stamp - step_ns in actions]  # noqa: E731
+    assert ros.spin_until(lambda: len(actions) >= 80 and len(pairs()) >= 60, 60), ros.log_of(policy)
+    for stamp, executed, answered in pairs():  # the command the policy chose for the previous frame
         assert (executed.linear.x, executed.angular.z) == (answered.linear.x, answered.angular.z), (
             f"the step to {stamp} executed a command that was not the answer to the frame before it"
         )
-        checked += 1
-    assert checked >= 60
 
 
 _push_seq = itertools.count(1)

@@ -220,6 +220,7 @@ def test_train_with_two_actors_learns_from_both_and_goes_on_when_one_dies(tmp_pa
     cmd += ["--model", "cnn", "--actors", "2", "--steps", "2000", "--sim-arg", "max_episode_steps:=50"]
     cmd += ["--trainer-arg", "actor_timeout_s:=3.0", "--trainer-arg", "log_interval_s:=0.5"]
     cmd += ["--trainer-arg", "replay_ratio:=0.05"]  # few updates: the run is about its actors
+    cmd += ["--validation-steps", "0"]  # and not about choosing its result
     out = (tmp_path / "train.out").open("w")
     train = subprocess.Popen(cmd, env=train_env(run_dir, domain), stdout=out, stderr=subprocess.STDOUT, text=True)
     try:
@@ -312,7 +313,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
 
     steps, seed, learn = 420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300}
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
-    extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")]
+    extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
     r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert "recipes/shipped.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
@@ -433,6 +434,7 @@ def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_s
     run_dir = tmp_path / "run"
     sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2", "--trainer-arg", "conv_channels:=[8, 16]")
     args = ("--recipe", "wide150", "--steps", "200", "--input-size", "48", "--frames", "3")  # an ideal camera: 48 px too
+    args += ("--validation-steps", "0")
     r, logs = run_train(run_dir, "101", *args, *sizes, timeout_s=240)
     made = wio.read_file_config(run_dir / "policy_sam.safetensors")
     assert (made.height, made.width, made.frames, made.d_model, made.heads) == (48, 48, 3, 24, 2)
