@@ -21,6 +21,12 @@ def run(node_factory, args=None) -> int:
     lockstep sim ~100x slower (measured: <2 frames/s vs 250 frames/s). Work that must not
     block the loop runs on worker threads awaited by async callbacks.
     """
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        # Ctrl-C stops the node through rclpy's handler, which shuts the context down and so ends spin(); the
+        # KeyboardInterrupt it then passes on would land at a random moment in this thread, e.g. inside
+        # rclpy.task.Future.__init__ (a push's call_async), whose half-built future then prints a traceback when
+        # it is collected. A node with its own handler (record's DeferredInterrupt) keeps it.
+        signal.signal(signal.SIGINT, lambda _signum, _frame: None)
     rclpy.init(args=args)
     node = None
     code = 0
