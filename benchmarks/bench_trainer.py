@@ -37,7 +37,7 @@ from uav_trainer.inprocess import sim_settings
 from uav_trainer.learner import Learner, LearnerConfig
 from uav_trainer.recipes import load_recipe
 from uav_trainer.replay import ReplayMemory
-from uav_trainer.training import TrainerConfig
+from uav_trainer.training_config import TrainerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,7 +12,8 @@ import torch
 from conftest import ROOT, executable, read_bag, script_module
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_trainer.flights import Behaviour, evaluate_once
+from uav_trainer.flights import Behaviour
+from uav_trainer.ros_flights import evaluate_once
 
 
 def run_tool(pkg, exe, *args, domain: str, timeout=240):

@@ -17,9 +17,9 @@ from uav_policy.networks import NetConfig, build_network
 from uav_policy.push import PushService, push_request
 from uav_sim.world import VALIDATION_WORLDS
 from uav_trainer import selection
-from uav_trainer.flights import evaluate_once
+from uav_trainer.ros_flights import evaluate_once
 from uav_trainer.trainer_node import TrainerNode
-from uav_trainer.training import snapshot_steps
+from uav_trainer.training_config import snapshot_steps
 
 # trainer_node's /diagnostics counts of what did not pair (zero when pairing is exact)
 PAIRING_COUNTS = (

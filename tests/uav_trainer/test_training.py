@@ -16,7 +16,8 @@ from uav_sim.world import WorldChoice
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run
 from uav_trainer.learner import LearnerConfig
-from uav_trainer.training import RunDirError, TrainerConfig, Training
+from uav_trainer.training import RunDirError, Training
+from uav_trainer.training_config import TrainerConfig
 
 
 def run_inprocess(cfg, run_dir, log=print, world="basic", mix_world_every=0, hfov_deg=120.0, window=0.2, **sim):
@@ -266,7 +267,7 @@ def test_weight_snapshots_equal_the_shorter_run(tmp_path):
 
 
 def test_snapshots_are_a_thirtieth_of_the_budget_apart_and_need_a_budget(tmp_path):
-    from uav_trainer.training import snapshot_steps
+    from uav_trainer.training_config import snapshot_steps
 
     assert snapshot_steps(9, 30000) == list(range(21000, 30000, 1000))  # the shipped recipe's
     assert snapshot_steps(0, 0) == []
@@ -448,7 +449,7 @@ def test_the_crash_log_says_where_when_and_from_which_start(tmp_path):
 
 
 def test_the_reward_is_described_with_its_extension():
-    from uav_trainer.training import reward_description
+    from uav_trainer.training_config import reward_description
 
     assert reward_description(TrainerConfig()) == "the paper's"
     assert reward_description(TrainerConfig(turn_penalty=1.0)) == "the paper's - 1 per turning step"

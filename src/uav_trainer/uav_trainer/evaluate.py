@@ -30,15 +30,14 @@ from .flights import (
     ENSEMBLE_SEP,
     INPROCESS_SIM_ARGS,
     EvalResult,
-    bag_name,
     evaluate_inprocess,
-    evaluate_once,
     load_policy,
     sim_arg_hfov_deg,
     sim_arg_number,
     weights_label,
     weights_or_packaged,
 )
+from .ros_flights import bag_name, evaluate_once
 from .tables import pool, read_results_csvs, write_tables
 
 

@@ -27,7 +27,8 @@ from uav_sim.world import WorldChoice, WorldError
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
 from .rollout import Flight
-from .training import RunDirError, TrainerConfig, Training, reward_description
+from .training import RunDirError, Training
+from .training_config import TrainerConfig, reward_description
 
 _TRIED = "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
 # The in-process trainer's flags that were retired, and what replaces them.

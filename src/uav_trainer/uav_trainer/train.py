@@ -41,7 +41,7 @@ from uav_policy.push import write_key
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
 from .selection import VALIDATION_STEPS
-from .training import snapshot_file, snapshot_steps
+from .training_config import snapshot_file, snapshot_steps
 
 RETIRED_FLAGS = {
     "--learning": "train always learns in lockstep with acting (concurrent learning trained weaker policies)",

@@ -43,7 +43,8 @@ from .camera_record import CameraRecord
 from .pairing import TransitionAssembler
 from .trainer_settings import TrainerNodeSettings, describe
 from .trainer_status import progress_line, status_values
-from .training import RETIRED, RunDirError, Training
+from .training import RunDirError, Training
+from .training_config import RETIRED
 
 UNWRITTEN_EXIT_CODE = 4  # the run ended, but weights files it names were not written (train says which)
 UNKNOWN_SCAN_S = 2.0  # how often the graph is searched for step outcomes from namespaces not in `actors`

@@ -12,7 +12,7 @@ from uav_common.actions import ActionSettings
 from uav_common.ros_params import ParameterError
 from uav_common.settings import setting
 
-from .training import TrainerConfig, reward_description
+from .training_config import TrainerConfig, reward_description
 
 
 @dataclasses.dataclass(frozen=True)
