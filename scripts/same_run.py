@@ -19,7 +19,6 @@ folder; the folders need not exist). Prints one line per item and 'same' or 'DIF
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path, PurePath
 
@@ -30,7 +29,7 @@ from safetensors import SafetensorError
 from safetensors.numpy import load_file
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_sim", "uav_policy")]
+sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
 
 
 def same_weights(a: Path, b: Path) -> str | None:
@@ -63,15 +62,6 @@ def compare_runs(a: Path, b: Path) -> list[tuple[str, str | None]]:
     return out
 
 
-def run_files(run: Path, model: str) -> list[Path]:
-    """A run's weights files as a policy flies them: the snapshots in step order, then the final weights."""
-    snaps = [
-        (int(m.group(1)), p) for p in run.glob(f"policy_{model}_step*.safetensors") if (m := re.search(r"_step(\d+)\.", p.name))
-    ]
-    final = run / f"policy_{model}.safetensors"
-    return [p for _, p in sorted(snaps)] + ([final] if final.exists() else [])
-
-
 def chosen_file(run: Path) -> Path | None:
     """The weights file a run's validation.csv marks as chosen, or None."""
     path = run / "validation.csv"
@@ -84,6 +74,7 @@ def chosen_file(run: Path) -> Path | None:
 
 def compare_packaged(run: Path, model: str) -> list[tuple[str, str | None]]:
     from uav_policy.weights import packaged_weights
+    from uav_trainer.selection import run_files  # the snapshots in step order, then the final weights
 
     mine, packaged = run_files(run, model), packaged_weights(model)
     if len(packaged) == 1:  # one network: the file the run chose
