@@ -3,6 +3,7 @@ and the bag it keeps becomes pictures with `attention_figures --bag`."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 
 import numpy as np
@@ -27,13 +28,21 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-1500:]}" for p in sorted((tmp_path / "logs").glob("*.log")))
     assert fly.returncode == 0, fly.stdout + fly.stderr + logs
     got = read_bag(bag)
+    # What the recorder fell behind on and lost, as the middleware told it ("/uav2/q_values 650 (2 lost)"): a
+    # lockstep flight outpaces the recorder on a busy machine. Nothing else may be missing.
+    closed = [line for line in (tmp_path / "logs" / "record.log").read_text().splitlines() if " closed: " in line]
+    assert len(closed) == 1, logs
+    lost = {t: int(n) for t, n in re.findall(r"(/\S+) \d+ \((\d+) lost\)", closed[0])}
     depth, actions = got["/uav2/depth/image_raw"][1], got["/uav2/action"][1]
     frames = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in depth}
     answered = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in actions]
     assert len(answered) >= 20, f"only {len(answered)} steps flown in 12 s"
-    assert set(answered) <= frames, "every command answers a recorded frame"
+    assert len(set(answered) - frames) <= lost.get("/uav2/depth/image_raw", 0), "every command answers a recorded frame"
     # A frame the simulator says again (lockstep_republish_s, on a loaded machine) is answered again with the same stamp.
-    assert len(frames) - len(set(answered)) in (0, 1), "every recorded frame was answered but perhaps the last"
+    # The recorder writes all the policy said before it stops (the simulator stops first): every recorded frame is
+    # answered on record, but perhaps the last.
+    unanswered = len(frames) - len(set(answered))
+    assert 0 <= unanswered <= 1 + lost.get("/uav2/action", 0), (unanswered, closed)
     assert depth[0].header.frame_id == "uav2/camera_depth_optical_frame"
     assert got["/uav2/odom"][1][0].header.frame_id == "uav2/odom"
     assert actions[0].header.frame_id == "uav2/base_link"
@@ -42,7 +51,8 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
     att = got["/uav2/attention"][1]
     # Each answer's attention, but perhaps the last: the stop may land between a command and its map.
     att_stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in att]
-    assert set(att_stamps) <= set(answered) and len(set(answered)) - len(set(att_stamps)) in (0, 1) and att[0].encoding == "32FC1"
+    assert set(att_stamps) <= set(answered) and att[0].encoding == "32FC1"
+    assert 0 <= len(set(answered)) - len(set(att_stamps)) <= 1 + lost.get("/uav2/attention", 0), closed
 
     out = tmp_path / "figures"
     r = subprocess.run(

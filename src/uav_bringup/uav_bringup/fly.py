@@ -19,33 +19,46 @@ from pathlib import Path
 
 from uav_common.launching import Processes, params_args, stop_signals
 
-STOP_ORDER = ["sim", "policy", "mavlink", "record", "live_view"]  # the recorder last: the bag holds the final messages
+# The simulator first (nothing new is said), the recorder last: the bag holds the final messages.
+STOP_ORDER = ["sim", "policy", "mavlink", "record", "live_view"]
 
 
-def wait_for_recorder(procs: Processes, namespace: str, stopped, timeout_s: float = 60.0) -> bool:
-    """Until the recorder has matched policy_node's publishers, so that the first step is on record too;
-    False (and says why) if it does not within `timeout_s`, a process exits or Ctrl-C comes."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+class RecorderWatch:
+    """fly's own node (its own context: Ctrl-C stays fly's), listening to the recorder's reports: the simulator starts
+    once the recorder hears policy_node, so that the first step is on record too, and at the end the policy stops
+    only once the recorder has written everything said before the simulator stopped."""
 
-    from .record import recorder_publishers, wait_for_policy
+    def __init__(self, namespace: str):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
 
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C stays fly's
-    node = rclpy.create_node("fly", namespace=namespace or "/", context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    heard = recorder_publishers(node)
-    try:
-        return wait_for_policy(heard, node, executor, procs.procs, timeout_s, stopped)
-    except (RuntimeError, TimeoutError) as e:
-        print(f"{e}; stopping the others", file=sys.stderr)
-        return False
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        ctx.try_shutdown()
+        from .record import RecorderReports
+
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node("fly", namespace=namespace or "/", context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.reports = RecorderReports(self.node)
+
+    def policy_heard(self, procs: Processes, stopped, timeout_s: float = 60.0) -> bool:
+        """False (and says why) if the recorder does not hear the policy within `timeout_s`, a process exits or
+        Ctrl-C comes."""
+        try:
+            return self.reports.wait_for_policy(self.executor, procs.procs, timeout_s, stopped)
+        except (RuntimeError, TimeoutError) as e:
+            print(f"{e}; stopping the others", file=sys.stderr)
+            return False
+
+    def drained(self, timeout_s: float = 20.0) -> None:
+        if not self.reports.wait_until_idle(self.executor, timeout_s):
+            print(f"the recorder was still writing after {timeout_s:g} s: the bag may lack the last steps", file=sys.stderr)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
 
 
 def node_args(params: Path | None, name: str, values: list[str], namespace: str) -> list[str]:
@@ -115,7 +128,16 @@ def main(argv=None) -> int:
         procs.start(
             "mavlink", "uav_bringup", "mavlink_bridge", node_args(params, "mavlink_bridge", [f"url:={a.mavlink}"], a.namespace)
         )
-    if a.record and not wait_for_recorder(procs, a.namespace, stopped):
+    watch = RecorderWatch(a.namespace) if a.record else None
+    try:
+        return flight(a, procs, params, stopped, watch)
+    finally:
+        if watch is not None:
+            watch.close()
+
+
+def flight(a, procs: Processes, params: Path | None, stopped, watch: RecorderWatch | None) -> int:
+    if watch is not None and not watch.policy_heard(procs, stopped):
         procs.stop_all(STOP_ORDER)
         return 0 if stopped() else 1
     sim_values = [f"world:={a.world}", f"seed:={a.seed}", f"mode:={'lockstep' if a.lockstep else 'realtime'}"]
@@ -140,7 +162,10 @@ def main(argv=None) -> int:
             code = 1
             break
         time.sleep(0.2)
-    codes = {name: procs.stop(name) for name in STOP_ORDER if name in procs.procs}
+    codes = {"sim": procs.stop("sim")} if "sim" in procs.procs else {}
+    if watch is not None:
+        watch.drained()
+    codes.update({name: procs.stop(name) for name in STOP_ORDER if name in procs.procs and name not in codes})
     failed = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT)}
     if failed and not code:
         print(f"stopped with errors: {failed}", file=sys.stderr)

@@ -29,7 +29,7 @@ from .taps import DEFAULT_TOPICS, TopicTap, typestore
 
 PROGRESS_S = 5.0
 # The policy's per-step topics: a launcher that wants every step on record starts the simulator only
-# once the recorder has matched these publishers (`recorder_publishers`).
+# once the recorder has matched these publishers (`RecorderReports.wait_for_policy`).
 POLICY_TOPICS = (contract.ACTION_TOPIC, contract.CMD_VEL_TOPIC, contract.Q_VALUES_TOPIC)
 
 
@@ -61,10 +61,11 @@ class Recorder(Node):
         self.writer = open_bag(out)
         self.connections = {}
         self.counts: dict[str, int] = {}
+        self.lost: dict[str, int] = {}  # messages the middleware says never reached us (we fell behind), by topic
         self.bytes = 0
         self.started = time.monotonic()
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
-        self.tap = TopicTap(self, topics, self.on_message, self.on_new)
+        self.tap = TopicTap(self, topics, self.on_message, self.on_new, self.on_lost)
         self.create_timer(PROGRESS_S, self.progress)
         self.create_timer(1.0, self.publish_diagnostics)
         names = " ".join(self.tap.wanted)
@@ -87,9 +88,22 @@ class Recorder(Node):
         self.counts[topic] += 1
         self.bytes += len(data)
 
+    def on_lost(self, topic: str, n: int) -> None:
+        if n > 0:
+            self.lost[topic] = self.lost.get(topic, 0) + n
+            self.get_logger().warning(
+                f"{sum(self.lost.values())} message(s) lost so far ({n} on {topic}): the recorder fell behind its "
+                "publishers' queues (a slow disk or a busy machine)",
+                throttle_duration_sec=2.0,
+            )
+
     def summary(self) -> str:
         n = sum(self.counts.values())
-        return f"{time.monotonic() - self.started:.0f} s, {n} messages on {len(self.counts)} topics, {self.bytes / 1e6:.1f} MB"
+        lost = f", {sum(self.lost.values())} lost" if self.lost else ""
+        return (
+            f"{time.monotonic() - self.started:.0f} s, {n} messages on {len(self.counts)} topics{lost}, "
+            f"{self.bytes / 1e6:.1f} MB"
+        )
 
     def progress(self) -> None:
         if not self.quiet:
@@ -98,56 +112,78 @@ class Recorder(Node):
             print(f"record {self.out}: {self.summary()}{wait}", flush=True)
 
     def publish_diagnostics(self) -> None:
-        """Messages written per topic (by name) and in all, and the publishers matched per topic
-        (`publishers TOPIC`: a launcher can wait for them before the flight starts)."""
+        """Messages written per topic (by name) and in all, lost per topic (`lost TOPIC`; WARN while any are), and
+        the publishers matched per topic (`publishers TOPIC`: a launcher can wait for them before the flight starts)."""
         values = {"bag": str(self.out), "messages": sum(self.counts.values()), "megabytes": f"{self.bytes / 1e6:.2f}"}
         values.update(self.counts)
+        values.update({f"lost {t}": n for t, n in self.lost.items()})
         values.update({f"publishers {t}": n for t, n in self.tap.publishers().items()})
-        self.pub_diag.publish(contract.diagnostics(self, "uav_bringup/record", "OK", "recording", values))
+        level, text = ("WARN", "recording; messages lost") if self.lost else ("OK", "recording")
+        self.pub_diag.publish(contract.diagnostics(self, "uav_bringup/record", level, text, values))
 
     def close(self) -> None:
         if self.writer is None:
             return
         writer, self.writer = self.writer, None
         writer.close()
-        counts = ", ".join(f"{t} {c}" for t, c in self.counts.items())
+        counts = ", ".join(f"{t} {c}" + (f" ({self.lost[t]} lost)" if t in self.lost else "") for t, c in self.counts.items())
         print(f"bag {self.out} closed: {self.summary()} ({counts})", flush=True)
 
 
-def recorder_publishers(node, written: dict[str, int] | None = None) -> dict[str, int]:
-    """{topic: publishers the recorder has matched}, kept up to date from its /diagnostics; `written`, when
-    given, gets {topic: messages the recorder has written}."""
-    heard: dict[str, int] = {}
+class RecorderReports:
+    """What the recorder says on /diagnostics, kept up to date through `node`: `heard` {topic: publishers matched},
+    `written` {topic: messages written}, `lost` {topic: messages lost to it}, and `reports`, how many reports came."""
 
-    def on(msg) -> None:
+    def __init__(self, node):
+        self.node = node
+        self.heard: dict[str, int] = {}
+        self.written: dict[str, int] = {}
+        self.lost: dict[str, int] = {}
+        self.reports = 0
+        node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, self._on, 10)
+
+    def _on(self, msg) -> None:
         for st in msg.status:
             if st.name == "uav_bringup/record":
-                heard.update(
-                    {kv.key[len("publishers ") :]: int(kv.value) for kv in st.values if kv.key.startswith("publishers ")}
-                )
-                if written is not None:
-                    written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
+                pubs = {kv.key[len("publishers ") :]: int(kv.value) for kv in st.values if kv.key.startswith("publishers ")}
+                self.heard.update(pubs)
+                self.written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
+                self.lost.update({kv.key[len("lost ") :]: int(kv.value) for kv in st.values if kv.key.startswith("lost ")})
+                self.reports += 1
 
-    node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, on, 10)
-    return heard
+    def wait_for_policy(self, executor, procs: dict, timeout_s: float, stopped=lambda: False) -> bool:
+        """Spin `executor` until the recorder has matched policy_node's publishers (POLICY_TOPICS, resolved in
+        the node's namespace); False if `stopped()` first. RuntimeError when a process of `procs` (name: Popen)
+        exits, TimeoutError after `timeout_s`."""
+        wanted = [self.node.resolve_topic_name(t) for t in POLICY_TOPICS]
+        end = time.monotonic() + timeout_s
+        while not all(self.heard.get(t, 0) >= 1 for t in wanted):
+            executor.spin_once(timeout_sec=0.05)
+            if stopped():
+                return False
+            for name, p in procs.items():
+                if p.poll() is not None:
+                    raise RuntimeError(f"{name} exited early (code {p.returncode})")
+            if time.monotonic() > end:
+                raise TimeoutError(f"the recorder did not hear policy_node within {timeout_s:g} s (it hears {self.heard})")
+        return True
 
-
-def wait_for_policy(heard: dict[str, int], node, executor, procs: dict, timeout_s: float, stopped=lambda: False) -> bool:
-    """Spin `executor` until the recorder has matched policy_node's publishers (POLICY_TOPICS, resolved in
-    `node`'s namespace; `heard` from recorder_publishers(node)); False if `stopped()` first. RuntimeError
-    when a process of `procs` (name: Popen) exits, TimeoutError after `timeout_s`."""
-    wanted = [node.resolve_topic_name(t) for t in POLICY_TOPICS]
-    end = time.monotonic() + timeout_s
-    while not all(heard.get(t, 0) >= 1 for t in wanted):
-        executor.spin_once(timeout_sec=0.05)
-        if stopped():
-            return False
-        for name, p in procs.items():
-            if p.poll() is not None:
-                raise RuntimeError(f"{name} exited early (code {p.returncode})")
-        if time.monotonic() > end:
-            raise TimeoutError(f"the recorder did not hear policy_node within {timeout_s:g} s (it hears {heard})")
-    return True
+    def wait_until_idle(self, executor, timeout_s: float) -> bool:
+        """Spin `executor` until two reports in a row count the same messages written (/diagnostics aside: the
+        nodes report on): the recorder, whose report timer runs in the loop that writes, had nothing waiting for a
+        whole report period. Call it once the stack has stopped saying anything new (the simulator stopped), before
+        any of its nodes exits: what a recorder had not read yet is lost with its publisher. False if not idle
+        within `timeout_s`."""
+        end = time.monotonic() + timeout_s
+        counts = lambda: {t: n for t, n in self.written.items() if t != contract.DIAGNOSTICS_TOPIC}  # noqa: E731
+        seen = (self.reports, counts())
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+            if self.reports != seen[0]:
+                if seen[0] > 0 and counts() == seen[1]:
+                    return True
+                seen = (self.reports, counts())
+        return False
 
 
 def main(argv=None) -> int:

@@ -156,18 +156,18 @@ def evaluate_once(
         )
         ready_by = time.monotonic() + 60.0
         sim_extra = []
-        written = {}  # the recorder's messages written, by topic
+        recorder = None
         if record_to is not None:
             # Recorder and policy first. The simulator starts once the recorder hears the policy's
             # publishers, and holds its first frame until the policy, the recorder and this monitor
             # all listen: the bag holds every step from the first frame on.
-            from uav_bringup.record import recorder_publishers, wait_for_policy
+            from uav_bringup.record import RecorderReports
 
-            heard = recorder_publishers(node, written)
+            recorder = RecorderReports(node)
             node.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: None, deep)  # the third listener
             procs.start("record", "uav_bringup", "record", [], args=["-o", str(record_to), "--quiet"])
             procs.start("policy", "uav_policy", "policy_node", policy_args)
-            wait_for_policy(heard, node, executor, procs.procs, ready_by - time.monotonic())
+            recorder.wait_for_policy(executor, procs.procs, ready_by - time.monotonic())
             sim_extra = ["wait_for_subscribers:=3"]
         # The lockstep sim only advances once the policy answers, and it says its first frame again
         # every lockstep_republish_s: without a recorder the policy starts once the monitor has that
@@ -210,10 +210,10 @@ def evaluate_once(
                 raise TimeoutError(f"evaluation reached only {mon.steps}/{steps} steps in {timeout_s} s")
         if mon.gaps:
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
-        if record_to is not None:
+        if recorder is not None:
             # A busy recorder may lag, or miss a message and get it again: the simulator lives on (holding
             # position and saying the last step's outcome again each lockstep_republish_s) until the bag holds every step.
-            outcome, heard = node.resolve_topic_name(contract.OUTCOME_TOPIC), mon.outcomes
+            outcome, heard, written = node.resolve_topic_name(contract.OUTCOME_TOPIC), mon.outcomes, recorder.written
             asked = time.monotonic()
             while written.get(outcome, 0) < heard and time.monotonic() < asked + 60.0:
                 executor.spin_once(timeout_sec=0.05)
