@@ -101,8 +101,7 @@ class Recorder(Node):
         n = sum(self.counts.values())
         lost = f", {sum(self.lost.values())} lost" if self.lost else ""
         return (
-            f"{time.monotonic() - self.started:.0f} s, {n} messages on {len(self.counts)} topics{lost}, "
-            f"{self.bytes / 1e6:.1f} MB"
+            f"{time.monotonic() - self.started:.0f} s, {n} messages on {len(self.counts)} topics{lost}, {self.bytes / 1e6:.1f} MB"
         )
 
     def progress(self) -> None:
