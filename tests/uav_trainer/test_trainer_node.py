@@ -459,7 +459,7 @@ def test_trainer_rejects_bad_parameters():
     assert "parameter 'conv_channels'=[16, 32, 32, 32, 32, 32, 32]: 7 conv layers" in err
     err = start_up_error(TrainerNode, "-p", "conv_channels:=16")
     assert "parameter 'conv_channels'" in err and "INTEGER_ARRAY" in err
-    for retired in ("n_step:=3", "priority_alpha:=0.6", "augment_shift_px:=2", "ema_decay:=0.99", "clearance_m:=1.0"):
+    for retired in ("n_step:=3", "priority_alpha:=0.6", "lr_anneal_updates:=100", "ema_decay:=0.99", "clearance_m:=1.0"):
         err = start_up_error(TrainerNode, "-p", retired)
         assert f"parameter '{retired.split(':=')[0]}' was removed" in err, err[-500:]
     err = start_up_error(TrainerNode, "-p", "relational_blocks:=0")

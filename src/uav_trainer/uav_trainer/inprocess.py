@@ -45,7 +45,7 @@ RETIRED_FLAGS = {
         flag: _TRIED
         for flag in ("--random-start-fraction", "--redraw-heading", "--layout-partitions", "--act-on-pushes")
         + ("--validate-every", "--validation-steps", "--clearance-m", "--clearance-weight", "--n-step", "--priority-alpha")
-        + ("--priority-beta", "--ema-decay", "--augment-shift", "--lr-anneal", "--attention-entropy-weight")
+        + ("--priority-beta", "--ema-decay", "--lr-anneal", "--attention-entropy-weight")
     },
 }
 

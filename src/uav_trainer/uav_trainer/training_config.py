@@ -138,7 +138,7 @@ RETIRED = {
     **{
         name: "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
         for name in ("n_step", "priority_alpha", "priority_beta", "priority_beta_steps", "clearance_m", "clearance_weight")
-        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "augment_shift_px", "attention_entropy_weight")
+        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "attention_entropy_weight")
     },
 }
 
