@@ -134,6 +134,13 @@ def test_a_map_that_follows_what_the_decision_reads_is_faithful_against_random_a
         meter.observe(net, state, 1, rows)
     s = meter.summary()
     assert s.deletion_top == 1.0 and s.faithfulness > 4 and s.faithfulness_vs_mean_map > 4, s
+    # RISE curves on the margin (+1 turning, -1 not): removing the map's first eighth ends the decision, restoring it
+    # brings it back; in the mean map's or a random order that takes half the curve on average.
+    assert s.deletion_area == pytest.approx(-0.875) and s.insertion_area == pytest.approx(0.875), s
+    for other in (s.deletion_area_mean_map, s.deletion_area_random):
+        assert other > s.deletion_area + 0.5, s
+    for other in (s.insertion_area_mean_map, s.insertion_area_random):
+        assert other < s.insertion_area - 0.5, s
 
 
 def test_a_fixed_map_with_a_skip_path_scores_one_against_the_mean_map_however_it_scores_against_random_cells():
@@ -151,3 +158,7 @@ def test_a_fixed_map_with_a_skip_path_scores_one_against_the_mean_map_however_it
     assert s.faithfulness > 2, f"the fixed band passes the random-cell test: {s.faithfulness:.2f}"
     assert s.faithfulness_vs_mean_map == pytest.approx(1.0, abs=0.02), s
     assert s.map_correlation == 1.0
+    # Its curves are the mean map's (the same order but for ties among the cells off the band, drawn at random).
+    assert s.deletion_area == pytest.approx(s.deletion_area_mean_map, abs=0.15), s
+    assert s.insertion_area == pytest.approx(s.insertion_area_mean_map, abs=0.15), s
+    assert s.deletion_area < s.deletion_area_random - 0.2, "it beats random cells on the curves too"

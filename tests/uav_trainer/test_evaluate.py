@@ -249,7 +249,7 @@ def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, 
     assert (row["crashes_per_1000_low"], row["crashes_per_1000_high"]) == ("0.24", "7.22"), "its exact Poisson interval"
     assert [row[k] for k in ("turn_steps", "cells_visited", "safety_interventions")] == ["-1", "-1", "-1"]
     later = list(row)[list(row).index("insight_frames") :]
-    assert len(later) == 10 and all(row[k] == "" for k in later), "a row measured before the insight columns existed has none"
+    assert len(later) == 16 and all(row[k] == "" for k in later), "a row measured before the insight columns existed has none"
 
 
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):

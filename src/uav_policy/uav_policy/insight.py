@@ -15,6 +15,11 @@ Measured per frame and summarised by `Insight` (policy_node's /diagnostics, eval
 - faithfulness against the mean map: the same, against masking the top-k nodes of the mean of the maps seen
   before (a position-only baseline: a fixed prior, the same band on every frame, scores about 1 here however
   it scores against random nodes);
+- deletion and insertion curves (RISE, Petsiuk et al. 2018) on the decision's margin, Q of the chosen action over the
+  best other: the nodes are removed ("no return") in the map's order, an eighth of the grid at a time, from the whole
+  image (deletion; the lower its area, the sooner the decision goes), or restored into an image of no return
+  (insertion; the higher, the sooner it comes back); each against the same curves in the mean map's order and in a
+  random order. The areas are the curve's mean margin (Q units);
 - grounding: the explanation's mass on pixels nearer than NEAR_M against their share of the image (1 = no
   preference; above 1 = looks at what is near); `mass_ratio` and `increase_on` measure it on an object placed in a
   scene (uav_trainer.grounding's counterfactual test).
@@ -32,6 +37,7 @@ import torch
 NEAR_M = 3.0  # grounding: "near" is nearer than this
 TOP_FRACTION = 0.1  # sharpness and the deletion test: the top tenth of the nodes
 RANDOM_DRAWS = 4  # the deletion test's random masks per frame
+CURVE_LEVELS = 8  # deletion and insertion curves: the nodes removed or restored an eighth of the grid at a time
 
 
 def _rows(weights: np.ndarray) -> np.ndarray:
@@ -131,11 +137,16 @@ def masked_states(
     return out
 
 
-def top_nodes(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The top 10 % of the nodes by mass; nodes of equal mass are taken in random order, not by index."""
+def ranked(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The nodes by mass, most first; nodes of equal mass in random order, not by index."""
     d = received(dist)
     shuffled = rng.permutation(d.size)
-    return shuffled[np.argsort(-d[shuffled], kind="stable")[: top_count(d.size)]]
+    return shuffled[np.argsort(-d[shuffled], kind="stable")]
+
+
+def top_nodes(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The top 10 % of the nodes by mass (`ranked`)."""
+    return ranked(dist, rng)[: top_count(received(dist).size)]
 
 
 @torch.no_grad()
@@ -161,6 +172,42 @@ def deletion_test(
     q, _ = net(x.to(device))
     changed = q.argmax(dim=1).cpu().numpy() != action
     return bool(changed[0]), float(changed[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(changed[-1])
+
+
+def node_of_pixel(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
+    """(H, W) the node each pixel belongs to (node_slices' regions)."""
+    out = np.zeros(image_hw, dtype=np.int64)
+    for n, (rs, cs) in enumerate(node_slices(grid_hw, image_hw)):
+        out[rs, cs] = n
+    return out
+
+
+def margin(q: torch.Tensor, action: int) -> torch.Tensor:
+    """(batch,) Q of `action` over the best other action: positive while `action` is chosen."""
+    others = torch.cat([q[:, :action], q[:, action + 1 :]], dim=1)
+    return q[:, action] - others.max(dim=1).values
+
+
+@torch.no_grad()
+def curve_areas(net: torch.nn.Module, state: np.ndarray, orders: list[np.ndarray], action: int, grid_hw) -> np.ndarray:
+    """(len(orders), 2): the deletion and the insertion curve's area (mean margin, trapezoids over CURVE_LEVELS + 1
+    points) of the decision `action` on `state` (frames, H, W), the nodes removed or restored in each order."""
+    nodes = grid_hw[0] * grid_hw[1]
+    k = np.array([round(i * nodes / CURVE_LEVELS) for i in range(CURVE_LEVELS + 1)])[:, None, None]
+    pixel_node = node_of_pixel(grid_hw, state.shape[-2:])
+    x0 = np.asarray(state, dtype=np.float32)[None]
+    device = next(net.parameters()).device
+    out = np.empty((len(orders), 2))
+    for i, order in enumerate(orders):
+        rank = np.empty(nodes, dtype=np.int64)  # each node's place in the order
+        rank[order] = np.arange(nodes)
+        pixel_rank = rank[pixel_node][None]  # (1, H, W)
+        gone = np.concatenate([pixel_rank < k, pixel_rank >= k])  # deletion levels, then insertion levels
+        x = np.where(gone[:, None], np.float32(np.inf), x0)  # (2 * levels, frames, H, W)
+        q, _ = net(torch.from_numpy(x).to(device))
+        m = margin(q, action).cpu().numpy().reshape(2, CURVE_LEVELS + 1)
+        out[i] = ((m[:, :-1] + m[:, 1:]) / 2).mean(axis=1)
+    return out
 
 
 def grad_cam(net: torch.nn.Module, state: np.ndarray, action: int) -> np.ndarray:
@@ -201,6 +248,13 @@ class InsightSummary:
     deletion_random: float  # ... with k random nodes masked
     near_ratio: float  # mass on near pixels over their share (mean over frames with something near); nan if none
     deletion_mean_map: float = math.nan  # ... with the top-k nodes of the mean map so far masked (nan: not measured)
+    # The deletion and insertion curves' areas (mean margin) in the map's, the mean map's and a random order.
+    deletion_area: float = math.nan
+    deletion_area_mean_map: float = math.nan
+    deletion_area_random: float = math.nan
+    insertion_area: float = math.nan
+    insertion_area_mean_map: float = math.nan
+    insertion_area_random: float = math.nan
 
     @staticmethod
     def ratio(top: float, baseline: float) -> float:
@@ -219,9 +273,12 @@ class InsightSummary:
         """deletion_top / deletion_mean_map: about 1 for a map that is a fixed prior."""
         return self.ratio(self.deletion_top, self.deletion_mean_map)
 
+    CURVES = tuple(f"{c}_area{b}" for c in ("deletion", "insertion") for b in ("", "_mean_map", "_random"))
     FIELDS = ("entropy", "top_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio", "deletion_mean_map")
+    FIELDS += CURVES
     # Their names in values() (after "insight_") and in evaluate's results.csv, in FIELDS' order.
     NAMES = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio", "deletion_mean_map")
+    NAMES += CURVES
 
     @staticmethod
     def from_values(values: dict) -> InsightSummary | None:
@@ -262,7 +319,8 @@ class Insight:
     def __init__(self, grid_hw: tuple[int, int], window: int | None = None, seed: int = 0):
         self.grid_hw = grid_hw
         self.rng = np.random.default_rng(seed)
-        # (map, entropy, top share, top changed, random changed, near, mean map's top changed or None)
+        # (map, entropy, top share, top changed, random changed, near, mean map's top changed or None,
+        #  curve areas: deletion and insertion in the map's, a random and the mean map's order (nan without a mean map))
         self.frames = collections.deque(maxlen=window)
 
     def observe(self, net, state: np.ndarray, action: int, rows: np.ndarray) -> None:
@@ -272,14 +330,22 @@ class Insight:
         prior = np.mean([f[0] for f in self.frames], axis=0) if self.frames else None
         top, rand, by_prior = deletion_test(net, state, dist, action, self.grid_hw, self.rng, prior)
         near = near_ratio(dist, state[-1], self.grid_hw)
-        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near, by_prior))
+        orders = [ranked(dist, self.rng), self.rng.permutation(dist.size)] + (
+            [ranked(prior, self.rng)] if prior is not None else []
+        )
+        areas = np.full((3, 2), np.nan)
+        areas[: len(orders)] = curve_areas(net, state, orders, action, self.grid_hw)
+        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near, by_prior, areas))
 
     def summary(self) -> InsightSummary | None:
         if not self.frames:
             return None
-        maps, ent, share, top, rand, near, by_prior = zip(*self.frames, strict=True)
+        maps, ent, share, top, rand, near, by_prior, areas = zip(*self.frames, strict=True)
         near = [n for n in near if n is not None]
         by_prior = [b for b in by_prior if b is not None]
+        a = np.stack(areas)  # (frames, order: map, random, mean map; deletion, insertion)
+        mean = lambda v: float(np.nanmean(v)) if not np.isnan(v).all() else math.nan  # noqa: E731
+        curves = [mean(a[:, o, c]) for c in (0, 1) for o in (0, 2, 1)]  # CURVES' order
         return InsightSummary(
             len(maps),
             float(np.mean(ent)),
@@ -289,4 +355,5 @@ class Insight:
             float(np.mean(rand)),
             float(np.mean(near)) if near else math.nan,
             float(np.mean(by_prior)) if by_prior else math.nan,
+            *curves,
         )

@@ -316,11 +316,14 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
         "(1 = the same map whatever is seen). Deletion: the share of steps whose action changes when the top 10 % "
         "of nodes, as many random ones, or the top 10 % of the mean of the maps before it read 'no return'; "
         "faithfulness = top / random, and top / mean map (a fixed prior scores about 1 against the mean map). Near: the "
-        "mass on pixels nearer than 3 m over their share of the image (1 = no preference).",
+        "mass on pixels nearer than 3 m over their share of the image (1 = no preference). Curves (RISE): the mean "
+        "margin of the chosen action's Q over the best other as the nodes are removed (deletion: lower is more "
+        "faithful) or restored into an image of no return (insertion: higher is), in the map's / the mean map's / a "
+        "random order.",
         "",
         "| model | world | entropy | top 10 % | map correlation | deletion top / random / mean map | faithfulness "
-        "| faithfulness vs mean map | near |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| faithfulness vs mean map | near | deletion curve | insertion curve |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for m in models:
         for world in worlds:
@@ -331,10 +334,16 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
             top, rand = (float(np.mean([getattr(i, k) for i in got])) for k in ("deletion_top", "deletion_random"))
             prior = [i.deletion_mean_map for i in got if not math.isnan(i.deletion_mean_map)]
             by_prior = float(np.mean(prior)) if prior else math.nan
+
+            def curve(kind: str, got=got) -> str:
+                areas = [np.nanmean([getattr(i, f"{kind}_area{b}") for i in got]) for b in ("", "_mean_map", "_random")]
+                return " / ".join(f"{a:.2f}" for a in areas)
+
             lines.append(
                 f"| D3QN-{m.upper()} | {world} | {cell('entropy')} | {cell('top_share')} | {cell('map_correlation')} "
                 f"| {top:.3f} / {rand:.3f} / {by_prior:.3f} | {InsightSummary.ratio(top, rand):.2f} "
-                f"| {InsightSummary.ratio(top, by_prior) if prior else math.nan:.2f} | {cell('near_ratio')} |"
+                f"| {InsightSummary.ratio(top, by_prior) if prior else math.nan:.2f} | {cell('near_ratio')} "
+                f"| {curve('deletion')} | {curve('insertion')} |"
             )
     return [*lines, ""]
 
