@@ -22,9 +22,10 @@ from common import private_nodes, sim_steps_reader
 from uav_policy import weights as wio
 from uav_policy.agent import Agent
 from uav_policy.networks import NetConfig, QEnsemble, build_network
+from uav_policy.rollout import Flight
 from uav_sim.simulator import SimConfig, Simulator
+from uav_sim.stacked_sim import StackedSim
 from uav_sim.world import load_world
-from uav_trainer.rollout import Flight
 
 
 def inference_latency(model: str, n: int = 2000, members: int = 1) -> tuple[float, float]:
@@ -70,7 +71,7 @@ def in_process_loop(model: str, steps: int) -> float:
     net = wio.load_files(packaged, model) if packaged else build_network(NetConfig(model=model), seed=0)
     agent = Agent(net, net.cfg)
     sim = Simulator(load_world("basic"), SimConfig())
-    flight = Flight(sim, agent, net.cfg.frames)
+    flight = Flight(StackedSim(sim, net.cfg.frames, input_hw=(net.cfg.height, net.cfg.width)), agent)
     t0 = time.perf_counter()
     for _ in range(steps):
         flight.step(0.0)

@@ -13,7 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from uav_trainer.ros_flights import evaluate_once
+from uav_eval.ros_flights import evaluate_once
 
 WARMUP = 100  # steps before the clock starts: start-up and discovery are not the loop
 

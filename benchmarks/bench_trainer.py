@@ -28,10 +28,10 @@ import numpy as np
 import torch
 
 from uav_common.settings import build
+from uav_eval.flights import evaluate_inprocess
 from uav_policy.networks import NetConfig
 from uav_sim.simulator import SimConfig
 from uav_trainer.episodes import steady_metrics_rows
-from uav_trainer.flights import evaluate_inprocess
 from uav_trainer.inprocess import run as run_inprocess
 from uav_trainer.inprocess import sim_settings
 from uav_trainer.learner import Learner, LearnerConfig

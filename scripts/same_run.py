@@ -23,10 +23,11 @@ import sys
 from pathlib import Path, PurePath
 
 import numpy as np
-from compare_models import ENSEMBLE_SEP
 from csv_input import read_csv
 from safetensors import SafetensorError
 from safetensors.numpy import load_file
+
+from uav_eval.flights import ENSEMBLE_SEP
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]
@@ -73,8 +74,8 @@ def chosen_file(run: Path) -> Path | None:
 
 
 def compare_packaged(run: Path, model: str) -> list[tuple[str, str | None]]:
+    from uav_eval.selection import run_files  # the snapshots in step order, then the final weights
     from uav_policy.weights import packaged_weights
-    from uav_trainer.selection import run_files  # the snapshots in step order, then the final weights
 
     mine, packaged = run_files(run, model), packaged_weights(model)
     if len(packaged) == 1:  # one network: the file the run chose

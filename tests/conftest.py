@@ -64,16 +64,6 @@ def pytest_collection_finish(session):
         raise pytest.UsageError("fixed ROS domains must be one test's each: " + "; ".join(problems))
 
 
-def script_module(name: str):
-    """scripts/<name>.py as a module (scripts/ is not a package), to call its functions in-process."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def deep_qos():
     """Reliable with a deep reader history: a slow Python reader loses nothing to the 250 Hz loop."""
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy

@@ -23,12 +23,12 @@ setup(
         "console_scripts": [
             "trainer_node = uav_trainer.trainer_node:main",
             "train = uav_trainer.train:main",
-            "evaluate = uav_trainer.evaluate:main",
-            "grounding = uav_trainer.grounding:main",
             "distill = uav_trainer.distill:main",
-            "choose = uav_trainer.selection:main",
-            "plot_curves = uav_trainer.plots:main",
-            "attention_figures = uav_trainer.figures:main",
+            # moved to uav_eval: each says so and stops (kept one release)
+            *(
+                f"{exe} = uav_trainer.moved:{exe}"
+                for exe in ("evaluate", "choose", "grounding", "attention_figures", "plot_curves")
+            ),
         ],
     },
 )

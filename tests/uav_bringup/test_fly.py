@@ -56,7 +56,7 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
 
     out = tmp_path / "figures"
     r = subprocess.run(
-        [str(executable("uav_trainer", "attention_figures")), "--bag", str(bag), "--namespace", "/uav2", "--out", str(out)],
+        [str(executable("uav_eval", "attention_figures")), "--bag", str(bag), "--namespace", "/uav2", "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -69,14 +69,14 @@ def test_fly_records_a_namespaced_flight_and_the_bag_becomes_figures(ros, tmp_pa
     assert f"({len(frames)} frames, {len(att)} with attention)" in r.stdout
 
     r = subprocess.run(
-        [str(executable("uav_trainer", "attention_figures")), "--bag", str(bag), "--namespace", "/uav5"],
+        [str(executable("uav_eval", "attention_figures")), "--bag", str(bag), "--namespace", "/uav5"],
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert r.returncode == 2 and "no /uav5/depth/image_raw" in r.stderr and "/uav2/depth/image_raw" in r.stderr
 
-    from uav_trainer.figures import frames_from_bag
+    from uav_eval.figures import frames_from_bag
 
     flown = frames_from_bag(bag, "/uav2")
     assert all(a is not None for _, amap, a, _ in flown if amap is not None), "every answered frame maps to an action"

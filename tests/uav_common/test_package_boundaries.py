@@ -1,6 +1,8 @@
 """Package boundaries follow deployment: a drone that runs only the policy installs no simulator, and
-the simulator installs no torch."""
+the simulator installs no torch. Measuring (uav_eval) may import the policy, the simulator and common code; nothing
+imports measuring (train runs its `choose` as a program)."""
 
+import re
 import subprocess
 import sys
 
@@ -8,7 +10,8 @@ import pytest
 
 from conftest import ROOT
 
-PATHS = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
+PACKAGES = ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup", "uav_eval")
+PATHS = [str(ROOT / "src" / p) for p in PACKAGES]
 
 
 def imported_after(module: str) -> set[str]:
@@ -47,3 +50,27 @@ def test_recording_and_watching_import_no_network_and_no_simulator(module):
     loaded = imported_after(module)
     assert "uav_common" in loaded
     assert not {"torch", "pybullet", "uav_sim", "uav_policy", "uav_trainer"} & loaded
+
+
+@pytest.mark.parametrize(
+    "module",
+    ["uav_trainer.train", "uav_trainer.inprocess", "uav_trainer.trainer_node", "uav_trainer.distill", "uav_policy.rollout"],
+)
+def test_learning_imports_no_measuring(module):
+    loaded = imported_after(module)
+    assert "uav_eval" not in loaded and "torch" in loaded
+
+
+def test_no_package_but_uav_eval_imports_uav_eval_anywhere_in_its_code():
+    """Lazy imports inside functions included: the arrows point one way."""
+    pattern = re.compile(r"^\s*(from|import)\s+uav_eval\b", re.MULTILINE)
+    offenders = [
+        str(f.relative_to(ROOT))
+        for pkg in PACKAGES
+        if pkg != "uav_eval"
+        for f in (ROOT / "src" / pkg).rglob("*.py")
+        if pattern.search(f.read_text())
+    ]
+    assert offenders == []
+    evaluate = (ROOT / "src/uav_eval/uav_eval/evaluate.py").read_text()
+    assert pattern.search("from uav_eval.tables import pool") and "from .tables import" in evaluate  # the check can match

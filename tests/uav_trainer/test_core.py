@@ -225,14 +225,6 @@ def test_only_complete_checkpoints_are_resumed(tmp_path):
     assert checkpoint.latest(tmp_path) == good
 
 
-def test_confidence_interval_matches_a_hand_computed_t_interval():
-    from uav_trainer.tables import mean_ci95
-
-    mean, hw = mean_ci95([0.0, 1.0, 2.0])  # s = 1, n = 3: 4.303 * 1 / sqrt(3)
-    assert mean == 1.0 and hw == pytest.approx(4.303 / 3**0.5)
-    assert np.isnan(mean_ci95([5.0])[1])
-
-
 def test_a_laned_memory_keeps_each_actors_chain_and_samples_every_lane_by_its_share():
     """Two actors' steps interleave: each lane's stacks and next states are its own actor's frames, as if it
     had a memory of its own, and batches come from the lanes in proportion to what they hold."""

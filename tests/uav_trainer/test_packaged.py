@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from uav_trainer.flights import ENSEMBLE_SEP, evaluate_inprocess
+from uav_eval.flights import ENSEMBLE_SEP, evaluate_inprocess
 
 WEIGHTS = Path(__file__).resolve().parents[2] / "src" / "uav_policy" / "weights"
 # folder: (model, crashes, mean reward per step, turning steps) over 150 steps of Complex, random start headings,

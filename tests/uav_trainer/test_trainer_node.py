@@ -12,12 +12,12 @@ from sensor_msgs.msg import Range
 
 from conftest import ROOT, SMALL_WORLD, deep_qos, executable, start_up_error
 from uav_common import contract
+from uav_eval import selection
+from uav_eval.ros_flights import evaluate_once
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_policy.push import PushService, push_request
 from uav_sim.world import VALIDATION_WORLDS
-from uav_trainer import selection
-from uav_trainer.ros_flights import evaluate_once
 from uav_trainer.trainer_node import TrainerNode
 from uav_trainer.training_config import snapshot_steps
 
@@ -546,8 +546,8 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     the ROS nodes changes nothing (and the random start heading, extra sim parameters, the weights' SAM readout, input
     size, layer sizes and frame stack and, without an hfov_deg argument, the camera recorded in the weights and the
     reward window it records reach the nodes)."""
+    from uav_eval.flights import evaluate_inprocess
     from uav_sim.simulator import SimConfig
-    from uav_trainer.flights import evaluate_inprocess
 
     w = tmp_path / "w.safetensors"
     cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)

@@ -284,7 +284,7 @@ def test_snapshots_are_a_thirtieth_of_the_budget_apart_and_need_a_budget(tmp_pat
 
 
 def test_sam_layer_sizes_reach_the_network_the_weights_file_and_the_evaluation(tmp_path):
-    from uav_trainer.flights import evaluate_inprocess
+    from uav_eval.flights import evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, d_model=24, heads=2, relational_blocks=2)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
@@ -296,7 +296,7 @@ def test_sam_layer_sizes_reach_the_network_the_weights_file_and_the_evaluation(t
 
 
 def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):
-    from uav_trainer.flights import evaluate_inprocess
+    from uav_eval.flights import evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, input_size_px=48)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
@@ -310,7 +310,7 @@ def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):
 
 
 def test_the_frame_stack_reaches_the_network_the_replay_memory_and_the_evaluation(tmp_path):
-    from uav_trainer.flights import architecture_args, evaluate_inprocess
+    from uav_eval.flights import architecture_args, evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, frames=3)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
@@ -323,8 +323,8 @@ def test_the_frame_stack_reaches_the_network_the_replay_memory_and_the_evaluatio
 
 
 def test_a_two_layer_trunk_gives_sam_16_by_16_nodes_and_the_file_carries_it(tmp_path, monkeypatch, capsys):
+    from uav_eval.flights import architecture_args, evaluate_inprocess
     from uav_trainer import inprocess
-    from uav_trainer.flights import architecture_args, evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, conv_channels=(16, 32))
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
@@ -411,7 +411,7 @@ def test_a_time_limit_ends_the_episode_and_stores_no_transition(tmp_path):
 def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
     """Why evaluate reports crash sites: flying straight ahead in a small room from the same start
     pose crashes at one site every lap; random start headings spread the crashes out."""
-    from uav_trainer.flights import evaluate_inprocess
+    from uav_eval.flights import evaluate_inprocess
 
     class Straight(torch.nn.Module):  # constant Q: the agent always picks action 3 (2 m/s ahead)
         def forward(self, x):
@@ -424,8 +424,8 @@ def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
 
 
 def test_the_crash_log_says_where_when_and_from_which_start(tmp_path):
-    from uav_trainer.evaluate import main as evaluate_main
-    from uav_trainer.flights import CRASH_FIELDS, evaluate_inprocess
+    from uav_eval.evaluate import main as evaluate_main
+    from uav_eval.flights import CRASH_FIELDS, evaluate_inprocess
 
     class Straight(torch.nn.Module):  # constant Q: the agent always picks action 3 (2 m/s ahead)
         def forward(self, x):

@@ -22,7 +22,7 @@ Measured per frame and summarised by `Insight` (policy_node's /diagnostics, eval
   random order. The areas are the curve's mean margin (Q units);
 - grounding: the explanation's mass on pixels nearer than NEAR_M against their share of the image (1 = no
   preference; above 1 = looks at what is near); `mass_ratio` and `increase_on` measure it on an object placed in a
-  scene (uav_trainer.grounding's counterfactual test).
+  scene (uav_eval.grounding's counterfactual test).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The decision path, once (no ROS): a state of stacked network inputs -> the network's action, its Q-values and
 attention -> the action's body command -> the safety layer -> the command flown.
 
-policy_node decides every frame through `Pilot.decide`, and so do the in-process flights (uav_trainer.rollout:
+policy_node decides every frame through `Pilot.decide`, and so do the in-process flights (uav_policy.rollout:
 training, `evaluate --inprocess`, figures, benchmarks), so a frame becomes a command the same way with or without
 ROS, the safety layer included (`evaluate --inprocess --safety`).
 """

@@ -343,6 +343,27 @@ def load_files(paths: list, model: str) -> torch.nn.Module:
     return nets[0] if len(nets) == 1 else QEnsemble(nets)
 
 
+def load_policy(model: str, files: list[str], hfov_deg: float | None, window: float | None, unrecorded_window: float):
+    """(the network, or for several files a QEnsemble on their mean Q-values; its NetConfig; the
+    camera to fly with; the reward window) for weights files of one architecture. Without hfov_deg
+    the members' trained camera and without `window` their reward window (`unrecorded_window` for a file that records
+    none), each of which must then be the same for all (ValueError if not)."""
+    net = load_files(files, model)
+    if hfov_deg is None:
+        cameras = {camera_for(f, UNRECORDED_HFOV_DEG) for f in files}
+        if len(cameras) != 1:
+            raise ValueError(f"members were trained with different cameras {sorted(cameras)}: give --sim-arg hfov_deg:=X")
+        hfov_deg = cameras.pop()
+    if window is None:
+        windows = {window_for(f, unrecorded_window) for f in files}
+        if len(windows) != 1:
+            raise ValueError(
+                f"members were trained with different reward windows {sorted(windows)}: give --sim-arg reward_window_fraction:=F"
+            )
+        window = windows.pop()
+    return net, net.cfg, hfov_deg, window
+
+
 def policy_network(paths: list[str], cfg: NetConfig, seed: int, warn=print):
     """What policy_node flies: open_files(paths), or without paths the packaged files, or when those are
     missing or unusable (`warn` says why) a seeded random initialisation. (network, source, camera or None)."""

@@ -1,6 +1,6 @@
 """The simulator as a learning agent sees it: an action of the table applied for one step, and the last
 N depth frames as the observation. In-process training, evaluation, figures, benchmarks (through
-uav_trainer.rollout.Flight) and the Gymnasium environment (uav_sim.gym) all step through it."""
+uav_policy.rollout.Flight) and the Gymnasium environment (uav_sim.gym) all step through it."""
 
 from __future__ import annotations
 

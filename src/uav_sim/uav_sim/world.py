@@ -49,6 +49,7 @@ VALIDATION_MAX = 100  # validation:0..99
 # Families by K % 4: a plain layout, partitions among the boxes, cross walls with doorways, a plain layout in weather.
 VALIDATION_FAMILIES = ("layout", "partitions", "doorways", "weather")
 VALIDATION_WORLDS = tuple(f"{VALIDATION}:{k}" for k in range(8))  # the set `evaluate --worlds validation` and train fly
+VALIDATION_STEPS = 500  # a choice flies each weights file this many steps per validation world: 4000 in all
 
 
 class WorldError(ValueError):

@@ -48,8 +48,7 @@ def load_teachers(files: list[str], model: str | None):
     """(teacher network, its config, camera, reward window); ValueError when the files mix architectures, cameras
     or reward windows, or are not of `model`."""
     from uav_policy import weights as wio
-
-    from .flights import load_policy
+    from uav_sim.reward import CENTER_WINDOW_FRACTION
 
     configs = {wio.read_file_config(f) for f in files}
     if len(configs) != 1:
@@ -63,7 +62,7 @@ def load_teachers(files: list[str], model: str | None):
     cameras = {wio.read_file_camera(f) for f in files}
     if len(cameras) != 1:
         raise ValueError(f"teachers trained behind different cameras ({sorted(map(str, cameras))}): give one camera's files")
-    net, cfg, hfov, window = load_policy(cfg.model, files, None)
+    net, cfg, hfov, window = wio.load_policy(cfg.model, files, None, None, CENTER_WINDOW_FRACTION)
     return net.eval(), cfg, hfov, window
 
 

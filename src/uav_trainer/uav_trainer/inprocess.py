@@ -21,12 +21,13 @@ from uav_common.settings import SettingError, add_flags, build, given_flags, ref
 from uav_policy import weights as wio
 from uav_policy.agent import Agent
 from uav_policy.networks import build_network
+from uav_policy.rollout import Flight
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem, with_sensor
+from uav_sim.stacked_sim import StackedSim
 from uav_sim.world import WorldChoice, WorldError
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
-from .rollout import Flight
 from .training import RunDirError, Training
 from .training_config import TrainerConfig, reward_description
 
@@ -92,7 +93,8 @@ def run(
     sim = Simulator(first, sim_cfg, next_worlds=layouts)
     # The policy's own network, answering each frame with the weights its release carries (as over ROS).
     acting = Agent(build_network(training.net_cfg, seed=cfg.seed), training.net_cfg, str(training.learner.device), seed=cfg.seed)
-    flight = Flight(sim, acting, training.net_cfg.frames)
+    net_cfg = training.net_cfg
+    flight = Flight(StackedSim(sim, net_cfg.frames, input_hw=(net_cfg.height, net_cfg.width)), acting)
     training.add_first(flight.env.last_input)
     loaded = None  # the version of the released weights the acting network has
 

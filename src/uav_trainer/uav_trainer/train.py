@@ -19,7 +19,7 @@ same trainer: docs/TRAINING.md, "Many actors".
 
 Writes runs/<model>_seed<seed>/ (checkpoints, metrics.csv, episodes.csv, tb/, curves.png,
 policy_<model>.safetensors and the recipe's snapshots). At the end it chooses one of those files on the
-validation worlds (uav_trainer.selection, `choose`; validation.csv) and prints the command that flies it.
+validation worlds (uav_eval.selection, `choose`; validation.csv) and prints the command that flies it.
 Ctrl-C stops the trainer first, which saves
 a final checkpoint with the replay memory, then the policy and the simulator. Running it again with
 the same run directory resumes where it stopped.
@@ -29,18 +29,20 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
 
-from uav_common.launching import Processes, params_args, ros_log_dir, stop_signals
+from uav_common.launching import Processes, find_executable, params_args, ros_log_dir, stop_signals
 from uav_common.settings import refuse_retired_flags
 from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
 from uav_policy.push import write_key
+from uav_sim.world import VALIDATION_STEPS
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
-from .selection import VALIDATION_STEPS
 from .training_config import snapshot_file, snapshot_steps
 
 RETIRED_FLAGS = {
@@ -247,19 +249,25 @@ def main(argv=None) -> int:
 
 
 def name_one(run_dir: Path, model: str, files: list[Path], steps: int) -> tuple[Path, str]:
-    """The one file a run ships, and why: chosen on the validation worlds (steps > 0), else the final weights."""
-    from .selection import choose_run
-
+    """The one file a run ships, and why: chosen on the validation worlds (steps > 0) by uav_eval's `choose` (run as
+    a program: measuring is not imported by what learns), else the final weights."""
     final = run_dir / f"policy_{model}.safetensors"
+    fallback = final if final in files else files[-1]
     if steps == 0 or len(files) == 1:
-        why = "the run's only weights file" if len(files) == 1 else "the final weights, not chosen (--validation-steps 0)"
-        return (final if final in files else files[-1]), why
-    import torch
-
-    torch.set_num_threads(1)
-    c = choose_run(run_dir, model, steps, log=lambda line: print(line, flush=True), again=True, files=files)
+        return fallback, "the run's only weights file" if len(
+            files
+        ) == 1 else "the final weights, not chosen (--validation-steps 0)"
+    cmd = [find_executable("uav_eval", "choose"), str(run_dir), "--model", model, "--steps", str(steps), "--again"]
+    said = None
+    with subprocess.Popen([*cmd, "--files", *map(str, files)], stdout=subprocess.PIPE, text=True) as p:
+        for line in p.stdout:
+            print(line, end="", flush=True)
+            said = re.match(r"chosen: (.+) \((\d+) crashes in (\d+) validation steps", line) or said
+    if p.returncode != 0 or said is None:
+        return fallback, f"the final weights: choosing on the validation worlds failed (code {p.returncode}, see above)"
+    path, crashes, flown = said.groups()
     table = run_dir / "validation.csv"
-    return Path(c.weights), f"chosen of {len(files)} on the validation worlds: {c.crashes} crashes in {c.steps} steps; {table}"
+    return Path(path), f"chosen of {len(files)} on the validation worlds: {crashes} crashes in {flown} steps; {table}"
 
 
 def _read_lines(path: Path) -> list[str]:

@@ -1,7 +1,7 @@
 """Top-down maps of worlds: the room, its obstacles, the start pose and its weather (no ROS).
 
-    python -m uav_trainer.world_maps validation --out docs/figures/validation_worlds.png
-    python -m uav_trainer.world_maps basic complex random:3 my_world.yaml --out worlds.png
+    python -m uav_eval.world_maps validation --out docs/figures/validation_worlds.png
+    python -m uav_eval.world_maps basic complex random:3 my_world.yaml --out worlds.png
 
 'validation' stands for the validation worlds (uav_sim.world.VALIDATION_WORLDS).
 """

@@ -1,9 +1,9 @@
 """Is one model's crash rate lower than the other's? A two-sample comparison over training seeds.
 
-    python scripts/compare_models.py docs/results/behaviour/turn_penalty_20_seeds/results.csv [--a sam --b cnn]
-    python scripts/compare_models.py new.csv old.csv --by run --a redraw_sam --b turn_sam
-    python scripts/compare_models.py long.csv short.csv --by run --paired --a tl300long_sam --b tl300_sam
-    python scripts/compare_models.py min.csv mean.csv --by file --paired --a min --b mean
+    ros2 run uav_eval compare_models docs/results/behaviour/turn_penalty_20_seeds/results.csv [--a sam --b cnn]
+    ros2 run uav_eval compare_models new.csv old.csv --by run --a redraw_sam --b turn_sam
+    ros2 run uav_eval compare_models long.csv short.csv --by run --paired --a tl300long_sam --b tl300_sam
+    ros2 run uav_eval compare_models min.csv mean.csv --by file --paired --a min --b mean
 
 Reads an `evaluate` results.csv (one row per weights file and world). For each world and metric
 (crashes per 1000 steps, mean reward per step) it prints, in Markdown: the mean of each model over
@@ -43,7 +43,7 @@ from pathlib import PurePath
 
 import numpy as np
 
-ENSEMBLE_SEP = "+"  # evaluate.ENSEMBLE_SEP: an ensemble's weights column is its files joined by it
+from .flights import ENSEMBLE_SEP
 
 
 def run_name(weights: str) -> str:

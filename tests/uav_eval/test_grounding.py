@@ -1,12 +1,12 @@
-"""The counterfactual grounding test (uav_trainer.grounding): obstacles placed in an empty room, the explanation's
+"""The counterfactual grounding test (uav_eval.grounding): obstacles placed in an empty room, the explanation's
 mass on them, and the cascading-randomisation sanity check, on constructed and built networks."""
 
 import numpy as np
 import pytest
 import torch
 
+from uav_eval import grounding
 from uav_policy.networks import NetConfig, build_network
-from uav_trainer import grounding
 
 HFOV = 90.0
 

@@ -9,11 +9,11 @@ import sys
 import pytest
 import torch
 
-from conftest import ROOT, executable, read_bag, script_module
+from conftest import ROOT, executable, read_bag
+from uav_eval.flights import Behaviour
+from uav_eval.ros_flights import evaluate_once
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
-from uav_trainer.flights import Behaviour
-from uav_trainer.ros_flights import evaluate_once
 
 
 def run_tool(pkg, exe, *args, domain: str, timeout=240):
@@ -29,7 +29,7 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
         wio.save_file(build_network(NetConfig(), seed=seed), NetConfig(), w)
         ws.append(str(w))
     r = run_tool(
-        "uav_trainer",
+        "uav_eval",
         "evaluate",
         "--model",
         "sam",
@@ -75,7 +75,7 @@ def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):
     wio.save_file(build_network(NetConfig(), seed=2), NetConfig(), w)
     args = ["--weights", str(w), "--worlds", "basic", "--steps", "40", "--params-dir", str(ROOT / "params")]
     r = run_tool(
-        "uav_trainer",
+        "uav_eval",
         "evaluate",
         *args,
         "--start-yaw-jitter-deg",
@@ -90,7 +90,7 @@ def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):
     assert "random heading (uniform ±180°), 2 x 40 steps" in (tmp_path / "e" / "results.md").read_text()
     rows = list(csv.DictReader(open(tmp_path / "e" / "results.csv")))
     assert len(rows) == 1 and int(rows[0]["steps"]) == 80  # two runs of one weight file pooled into one row
-    bad = run_tool("uav_trainer", "evaluate", *args, "--start-yaw-jitter-deg", "200", domain="85")
+    bad = run_tool("uav_eval", "evaluate", *args, "--start-yaw-jitter-deg", "200", domain="85")
     assert bad.returncode == 2 and "--start-yaw-jitter-deg" in bad.stderr
 
 
@@ -99,11 +99,11 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
     wio.save_file(build_network(NetConfig(), seed=3), NetConfig(), w)
     args = ["--weights", str(w), "--worlds", "complex", "--steps", "60", "--params-dir", str(ROOT / "params")]
     args += ["--start-yaw-jitter-deg", "180", "--repeats", "2", "--sim-arg", "hfov_deg:=120.0"]
-    paper = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "paper"), domain="77")
+    paper = run_tool("uav_eval", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "paper"), domain="77")
     # Half of each side: the floor enters the reward window 1.15 m ahead; both paths must see the change.
     args += ["--sim-arg", "reward_window_fraction:=0.5"]
-    ros = run_tool("uav_trainer", "evaluate", *args, "--out", str(tmp_path / "ros"), domain="77")
-    local = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "local"), domain="77")
+    ros = run_tool("uav_eval", "evaluate", *args, "--out", str(tmp_path / "ros"), domain="77")
+    local = run_tool("uav_eval", "evaluate", *args, "--inprocess", "--out", str(tmp_path / "local"), domain="77")
     assert ros.returncode == 0 and local.returncode == 0, ros.stderr[-2000:] + local.stderr[-2000:]
     assert "Measured in-process" in (tmp_path / "local" / "results.md").read_text()
     a, b = ([r for r in csv.DictReader(open(tmp_path / d / "results.csv"))] for d in ("ros", "local"))
@@ -129,13 +129,13 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
     assert (
         c["crashes"] == a[0]["crashes"] and float(a[0]["mean_reward"]) < float(c["mean_reward"]) - 0.5
     )  # same flight, less reward
-    bad = run_tool("uav_trainer", "evaluate", *args, "--inprocess", "--sim-arg", "weather:=rain", domain="77")
+    bad = run_tool("uav_eval", "evaluate", *args, "--inprocess", "--sim-arg", "weather:=rain", domain="77")
     assert bad.returncode == 2 and "--inprocess takes only --sim-arg hfov_deg" in bad.stderr
 
 
 def test_attention_figures_are_written(tmp_path):
     r = run_tool(
-        "uav_trainer",
+        "uav_eval",
         "attention_figures",
         "--model",
         "sam",
@@ -193,7 +193,7 @@ def test_behaviour_tells_circling_on_the_spot_from_flying_through_the_room():
 def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path):
     """`--from-csv` joins per-run CSVs and, given the same protocol flags, rewrites the same tables;
     a flatten-readout SAM file is flown with its own readout."""
-    from uav_trainer.evaluate import main
+    from uav_eval.evaluate import main
 
     flat = NetConfig(sam_readout="flatten")
     ws = [tmp_path / "max.safetensors", tmp_path / "flat.safetensors"]
@@ -213,7 +213,7 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
 def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, capsys):
     """Bad rows in `--from-csv` files stop evaluate with the file, the line and what is wrong, and
     write no tables."""
-    from uav_trainer.evaluate import main
+    from uav_eval.evaluate import main
 
     head = "model,world,weights,steps,crashes,crashes_per_1000,mean_reward,distance_m\n"
     good = "sam,basic,a.safetensors,1000,2,2.00,1.5,900.00\n"
@@ -254,7 +254,7 @@ def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, 
 
 def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, capsys):
     """--ensemble K groups the files in order; two copies of one network fly exactly as that network."""
-    from uav_trainer.evaluate import main
+    from uav_eval.evaluate import main
 
     def save(name, seed, cfg=NetConfig()):
         path = tmp_path / name / "policy_sam.safetensors"
@@ -287,17 +287,18 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
         assert e.value.code == 2 and says in capsys.readouterr().err
     comma = tmp_path / "a,b.safetensors"
     shutil.copy(a, comma)
-    refused = run_tool("uav_trainer", "evaluate", "--weights", str(comma), "--steps", "5", domain="78")
+    refused = run_tool("uav_eval", "evaluate", "--weights", str(comma), "--steps", "5", domain="78")
     assert refused.returncode == 2 and "cannot take a path with a comma" in refused.stderr
     # Through the ROS nodes (policy_node gets both files as its weights list): the same flight.
     ros_args = [*proto[1:], "--params-dir", str(ROOT / "params"), "--out", str(tmp_path / "ros")]
-    ros = run_tool("uav_trainer", "evaluate", *ros_args, "--ensemble", "2", "--weights", a, b, domain="78")
+    ros = run_tool("uav_eval", "evaluate", *ros_args, "--ensemble", "2", "--weights", a, b, domain="78")
     assert ros.returncode == 0, ros.stderr[-3000:]
     local, over_ros = (next(csv.DictReader(open(tmp_path / d / "results.csv"))) for d in ("mixed", "ros"))
     assert over_ros["weights"] == f"{a}+{b}" and "Measured in-process" not in (tmp_path / "ros" / "results.md").read_text()
     for key in ("steps", "crashes", "mean_reward", "distance_m", "crash_sites", "turn_steps", "cells_visited"):
         assert over_ros[key] == local[key], (key, over_ros, local)
-    compare = script_module("compare_models")
+    from uav_eval import compare_models as compare
+
     assert compare.run_name(ens["weights"]) == "e_sam_ens2" and compare.seeds_of(ens["weights"]) == (0, 1)
     snaps = "runs/t_sam_seed4/policy_sam_step28999.safetensors+runs/t_sam_seed4/policy_sam.safetensors"
     assert compare.run_name(snaps) == "t_sam_snap2" and compare.seeds_of(snaps) == (4, 4)
@@ -322,7 +323,7 @@ def test_compare_models_tells_a_real_difference_from_none(tmp_path):
                     w.writerow([model, "complex", f"{model}{i}", 1000, c, 2.0 + 0.1 * i])
         return path
 
-    script = ROOT / "scripts" / "compare_models.py"
+    script = executable("uav_eval", "compare_models")
     run = lambda p: subprocess.run([sys.executable, str(script), str(p)], capture_output=True, text=True)  # noqa: E731
     differ = run(write("differ.csv", [0, 1, 0, 1, 0, 1], [9, 10, 11, 9, 10, 11]))
     assert differ.returncode == 0, differ.stderr
@@ -374,7 +375,7 @@ def test_compare_models_tells_a_real_difference_from_none(tmp_path):
 
 def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
     """Seeds far apart from each other, each improved by 1 crash: unpaired cannot tell, paired can."""
-    script = ROOT / "scripts" / "compare_models.py"
+    script = executable("uav_eval", "compare_models")
     base = [0, 10, 20, 30, 40, 50, 60, 70]
     rows = [["sam", "complex", f"runs/short_sam_seed{i}/policy_sam.safetensors", 1000, c, 2.0] for i, c in enumerate(base)]
     long = "runs/long_sam_seed{}/policy_sam_step60.safetensors"
@@ -425,8 +426,9 @@ def test_compare_models_paired_by_seed_sees_a_consistent_small_gain(tmp_path):
 
 def test_compare_models_counts_the_seeds_at_the_bar(tmp_path):
     """--bar: a seed counts when it is at or under the bar in every world; the shares get a Fisher exact test."""
-    script = ROOT / "scripts" / "compare_models.py"
-    compare = script_module("compare_models")
+    script = executable("uav_eval", "compare_models")
+    from uav_eval import compare_models as compare
+
     assert compare.fisher_exact(3, 4, 1, 4) == pytest.approx(17 / 35)  # Fisher's tea tasting: two-sided 0.486
     assert compare.fisher_exact(4, 4, 0, 4) == pytest.approx(2 / 70) and compare.fisher_exact(2, 4, 2, 4) == pytest.approx(1.0)
     assert compare.parse_bar("paper") == {"basic": 0.0, "complex": 1.0, "turbulent": 1.0}

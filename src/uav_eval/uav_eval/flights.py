@@ -1,7 +1,7 @@
 """Measuring flights: a policy flown exploit-only in process (`evaluate_inprocess`, through the one act -> step ->
 stack loop), counted into an EvalResult: crashes, reward, distance, crash sites, turning steps and floor area
 covered; and the weights and simulator arguments both this and the flight through the ROS nodes
-(uav_trainer.ros_flights) use."""
+(uav_eval.ros_flights) use."""
 
 from __future__ import annotations
 
@@ -190,17 +190,19 @@ def evaluate_inprocess(
     are counted. `max_crashes` N > 0 ends the flight at its N-th crash (the result's steps are those flown)."""
     from uav_policy import weights as wio
     from uav_policy.agent import Agent
+    from uav_policy.rollout import Flight
     from uav_policy.safety import SafetyLayer, SafetySettings
     from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.stacked_sim import StackedSim
     from uav_sim.world import load_world
-
-    from .rollout import Flight
 
     if net is None:
         files = weights_or_packaged(model, weights)
         if not files:
             raise FileNotFoundError(f"no weights given and no packaged {model} weights")
-        net, net_cfg, hfov_deg, reward_window_fraction = load_policy(model, files, hfov_deg, reward_window_fraction)
+        net, net_cfg, hfov_deg, reward_window_fraction = wio.load_policy(
+            model, files, hfov_deg, reward_window_fraction, CENTER_WINDOW_FRACTION
+        )
     cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
     if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
         hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
@@ -225,7 +227,8 @@ def evaluate_inprocess(
     )
     sim = Simulator(load_world(world), sim_cfg)
     layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
-    flight = Flight(sim, agent, cfg.frames, trained_hfov_deg=hfov_deg, safety=layer)
+    env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
+    flight = Flight(env, agent, safety=layer)
     r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
@@ -283,26 +286,3 @@ def evaluate_inprocess(
         layer.counts.total if layer is not None else -1,
         insight=insight.summary() if insight is not None else None,
     )
-
-
-def load_policy(model: str, files: list[str], hfov_deg: float | None, window: float | None = None):
-    """(the network, or for several files a QEnsemble on their mean Q-values; its NetConfig; the
-    camera to fly with; the reward window) for weights files of one architecture. Without hfov_deg
-    the members' trained camera and without `window` their reward window, each of which must then
-    be the same for all (ValueError if not)."""
-    from uav_policy import weights as wio
-
-    net = wio.load_files(files, model)
-    if hfov_deg is None:
-        cameras = {wio.camera_for(f, wio.UNRECORDED_HFOV_DEG) for f in files}
-        if len(cameras) != 1:
-            raise ValueError(f"members were trained with different cameras {sorted(cameras)}: give --sim-arg hfov_deg:=X")
-        hfov_deg = cameras.pop()
-    if window is None:
-        windows = {wio.window_for(f, CENTER_WINDOW_FRACTION) for f in files}
-        if len(windows) != 1:
-            raise ValueError(
-                f"members were trained with different reward windows {sorted(windows)}: give --sim-arg reward_window_fraction:=F"
-            )
-        window = windows.pop()
-    return net, net.cfg, hfov_deg, window

@@ -1,6 +1,6 @@
 """evaluate: fly a policy exploit-only through the ROS nodes and measure the paper's test metrics.
 
-    ros2 run uav_trainer evaluate --model sam --weights runs/sam_seed0/policy_sam.safetensors \
+    ros2 run uav_eval evaluate --model sam --weights runs/sam_seed0/policy_sam.safetensors \
         --worlds basic complex turbulent --steps 1000
 
 For each (model, weights, world) it starts sim_node and policy_node (epsilon 0 unless --epsilon),
@@ -31,7 +31,6 @@ from .flights import (
     INPROCESS_SIM_ARGS,
     EvalResult,
     evaluate_inprocess,
-    load_policy,
     sim_arg_hfov_deg,
     sim_arg_number,
     weights_label,
@@ -254,7 +253,8 @@ def main(argv=None) -> int:
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
 
-    from uav_policy.weights import WeightsError, read_file_config, read_file_window
+    from uav_policy.weights import WeightsError, load_policy, read_file_config, read_file_window
+    from uav_sim.reward import CENTER_WINDOW_FRACTION
 
     recorded_windows = set()
     for model, files in runs:  # unreadable weights fail here, before any node starts
@@ -276,7 +276,7 @@ def main(argv=None) -> int:
         members = files or packaged[model]  # the packaged weights may be an ensemble too
         if len(members) > 1:
             try:
-                ensembles[model, ENSEMBLE_SEP.join(files)] = load_policy(model, members, hfov_deg, window)
+                ensembles[model, ENSEMBLE_SEP.join(files)] = load_policy(model, members, hfov_deg, window, CENTER_WINDOW_FRACTION)
             except ValueError as e:
                 ap.error(f"--ensemble {a.ensemble}, {model}: {e}" if files else f"the packaged {model} weights: {e}")
 

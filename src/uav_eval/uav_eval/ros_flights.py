@@ -1,6 +1,6 @@
 """Measuring flights through the ROS nodes: sim_node and policy_node started for one policy and world, flown
 exploit-only in lockstep (`evaluate_once`), their step outcomes and odometry counted into an EvalResult (the
-in-process flight and the result types: uav_trainer.flights)."""
+in-process flight and the result types: uav_eval.flights)."""
 
 from __future__ import annotations
 

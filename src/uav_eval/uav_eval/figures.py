@@ -1,7 +1,7 @@
 """attention_figures: pictures of what the agent attends to, made with the node's own overlay code.
 
-    ros2 run uav_trainer attention_figures --model sam --weights W --worlds basic turbulent --out runs/figures
-    ros2 run uav_trainer attention_figures --bag runs/bags/flight1        # what was flown and recorded
+    ros2 run uav_eval attention_figures --model sam --weights W --worlds basic turbulent --out runs/figures
+    ros2 run uav_eval attention_figures --bag runs/bags/flight1        # what was flown and recorded
 
 Writes attention_<world>.png (depth frames and their attention overlays at representative
 steps, like the paper's attention figure; saliency_<world>.png for the CNN: its Grad-CAM) and
@@ -25,8 +25,7 @@ from uav_policy.agent import Agent
 from uav_policy.attention import OVERLAY_MIN_PX, attention_map, colourise_depth, overlay
 from uav_policy.insight import explanation
 from uav_policy.networks import build_network
-
-from .rollout import Flight
+from uav_policy.rollout import Flight
 
 
 def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
@@ -49,7 +48,9 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
         seed=seed, hfov_deg=camera, image_width=cfg.width, image_height=cfg.height, sensor=sensor, sensor_scale=scale
     )
     sim = Simulator(load_world(world), sim_cfg)
-    flight = Flight(sim, agent, cfg.frames, trained_hfov_deg=camera)
+    from uav_sim.stacked_sim import StackedSim
+
+    flight = Flight(StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=camera), agent)
     out = []
     try:
         for _ in range(steps):

@@ -8,6 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from uav_eval import selection
+from uav_eval.flights import EvalResult
+from uav_eval.stats import Rate, aggregate, poisson_interval
+from uav_eval.tables import read_results_csvs, write_tables
 from uav_sim.world import (
     BUILTIN_WORLDS,
     TRAINING_LAYOUTS_FROM,
@@ -19,10 +23,6 @@ from uav_sim.world import (
     procedural_world,
     training_layouts,
 )
-from uav_trainer import selection
-from uav_trainer.flights import EvalResult
-from uav_trainer.stats import Rate, aggregate, poisson_interval
-from uav_trainer.tables import read_results_csvs, write_tables
 
 # Garwood's exact 95 % limits for a Poisson mean (e.g. Ulm 1990, Table 1; the guide's 1.1-10.2 and 12-31).
 PUBLISHED = {0: (0.0, 3.689), 1: (0.0253, 5.572), 2: (0.242, 7.225), 4: (1.090, 10.242), 10: (4.795, 18.390)}
@@ -126,7 +126,7 @@ def test_the_rule_picks_the_fewest_validation_crashes_ties_to_the_later_file_and
             return result(weights, world, steps // 2, max_crashes)
         return result(weights, world, steps, c)
 
-    monkeypatch.setattr("uav_trainer.flights.evaluate_inprocess", fake)
+    monkeypatch.setattr("uav_eval.flights.evaluate_inprocess", fake)
     for name in crashes:
         (tmp_path / f"{name}.safetensors").write_bytes(b"")
     files = selection.run_files(tmp_path, "sam")
@@ -152,7 +152,7 @@ def test_choose_names_one_file_per_run_and_one_across_runs(tmp_path, monkeypatch
         c = per_run[Path(weights).parent.name][Path(weights).stem] if world == VALIDATION_WORLDS[0] else 0
         return result(weights, world, steps, min(c, max_crashes) if max_crashes else c)
 
-    monkeypatch.setattr("uav_trainer.flights.evaluate_inprocess", fake)
+    monkeypatch.setattr("uav_eval.flights.evaluate_inprocess", fake)
     for run, files in per_run.items():
         (tmp_path / run).mkdir()
         for name in files:
@@ -164,3 +164,11 @@ def test_choose_names_one_file_per_run_and_one_across_runs(tmp_path, monkeypatch
     assert f"chosen across the runs: {tmp_path / 'r1' / 'policy_cnn.safetensors'}" in out
     assert selection.main([str(tmp_path / "none")]) == 2
     assert "none: holds no weights files" in capsys.readouterr().err
+
+
+def test_confidence_interval_matches_a_hand_computed_t_interval():
+    from uav_eval.tables import mean_ci95
+
+    mean, hw = mean_ci95([0.0, 1.0, 2.0])  # s = 1, n = 3: 4.303 * 1 / sqrt(3)
+    assert mean == 1.0 and hw == pytest.approx(4.303 / 3**0.5)
+    assert math.isnan(mean_ci95([5.0])[1])

@@ -1,23 +1,26 @@
 """The act -> step -> stack loop, once: a policy flying the simulator with the paper's actions.
 
-In-process training, evaluation, figures and benchmarks all fly through `Flight.step`, so they
-act, move and stack frames exactly alike (and as policy_node and sim_node do over ROS): the decision is
-uav_policy.pilot.Pilot's, policy_node's own, safety layer included when one is given; the stepping is
-uav_sim.stacked_sim.StackedSim, which the Gymnasium environment uses too.
+In-process training (uav_trainer), evaluation, figures (uav_eval) and benchmarks all fly through `Flight.step`, so
+they act, move and stack frames exactly alike (and as policy_node and sim_node do over ROS): the decision is
+uav_policy.pilot.Pilot's, policy_node's own, safety layer included when one is given; the stepping is the caller's
+uav_sim.stacked_sim.StackedSim, which the Gymnasium environment uses too. It lives with the policy, whose decision
+path it is, and imports no simulator (a drone installs none): learning and measuring both import it, neither the other.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from uav_common.actions import PAPER_ACTIONS, Action
-from uav_policy.agent import Agent
-from uav_policy.pilot import Decision, Pilot
-from uav_policy.safety import SafetyLayer
-from uav_sim.simulator import Simulator, StepResult
-from uav_sim.stacked_sim import StackedSim
+from .agent import Agent
+from .pilot import Decision, Pilot
+from .safety import SafetyLayer
+
+if TYPE_CHECKING:
+    from uav_sim.simulator import StepResult
+    from uav_sim.stacked_sim import StackedSim
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,24 +34,14 @@ class Step:
 
 
 class Flight:
-    """An Agent flying a Simulator: `step(epsilon)` acts on the stacked frames and steps the simulator."""
+    """An Agent flying a StackedSim: `step(epsilon)` acts on the stacked frames and steps the simulator."""
 
-    def __init__(
-        self,
-        sim: Simulator,
-        agent: Agent,
-        frames: int,
-        actions: tuple[Action, ...] = PAPER_ACTIONS,
-        trained_hfov_deg: float | None = None,
-        safety: SafetyLayer | None = None,
-    ):
-        """Frames reach the network as policy_node gives them: mapped onto its input size and the field of
-        view it was trained with (`trained_hfov_deg`; default: the simulator's camera); with `safety`, its
+    def __init__(self, env: StackedSim, agent: Agent, safety: SafetyLayer | None = None):
+        """`env` steps the simulator and stacks its frames as policy_node gives them to `agent`'s network (its input
+        size, the field of view it was trained with: StackedSim's input_hw and trained_hfov_deg); with `safety`, the
         commands pass policy_node's safety layer."""
-        hw = (agent.cfg.height, agent.cfg.width)
-        self.env = StackedSim(sim, frames, actions, input_hw=hw, trained_hfov_deg=trained_hfov_deg)
-        self.agent, self.actions = agent, actions
-        self.pilot = Pilot(agent, actions, sim.config.step_duration_s, safety)
+        self.env, self.agent, self.actions = env, agent, env.actions
+        self.pilot = Pilot(agent, env.actions, env.sim.config.step_duration_s, safety)
 
     @property
     def last(self) -> StepResult:

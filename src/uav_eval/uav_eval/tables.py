@@ -1,6 +1,6 @@
 """Result tables: runs pooled per policy, each policy's crash count with its exact Poisson interval, the
 interquartile mean over policies (training seeds) with its stratified-bootstrap interval and the worst seed
-beside the paper's numbers (results.md, uav_trainer.stats), the rows as results.csv, and those rows read
+beside the paper's numbers (results.md, uav_eval.stats), the rows as results.csv, and those rows read
 back (`--from-csv`)."""
 
 from __future__ import annotations

@@ -283,9 +283,11 @@ def run(
 
 def main(argv=None) -> int:
     from uav_policy import weights as wio
+    from uav_policy.weights import load_policy
+    from uav_sim.reward import CENTER_WINDOW_FRACTION
     from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
 
-    from .flights import load_policy, weights_or_packaged
+    from .flights import weights_or_packaged
 
     ap = argparse.ArgumentParser(prog="grounding", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", choices=("sam", "cnn"), help="repeatable; default: sam")
@@ -314,7 +316,7 @@ def main(argv=None) -> int:
         if not files:
             ap.error(f"no weights given and no packaged {model} weights")
         try:
-            net, _, hfov, _ = load_policy(model, files, None)
+            net, _, hfov, _ = load_policy(model, files, None, None, CENTER_WINDOW_FRACTION)
         except (ValueError, OSError, wio.WeightsError) as e:
             ap.error(f"--weights: {e}")
         net.eval()

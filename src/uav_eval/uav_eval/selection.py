@@ -1,7 +1,7 @@
 """choose: the one network a training run ships, picked on the validation worlds, never on the test worlds.
 
-    choose runs/sam_seed0                    # = ros2 run uav_trainer choose; train does this at its end
-    choose runs/sam_seed* --across-runs      # one network from several runs (seeds), by the same rule
+    ros2 run uav_eval choose runs/sam_seed0                  # train does this at its end
+    ros2 run uav_eval choose runs/sam_seed* --across-runs    # one network from several runs (seeds), by the same rule
 
 The rule, the same for SAM and CNN (docs/RESULTS.md, "How we choose"):
 - every weights file the run wrote (its snapshots and its final weights) flies each validation world
@@ -26,7 +26,8 @@ import sys
 import time
 from pathlib import Path
 
-VALIDATION_STEPS = 500  # per validation world and file: 4000 steps over the 8 worlds
+from uav_sim.world import VALIDATION_STEPS
+
 CSV_NAME = "validation.csv"
 FIELDS = ("weights", "steps", "crashes", "complete", "chosen")
 
@@ -164,6 +165,9 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=VALIDATION_STEPS, help="steps per validation world and file")
     ap.add_argument("--again", action="store_true", help="fly the files again even where validation.csv has chosen")
     ap.add_argument(
+        "--files", nargs="+", type=Path, default=None, help="one run's files to choose among (default: all its weights files)"
+    )
+    ap.add_argument(
         "--across-runs",
         action="store_true",
         help="then name the one file, of the runs' chosen files, with the fewest validation crashes (ties: the run named first)",
@@ -171,6 +175,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.steps < 1:
         ap.error("--steps must be >= 1")
+    if a.files is not None and len(a.runs) != 1:
+        ap.error("--files: give one run folder")
     import torch
 
     torch.set_num_threads(1)  # batch-1 decisions: more threads only contend (evaluate does the same)
@@ -179,7 +185,7 @@ def main(argv=None) -> int:
         t0 = time.monotonic()
         try:
             model = a.model or model_of(run)
-            c = choose_run(run, model, a.steps, again=a.again)
+            c = choose_run(run, model, a.steps, again=a.again, files=a.files)
         except (ValueError, OSError) as e:
             print(f"choose: {e}", file=sys.stderr)
             return 2

@@ -1,6 +1,6 @@
 """plot_curves: training curves of several runs (models x seeds) in one figure, like the paper's Figs. 3-4.
 
-    ros2 run uav_trainer plot_curves runs/paper_*_seed* --out runs/training_curves.png
+    ros2 run uav_eval plot_curves runs/paper_*_seed* --out runs/training_curves.png
 
 Each run's episodes.csv is binned by environment steps; the line is the mean over seeds of a
 model and the band spans the seeds' minimum to maximum.

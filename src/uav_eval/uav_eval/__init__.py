@@ -1,0 +1,1 @@
+"""Measuring policies: flights, tables, statistics, the validation choice, grounding, figures and plots."""
