@@ -123,6 +123,8 @@ class TrainerConfig:
         changed = [k for k in SAM_SIZES if getattr(self, k) != getattr(TrainerConfig, k)]
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
+        if self.model == "cnn" and self.learner.consistency_weight > 0:
+            raise ValueError("'consistency_weight' keeps the cells SAM attends to; model 'cnn' has no attention")
         snapshot_steps(self.snapshots, self.total_steps)
 
 
