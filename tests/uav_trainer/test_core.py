@@ -13,7 +13,6 @@ from uav_trainer.learner import (
     consistency_loss,
     double_dqn_target,
     linear_epsilon,
-    random_shift,
 )
 from uav_trainer.replay import LanedReplay, ReplayMemory
 
@@ -168,29 +167,6 @@ def test_learner_is_seeded_and_reproducible():
     assert runs[0][0] == runs[1][0]
     for a, b in zip(runs[0][1], runs[1][1], strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-
-
-def test_random_shift_moves_each_sample_whole_with_its_edges_repeated():
-    torch.manual_seed(0)
-    h, w = 6, 7
-    frame = torch.arange(h * w, dtype=torch.float32).reshape(h, w)
-    x = torch.stack([frame + 100 * k for k in range(3)])[None].repeat(64, 1, 1, 1)  # 64 samples of 3 frames
-    out = random_shift(x, 2)
-    assert out.shape == x.shape
-    offsets = set()
-    for b in range(64):
-        hits = [
-            (dy, dx)
-            for dy in range(-2, 3)
-            for dx in range(-2, 3)
-            if torch.equal(out[b, 0], frame[(torch.arange(h) + dy).clamp(0, h - 1)][:, (torch.arange(w) + dx).clamp(0, w - 1)])
-        ]
-        assert len(hits) == 1, hits  # one offset in [-2, 2] x [-2, 2], edges repeated (never a zero border)
-        assert torch.equal(out[b, 1] - out[b, 0], torch.full((h, w), 100.0))  # the frames of a sample move together
-        offsets.add(hits[0])
-    assert len(offsets) > 10  # samples draw their own offsets
-    lr = Learner(NetConfig(model="sam"), LearnerConfig(seed=3, augment_shift_px=4))
-    assert np.isfinite(lr.update(small_batch(0))["loss"])
 
 
 class ReadsCells(torch.nn.Module):

@@ -83,7 +83,9 @@ class NetConfig:
     cnn_hidden: int = 128
     head_hidden: int = 64
     sam_readout: str = "max"  # how SAM turns nodes into one vector: max | flatten | attend (cnn: always max)
-    feature_norm: bool = False  # LayerNorm on the features the dueling heads read (both models)
+    feature_norm: bool = (
+        False  # LayerNorm before the dueling heads: files that record it load; no recipe trains it (it did not help)
+    )
 
     def __post_init__(self):
         # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)

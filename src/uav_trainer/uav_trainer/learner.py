@@ -26,14 +26,6 @@ class LearnerConfig:
     target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
     target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
     huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
-    augment_shift_px: int = setting(
-        0,
-        "Random-shift augmentation (DrQ; not in the paper): each sampled state and next state moves by up to this many "
-        "px along each image axis before the update, edges repeated (a zero, no return, would read as an obstacle); "
-        "acting is never augmented; 0 = off",
-        0,
-        8,
-    )
     consistency_weight: float = setting(
         0.0,
         "SAM: weight of a consistency loss (SGQN, Bertoin et al. 2022; not in the paper) on CONSISTENCY_BATCH samples of "
@@ -52,19 +44,6 @@ def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
     """y = r + gamma * (1 - done) * Q_target(s', argmax_a Q_online(s', a))."""
     best = q_next_online.argmax(dim=1, keepdim=True)
     return reward + gamma * (1.0 - done) * q_next_target.gather(1, best).squeeze(1)
-
-
-def random_shift(x: torch.Tensor, pad: int) -> torch.Tensor:
-    """Each sample of a (batch, frames, height, width) tensor moved by its own whole-pixel offset in [-pad, pad] along
-    each image axis, the edge rows and columns repeated (DrQ's pad-and-crop, replicate padding); a sample's frames move
-    together. Draws from torch's global generator, which checkpoints keep."""
-    b, _, h, w = x.shape
-    dy, dx = torch.randint(-pad, pad + 1, (2, b, 1), device=x.device)
-    rows = (torch.arange(h, device=x.device) + dy).clamp_(0, h - 1)  # (b, h)
-    cols = (torch.arange(w, device=x.device) + dx).clamp_(0, w - 1)  # (b, w)
-    batch = torch.arange(b, device=x.device)[:, None, None]
-    # Advanced indices around the frames slice broadcast to (b, h, w) and come first: (b, h, w, frames).
-    return x[batch, :, rows[:, :, None], cols[:, None, :]].permute(0, 3, 1, 2).contiguous()
 
 
 def attended_only(states: torch.Tensor, attention: torch.Tensor, grid_hw: tuple[int, int]) -> torch.Tensor:
@@ -116,8 +95,6 @@ class Learner:
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         """One gradient step on a sampled batch; returns loss, mean Q and gradient norm."""
         s, a, r, done, s2 = self._tensors(batch)
-        if self.cfg.augment_shift_px > 0:  # the state and its next state draw their own shifts
-            s, s2 = random_shift(s, self.cfg.augment_shift_px), random_shift(s2, self.cfg.augment_shift_px)
         with torch.no_grad():
             y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
         q, attention = self.online(s)

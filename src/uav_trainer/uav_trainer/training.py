@@ -66,7 +66,6 @@ class Training:
         self.net_cfg = NetConfig(
             model=cfg.model,
             sam_readout=cfg.sam_readout,
-            feature_norm=cfg.feature_norm,
             height=cfg.input_size_px,
             width=cfg.input_size_px,
             frames=cfg.frames,

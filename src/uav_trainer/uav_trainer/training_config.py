@@ -67,9 +67,6 @@ class TrainerConfig:
         "attention shown forms the Q-values; the shipped recipe); policy_node takes it from the weights",
         choices=SAM_READOUTS,
     )
-    feature_norm: bool = setting(
-        False, "LayerNorm on the features the dueling heads read (both models); policy_node takes it from the weights"
-    )
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
     frames: int = setting(
         NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
@@ -140,7 +137,7 @@ RETIRED = {
     **{
         name: "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
         for name in ("n_step", "priority_alpha", "priority_beta", "priority_beta_steps", "clearance_m", "clearance_weight")
-        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "attention_entropy_weight")
+        + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "attention_entropy_weight", "feature_norm", "augment_shift_px")
     },
 }
 
