@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -123,18 +124,27 @@ def near_ratio(dist: np.ndarray, depth_m: np.ndarray, grid_hw: tuple[int, int], 
     return mass_ratio(dist, np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=np.inf) < near_m, grid_hw)
 
 
+@functools.lru_cache(maxsize=16)
+def node_of_pixel(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
+    """(H, W) the node each pixel belongs to (node_slices' regions); cached and read-only: measuring and the
+    learner's consistency loss map cells to pixels on every call."""
+    out = np.zeros(image_hw, dtype=np.int64)
+    for n, (rs, cs) in enumerate(node_slices(grid_hw, image_hw)):
+        out[rs, cs] = n
+    out.flags.writeable = False
+    return out
+
+
 def masked_states(
     state: np.ndarray, nodes: list[np.ndarray], grid_hw: tuple[int, int]
 ) -> np.ndarray:  # (len(nodes), frames, H, W)
     """Copies of `state` (frames, H, W), each with the image regions of one set of nodes set to "no return"
     (+inf) in every frame."""
-    regions = node_slices(grid_hw, state.shape[-2:])
-    out = np.repeat(np.asarray(state, dtype=np.float32)[None], len(nodes), axis=0)
+    pixel_node = node_of_pixel(tuple(grid_hw), tuple(state.shape[-2:]))
+    gone = np.zeros((len(nodes), grid_hw[0] * grid_hw[1]), dtype=bool)
     for i, chosen in enumerate(nodes):
-        for n in chosen:
-            rs, cs = regions[int(n)]
-            out[i, :, rs, cs] = np.inf
-    return out
+        gone[i, np.asarray(chosen, dtype=np.int64)] = True
+    return np.where(gone[:, pixel_node][:, None], np.float32(np.inf), np.asarray(state, dtype=np.float32)[None])
 
 
 def ranked(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -174,14 +184,6 @@ def deletion_test(
     return bool(changed[0]), float(changed[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(changed[-1])
 
 
-def node_of_pixel(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
-    """(H, W) the node each pixel belongs to (node_slices' regions)."""
-    out = np.zeros(image_hw, dtype=np.int64)
-    for n, (rs, cs) in enumerate(node_slices(grid_hw, image_hw)):
-        out[rs, cs] = n
-    return out
-
-
 def margin(q: torch.Tensor, action: int) -> torch.Tensor:
     """(batch,) Q of `action` over the best other action: positive while `action` is chosen."""
     others = torch.cat([q[:, :action], q[:, action + 1 :]], dim=1)
@@ -194,7 +196,7 @@ def curve_areas(net: torch.nn.Module, state: np.ndarray, orders: list[np.ndarray
     points) of the decision `action` on `state` (frames, H, W), the nodes removed or restored in each order."""
     nodes = grid_hw[0] * grid_hw[1]
     k = np.array([round(i * nodes / CURVE_LEVELS) for i in range(CURVE_LEVELS + 1)])[:, None, None]
-    pixel_node = node_of_pixel(grid_hw, state.shape[-2:])
+    pixel_node = node_of_pixel(tuple(grid_hw), tuple(state.shape[-2:]))
     x0 = np.asarray(state, dtype=np.float32)[None]
     device = next(net.parameters()).device
     out = np.empty((len(orders), 2))

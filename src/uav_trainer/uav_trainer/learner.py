@@ -54,7 +54,7 @@ def attended_only(states: torch.Tensor, attention: torch.Tensor, grid_hw: tuple[
     k = max(1, math.ceil(TOP_FRACTION * nodes))
     keep = torch.zeros_like(received, dtype=torch.bool)
     keep.scatter_(1, received.topk(k, dim=1).indices, True)
-    pixel_node = torch.from_numpy(node_of_pixel(grid_hw, tuple(states.shape[-2:]))).to(states.device)
+    pixel_node = torch.tensor(node_of_pixel(tuple(grid_hw), tuple(states.shape[-2:])), device=states.device)
     kept = keep[:, pixel_node]  # (B, H, W)
     return torch.where(kept[:, None], states, torch.full_like(states, math.inf))
 
