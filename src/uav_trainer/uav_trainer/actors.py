@@ -62,9 +62,12 @@ class ActorState:
         return f"{self.label}: its policy_node answers again, learning from it"
 
     def overdue(self, now: float, timeout_s: float) -> str | None:
-        """A release not answered within timeout_s (its simulator not silent) is to be sent again, with the weights:
-        the line to log, after which the caller drops the push in flight; else None."""
-        if self.in_flight is None or self.silent == "sim" or now - self.in_flight_since < timeout_s:
+        """A release not answered within timeout_s is to be sent again, with the weights: the line to log, after which
+        the caller drops the push in flight; else None. Also when its simulator has fallen silent: in lockstep the
+        simulator waits for the policy, which waits for this release (its answer lost, the next release held behind
+        it), so the silence may be this release's own doing. A policy that is gone offers no service, and nothing is
+        sent to it (trainer_node._send_go)."""
+        if self.in_flight is None or now - self.in_flight_since < timeout_s:
             return None
         self.in_flight = None
         if self.go_stamp is None or self.go_stamp < self.in_flight_stamp:
