@@ -547,3 +547,43 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
     tb.write_text(header + row("y/b", "complex", 2) + row("y/b", "basic", 0))
     rc, out = same_run("x/a", "y/b", "--tables", str(ta), str(tb))
     assert rc == 1 and "sam complex: crashes differ" in out
+
+
+@pytest.mark.parametrize(
+    ("jitter", "hfov", "trained_hfov", "readout", "size", "sam_sizes", "safety"),
+    [  # each readout, jitter or not, a camera given or the weights', other sizes, the safety layer: three flights
+        (180.0, 120.0, None, "attend", 64, {}, True),
+        (180.0, None, 90.0, "max", 64, {}, False),
+        (0.0, 90.0, None, "flatten", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}, False),
+    ],
+)
+def test_ros_evaluation_equals_the_in_process_measurement(
+    tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes, safety, monkeypatch
+):
+    """Same simulator, stack, network and decision path (uav_policy.pilot, the safety layer included): flying through
+    the ROS nodes changes nothing (and the random start heading, extra sim parameters, the weights' SAM readout, input
+    size, layer sizes and frame stack and, without an hfov_deg argument, the camera recorded in the weights and the
+    reward window it records reach the nodes)."""
+    from uav_eval.flights import evaluate_inprocess
+    from uav_sim.simulator import SimConfig
+
+    w = tmp_path / "w.safetensors"
+    cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)
+    window = 0.5 if trained_hfov is not None else None  # recorded with the camera: flown by both paths unasked
+    wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov, reward_window_fraction=window)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "79")
+    sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
+    over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args, safety=safety)
+    flown = hfov if hfov is not None else trained_hfov
+    local = evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=flown, safety=safety)
+    assert (over_ros.crashes, over_ros.steps, over_ros.crash_sites) == (local.crashes, local.steps, local.crash_sites)
+    assert (over_ros.turn_steps, over_ros.cells, over_ros.interventions) == (local.turn_steps, local.cells, local.interventions)
+    assert local.interventions > 0 if safety else local.interventions == -1, local.interventions
+    assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6
+    if trained_hfov is not None:  # the recorded camera was used: the default camera flies otherwise
+        assert trained_hfov != SimConfig.hfov_deg
+        fly = lambda **kw: evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, **kw)  # noqa: E731
+        by_header, default = fly(), fly(hfov_deg=SimConfig.hfov_deg)
+        assert by_header.mean_reward == local.mean_reward and default.mean_reward != local.mean_reward
+        paper_window = fly(reward_window_fraction=SimConfig.reward_window_fraction)  # same flight, another reward
+        assert paper_window.crashes == local.crashes and paper_window.mean_reward != local.mean_reward
