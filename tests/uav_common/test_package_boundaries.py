@@ -61,6 +61,12 @@ def test_learning_imports_no_measuring(module):
     assert "uav_eval" not in loaded and "torch" in loaded
 
 
+def test_comparing_tables_imports_no_network():
+    """compare_models reads results.csv files: it starts in a fraction of a second, without torch."""
+    loaded = imported_after("uav_eval.compare_models")
+    assert "numpy" in loaded and not {"torch", "pybullet", "rclpy"} & loaded
+
+
 def test_no_package_but_uav_eval_imports_uav_eval_anywhere_in_its_code():
     """Lazy imports inside functions included: the arrows point one way."""
     pattern = re.compile(r"^\s*(from|import)\s+uav_eval\b", re.MULTILINE)

@@ -43,7 +43,7 @@ from pathlib import PurePath
 
 import numpy as np
 
-from .flights import ENSEMBLE_SEP
+from . import ENSEMBLE_SEP  # light: this tool reads tables and needs no torch
 
 
 def run_name(weights: str) -> str:

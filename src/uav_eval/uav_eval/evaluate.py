@@ -25,9 +25,9 @@ import os
 import time
 from pathlib import Path
 
+from . import ENSEMBLE_SEP
 from .flights import (
     CRASH_FIELDS,
-    ENSEMBLE_SEP,
     INPROCESS_SIM_ARGS,
     EvalResult,
     evaluate_inprocess,

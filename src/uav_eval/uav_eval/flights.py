@@ -11,6 +11,8 @@ import math
 from uav_policy.insight import Insight, InsightSummary, explanation
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 
+from . import ENSEMBLE_SEP
+
 
 @dataclasses.dataclass
 class EvalResult:
@@ -75,9 +77,6 @@ class Behaviour:
             self.turn_steps += abs(math.degrees(turn)) > TURN_DEG
         self.cells.add((math.floor(x), math.floor(y)))
         self.yaw = yaw_rad
-
-
-ENSEMBLE_SEP = "+"  # joins an ensemble's weights files in the weights column
 
 
 def architecture_args(model: str, weights: str) -> list[str]:

@@ -13,8 +13,8 @@ from uav_common.launching import Processes, params_args
 from uav_policy.insight import InsightSummary
 from uav_sim.reward import step_reward
 
+from . import ENSEMBLE_SEP
 from .flights import (
-    ENSEMBLE_SEP,
     Behaviour,
     EvalResult,
     architecture_args,

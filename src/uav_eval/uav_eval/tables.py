@@ -13,7 +13,8 @@ import numpy as np
 
 from uav_policy.insight import InsightSummary
 
-from .flights import ENSEMBLE_SEP, TURN_DEG, EvalResult
+from . import ENSEMBLE_SEP
+from .flights import TURN_DEG, EvalResult
 from .stats import Rate, aggregate
 
 # The insight columns of results.csv, in InsightSummary's order (frames first).
