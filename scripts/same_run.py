@@ -27,7 +27,7 @@ from csv_input import read_csv
 from safetensors import SafetensorError
 from safetensors.numpy import load_file
 
-from uav_eval.flights import ENSEMBLE_SEP
+from uav_eval import ENSEMBLE_SEP
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer")]

@@ -464,11 +464,25 @@ def test_compare_models_counts_the_seeds_at_the_bar(tmp_path):
     assert "does not go with --pool-worlds" in run("--bar", "paper", "--pool-worlds", "all").stderr
 
 
-def test_package_weights_writes_the_files_in_order_with_their_camera_and_window(tmp_path):
+def test_package_weights_writes_the_files_in_order_with_their_camera_and_window(tmp_path, capsys):
     """Packaged files hold the same tensors with the training camera and reward window; what was there goes."""
+    import importlib.util
+    import types
+
     from safetensors.torch import load_file
 
-    script = ROOT / "scripts" / "package_weights.py"
+    spec = importlib.util.spec_from_file_location("package_weights", ROOT / "scripts" / "package_weights.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)  # its main() in this process: no interpreter and torch to start for each call
+
+    def run(*args):
+        try:
+            code = script.main(list(map(str, args)))
+        except SystemExit as e:  # argparse's error(): exit 2 with the message on stderr
+            code = e.code
+        out, err = capsys.readouterr()
+        return types.SimpleNamespace(returncode=code, stdout=out, stderr=err)
+
     nets = [build_network(NetConfig(), seed=s) for s in range(3)]
     src = []
     for i, net in enumerate(nets):
@@ -477,7 +491,6 @@ def test_package_weights_writes_the_files_in_order_with_their_camera_and_window(
     out = tmp_path / "weights" / "sam"
     out.mkdir(parents=True)
     (out / "old.safetensors").write_bytes(b"stale")
-    run = lambda *a: subprocess.run([sys.executable, str(script), *map(str, a)], capture_output=True, text=True)  # noqa: E731
     r = run(*src, "--model", "sam", "--out", out)
     assert r.returncode == 0, r.stderr
     made = sorted(out.glob("*.safetensors"))
