@@ -9,8 +9,6 @@ from uav_trainer.episodes import EpisodeStats
 from uav_trainer.learner import (
     Learner,
     LearnerConfig,
-    attended_only,
-    consistency_loss,
     double_dqn_target,
     linear_epsilon,
 )
@@ -167,37 +165,6 @@ def test_learner_is_seeded_and_reproducible():
     assert runs[0][0] == runs[1][0]
     for a, b in zip(runs[0][1], runs[1][1], strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-
-
-class ReadsCells(torch.nn.Module):
-    """Attends to cells 0-6 of its 8 x 8 grid (the top tenth), and its Q-values read the mean depth of
-    `read` cells (clipped at 10 m)."""
-
-    grid_hw = (8, 8)
-
-    def __init__(self, read):
-        super().__init__()
-        self.read, self.dummy = list(read), torch.nn.Parameter(torch.zeros(1))
-
-    def forward(self, x):
-        cells = torch.clamp(x[:, -1], max=10.0).unflatten(1, (8, 8)).unflatten(3, (8, 8)).mean(dim=(2, 4)).flatten(1)
-        v = cells[:, self.read].mean(dim=1)
-        att = torch.zeros(x.shape[0], 1, 1, 64)
-        att[..., :7] = 1 / 7
-        return torch.stack([v, -v, v * 0.5, v * 0], dim=1) + self.dummy, att
-
-
-def test_the_consistency_term_is_zero_for_a_network_that_reads_only_the_cells_it_attends_to():
-    states = torch.from_numpy(np.random.default_rng(0).uniform(0.5, 8.0, (4, 5, 64, 64)).astype(np.float32))
-    for read, zero in ((range(7), True), (range(64), False)):
-        net = ReadsCells(read)
-        q, att = net(states)
-        kept = attended_only(states, att, net.grid_hw)
-        assert torch.isinf(kept[:, :, 8:, :]).all() and torch.equal(kept[:, :, :8, :56], states[:, :, :8, :56])
-        loss = float(consistency_loss(net, states, q, att))
-        assert (loss == 0.0) if zero else (loss > 1.0), (list(read)[-1], loss)
-    lr = Learner(NetConfig(model="sam", sam_readout="query"), LearnerConfig(seed=3, consistency_weight=1.0))
-    assert np.isfinite(lr.update(small_batch(0))["loss"])
 
 
 def test_learner_fits_a_fixed_target():

@@ -126,8 +126,8 @@ def near_ratio(dist: np.ndarray, depth_m: np.ndarray, grid_hw: tuple[int, int], 
 
 @functools.lru_cache(maxsize=16)
 def node_of_pixel(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
-    """(H, W) the node each pixel belongs to (node_slices' regions); cached and read-only: measuring and the
-    learner's consistency loss map cells to pixels on every call."""
+    """(H, W) the node each pixel belongs to (node_slices' regions); cached and read-only: measuring maps cells to
+    pixels on every call."""
     out = np.zeros(image_hw, dtype=np.int64)
     for n, (rs, cs) in enumerate(node_slices(grid_hw, image_hw)):
         out[rs, cs] = n

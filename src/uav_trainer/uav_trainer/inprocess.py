@@ -47,7 +47,7 @@ RETIRED_FLAGS = {
         for flag in ("--random-start-fraction", "--redraw-heading", "--layout-partitions", "--act-on-pushes")
         + ("--validate-every", "--validation-steps", "--clearance-m", "--clearance-weight", "--n-step", "--priority-alpha")
         + ("--priority-beta", "--ema-decay", "--lr-anneal", "--attention-entropy-weight", "--feature-norm")
-        + ("--no-feature-norm", "--augment-shift-px")
+        + ("--no-feature-norm", "--augment-shift-px", "--consistency-weight")
     },
 }
 

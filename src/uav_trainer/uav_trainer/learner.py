@@ -6,14 +6,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from uav_common.settings import setting
-from uav_policy.insight import TOP_FRACTION, node_of_pixel
 from uav_policy.networks import NetConfig, build_network
 
 
@@ -26,44 +24,13 @@ class LearnerConfig:
     target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
     target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
     huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
-    consistency_weight: float = setting(
-        0.0,
-        "SAM: weight of a consistency loss (SGQN, Bertoin et al. 2022; not in the paper) on CONSISTENCY_BATCH samples of "
-        "each update: Q of the state with only its top-attended tenth of the cells kept (the rest read 'no return') is "
-        "pulled to Q of the whole state, so the decision comes to depend on what its map shows; 0 = off",
-        0.0,
-        100.0,
-    )
     seed: int = 0  # TrainerConfig's seed (not a setting of its own)
-
-
-CONSISTENCY_BATCH = 8  # samples of each update the consistency loss is computed on (a fourth of the paper's batch)
 
 
 def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
     """y = r + gamma * (1 - done) * Q_target(s', argmax_a Q_online(s', a))."""
     best = q_next_online.argmax(dim=1, keepdim=True)
     return reward + gamma * (1.0 - done) * q_next_target.gather(1, best).squeeze(1)
-
-
-def attended_only(states: torch.Tensor, attention: torch.Tensor, grid_hw: tuple[int, int]) -> torch.Tensor:
-    """`states` (B, frames, H, W) with every cell outside each sample's top tenth by received attention (`attention`
-    (B, heads, queries, nodes) averaged over heads and queries) set to "no return" (+inf), in every frame."""
-    received = attention.detach().mean(dim=(1, 2))  # (B, nodes)
-    nodes = received.shape[1]
-    k = max(1, math.ceil(TOP_FRACTION * nodes))
-    keep = torch.zeros_like(received, dtype=torch.bool)
-    keep.scatter_(1, received.topk(k, dim=1).indices, True)
-    pixel_node = torch.tensor(node_of_pixel(tuple(grid_hw), tuple(states.shape[-2:])), device=states.device)
-    kept = keep[:, pixel_node]  # (B, H, W)
-    return torch.where(kept[:, None], states, torch.full_like(states, math.inf))
-
-
-def consistency_loss(net: torch.nn.Module, states: torch.Tensor, q: torch.Tensor, attention: torch.Tensor) -> torch.Tensor:
-    """Mean squared difference between Q of `states` with only their attended cells kept and `q`, Q of the whole
-    states (held fixed): zero for a network whose Q-values read nothing but the cells it attends to."""
-    q_kept, _ = net(attended_only(states, attention, net.grid_hw))
-    return F.mse_loss(q_kept, q.detach())
 
 
 class NonFiniteLoss(RuntimeError):
@@ -97,12 +64,9 @@ class Learner:
         s, a, r, done, s2 = self._tensors(batch)
         with torch.no_grad():
             y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
-        q, attention = self.online(s)
+        q, _ = self.online(s)
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
-        if self.cfg.consistency_weight > 0:
-            n = CONSISTENCY_BATCH
-            loss = loss + self.cfg.consistency_weight * consistency_loss(self.online, s[:n], q[:n], attention[:n])
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"loss is {loss.item()} at update {self.updates}")
         self.optimizer.zero_grad(set_to_none=True)

@@ -129,8 +129,6 @@ class TrainerConfig:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
         if self.model == "cnn" and self.sam_positions != "grid":
             raise ValueError("'sam_positions' tells SAM's nodes where their cells are; model 'cnn' has none")
-        if self.model == "cnn" and self.learner.consistency_weight > 0:
-            raise ValueError("'consistency_weight' keeps the cells SAM attends to; model 'cnn' has no attention")
         snapshot_steps(self.snapshots, self.total_steps)
 
 
@@ -147,6 +145,7 @@ RETIRED = {
         name: "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
         for name in ("n_step", "priority_alpha", "priority_beta", "priority_beta_steps", "clearance_m", "clearance_weight")
         + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "attention_entropy_weight", "feature_norm", "augment_shift_px")
+        + ("consistency_weight",)
     },
 }
 
