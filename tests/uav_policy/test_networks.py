@@ -225,33 +225,3 @@ def test_grounded_readouts_reach_the_q_values_only_through_their_attended_cells(
     q, _ = net(x)
     q2, _ = net(depth_batch(2, seed=5))
     torch.testing.assert_close(q, q2)
-
-
-def test_depth_positions_tell_each_node_its_bearing_and_nearness_never_its_row(tmp_path):
-    """sam_positions `depth`: a node's position is its cell's x and its nearness in the newest frame (1 - nearest
-    return / max range), so an obstacle, not an image row, is what a query can find; the files carry it."""
-    from uav_policy import weights as wio
-
-    cfg = NetConfig(model="sam", sam_readout="query", sam_positions="depth")
-    net = build_network(cfg, seed=0)
-    x = torch.full((1, 5, 64, 64), float("inf"))  # no return anywhere
-    x[0, :4, 40:48, 8:16] = 1.0  # only in older frames: not in the newest
-    x[0, -1, 10:12, 50:52] = 2.5  # cell row 1, column 6, 2.5 of 10 m
-    pos = net.positions(x)[0]
-    assert pos.shape == (64, 2)
-    near = pos[:, 1].reshape(8, 8)
-    assert near[1, 6] == pytest.approx(0.75) and near.sum() == pytest.approx(0.75)
-    torch.testing.assert_close(pos[:, 0], net.coords[:, 0])  # the bearing stays
-    same_rows = net.positions(torch.full((1, 5, 64, 64), float("inf")))[0]
-    assert torch.equal(same_rows[:8], same_rows[8:16])  # two rows of empty cells: nothing tells them apart
-    q, w = net(x)
-    assert q.shape == (1, 4) and w.shape == (1, 3, 5, 64)
-    with pytest.raises(ValueError, match="sam_positions 'depth' needs"):
-        net.from_features(net.trunk(x))
-    path = tmp_path / "depth.safetensors"
-    wio.save_file(net, cfg, path)
-    again = wio.load_file(path, wio.config_for("sam", path))
-    assert again.cfg.sam_positions == "depth"
-    torch.testing.assert_close(again(x)[0], q)
-    with pytest.raises(ValueError, match="sam_positions must be one of"):
-        NetConfig(model="sam", sam_positions="rows").validate()

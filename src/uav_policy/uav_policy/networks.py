@@ -4,10 +4,7 @@ Both take the last `frames` depth images in metres, (B, frames, H, W), and norma
 inside the network: +Inf/NaN -> max range, -Inf -> 0, then divide by the max range.
 
 D3QN-SAM: conv trunk -> feature map sliced into one node per spatial cell, with the cell's
-(x, y) in [-1, 1] appended (Zambaldi et al. 2018; `sam_positions` `grid`) or, with `sam_positions` `depth` (an
-extension), its x and its nearness in the newest frame (1 - its nearest return over the max range) in place of its
-row, so that no fixed band of the image (the floor ahead) is a place attention can learn to look at regardless of
-what is there -> linear projection -> relational block(s)
+(x, y) in [-1, 1] appended (Zambaldi et al. 2018) -> linear projection -> relational block(s)
 (multi-head scaled dot-product self-attention with residual + LayerNorm, then an MLP with
 residual + LayerNorm) -> readout -> dueling head. The forward pass also returns the attention
 weights (B, heads, nodes, nodes); each row sums to 1. Readout `max` (default, Zambaldi et al.): the
@@ -49,7 +46,6 @@ from torch import nn
 
 MODELS = ("sam", "cnn")
 SAM_READOUTS = ("max", "flatten", "attend", "query", "topk")
-SAM_POSITIONS = ("grid", "depth")  # what a SAM node is told of where its cell is (see the module doc)
 TOPK_SHARE = 8  # the topk readout keeps a node in every TOPK_SHARE (8 of the default 64)
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
@@ -90,7 +86,6 @@ class NetConfig:
     feature_norm: bool = (
         False  # LayerNorm before the dueling heads: files that record it load; no recipe trains it (it did not help)
     )
-    sam_positions: str = "grid"  # SAM node positions: grid (x, y) | depth (x, nearness); files without it are grid
 
     def __post_init__(self):
         # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)
@@ -105,8 +100,6 @@ class NetConfig:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         if self.sam_readout not in SAM_READOUTS:
             raise ValueError(f"sam_readout must be one of {SAM_READOUTS}, got {self.sam_readout!r}")
-        if self.sam_positions not in SAM_POSITIONS:
-            raise ValueError(f"sam_positions must be one of {SAM_POSITIONS}, got {self.sam_positions!r}")
         for name in SIZE_FIELDS:
             value = getattr(self, name)
             values = value if name == "conv_channels" else (value,)
@@ -327,26 +320,12 @@ class D3QNSam(nn.Module):
         """Q-values (B, actions) and the attention the decision uses: the last block's weights (B, heads, nodes,
         nodes), or the readout's weights with `attend` / `topk` (B, heads, 1, nodes) and `query` (B, heads,
         actions + 1, nodes)."""
-        return self.from_features(self.trunk(depth_m), self.positions(depth_m))
+        return self.from_features(self.trunk(depth_m))
 
-    def positions(self, depth_m: torch.Tensor) -> torch.Tensor:
-        """(B, nodes, 2): each cell's (x, y), or with sam_positions `depth` its x and its nearness in the newest frame."""
-        coords = self.coords.unsqueeze(0).expand(depth_m.shape[0], -1, -1)
-        if self.cfg.sam_positions == "grid":
-            return coords
-        newest = normalise_depth(depth_m[:, -1:], self.cfg.max_range_m)  # (B, 1, H, W), oldest frame first
-        nearest = -nn.functional.adaptive_max_pool2d(-newest, self.grid_hw)  # each cell's nearest return, in [0, 1]
-        return torch.cat([coords[..., :1], 1.0 - nearest.flatten(1).unsqueeze(-1)], dim=-1)
-
-    def from_features(self, fmap: torch.Tensor, positions: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """forward() from the trunk's feature map (B, C, h, w) and the cells' positions (self.positions) on; the
-        grid's positions when None (`grid` networks only)."""
+    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward() from the trunk's feature map (B, C, h, w) on."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
-        if positions is None:
-            if self.cfg.sam_positions != "grid":
-                raise ValueError("sam_positions 'depth' needs the cells' positions from the depth frames")
-            positions = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
-        coords = positions
+        coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
         nodes = unmixed = self.node_projection(torch.cat([nodes, coords], dim=-1))
         weights = None
         for block in self.relational_blocks:

@@ -326,12 +326,11 @@ def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
 
 
 def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
-    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout and positions and feature norm: the
-    architecture a file made as `made` is loaded with."""
+    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout and feature norm: the architecture a file made
+    as `made` is loaded with."""
     return dataclasses.replace(
         cfg,
         sam_readout=made.sam_readout,
-        sam_positions=made.sam_positions,
         feature_norm=made.feature_norm,
         **{name: getattr(made, name) for name in SIZE_FIELDS},
     )

@@ -48,6 +48,7 @@ RETIRED_FLAGS = {
         + ("--validate-every", "--validation-steps", "--clearance-m", "--clearance-weight", "--n-step", "--priority-alpha")
         + ("--priority-beta", "--ema-decay", "--lr-anneal", "--attention-entropy-weight", "--feature-norm")
         + ("--no-feature-norm", "--augment-shift-px", "--consistency-weight")
+        + ("--sam-positions",)
     },
 }
 

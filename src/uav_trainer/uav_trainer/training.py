@@ -66,7 +66,6 @@ class Training:
         self.net_cfg = NetConfig(
             model=cfg.model,
             sam_readout=cfg.sam_readout,
-            sam_positions=cfg.sam_positions,
             height=cfg.input_size_px,
             width=cfg.input_size_px,
             frames=cfg.frames,

@@ -7,7 +7,7 @@ import dataclasses
 from pathlib import Path
 
 from uav_common.settings import setting
-from uav_policy.networks import MAX_FRAMES, SAM_POSITIONS, SAM_READOUTS, SIZE_LIMITS, NetConfig
+from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig
 
 from .learner import LearnerConfig, linear_epsilon
 
@@ -67,13 +67,6 @@ class TrainerConfig:
         "attention shown forms the Q-values; the shipped recipe); policy_node takes it from the weights",
         choices=SAM_READOUTS,
     )
-    sam_positions: str = setting(
-        "grid",
-        "SAM: the position each node is given, grid or depth: grid its cell's x and y (the paper's), depth its x and "
-        "its nearness in the newest frame, so no fixed band of the image is a place to look (an extension); "
-        "policy_node takes it from the weights",
-        choices=SAM_POSITIONS,
-    )
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
     frames: int = setting(
         NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
@@ -127,8 +120,6 @@ class TrainerConfig:
         changed = [k for k in SAM_SIZES if getattr(self, k) != getattr(TrainerConfig, k)]
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
-        if self.model == "cnn" and self.sam_positions != "grid":
-            raise ValueError("'sam_positions' tells SAM's nodes where their cells are; model 'cnn' has none")
         snapshot_steps(self.snapshots, self.total_steps)
 
 
@@ -145,7 +136,7 @@ RETIRED = {
         name: "an experiment that did not help (docs/RESULTS.md, 'What was tried')"
         for name in ("n_step", "priority_alpha", "priority_beta", "priority_beta_steps", "clearance_m", "clearance_weight")
         + ("ema_decay", "lr_anneal_updates", "lr_end_fraction", "attention_entropy_weight", "feature_norm", "augment_shift_px")
-        + ("consistency_weight",)
+        + ("consistency_weight", "sam_positions")
     },
 }
 
