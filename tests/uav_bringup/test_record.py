@@ -132,3 +132,31 @@ def test_record_refuses_an_existing_bag_and_names_it(tmp_path):
         env={**os.environ, "ROS_DOMAIN_ID": "99", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"},
     )
     assert r.returncode == 2 and "already exists" in r.stderr and "taken" in r.stderr
+
+
+def test_a_launcher_waits_until_the_recorder_and_the_policy_have_matched_each_other():
+    """Discovery matches a subscription on each side at its own time: a recorder that hears the policy's publishers
+    may not be heard by them yet, and what the policy says meanwhile reaches no recorder (a flight then lacked its
+    first 16 commands). Both sides' reports must say so before the first frame."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    from uav_bringup.record import POLICY_TOPICS, RecorderReports
+
+    class Node:
+        def create_subscription(self, msgtype, topic, callback, qos):
+            self.callback = callback
+
+    def report(name: str, values: dict) -> DiagnosticArray:
+        return DiagnosticArray(status=[DiagnosticStatus(name=name, values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])])
+
+    node = Node()
+    reports = RecorderReports(node)
+    topics = [f"/uav2/{t}" for t in POLICY_TOPICS]
+    assert not reports.ready(topics)
+    node.callback(report("uav_bringup/record", {f"publishers {t}": 1 for t in topics}))
+    assert reports.heard == {t: 1 for t in topics} and not reports.ready(topics)
+    heard = {f"subscribers {t}": 1 for t in topics}
+    node.callback(report("uav_policy", {**heard, f"subscribers {topics[0]}": 0, "subscribers /uav3/action": 1}))
+    assert not reports.ready(topics)  # the action's publisher has not matched the recorder yet
+    node.callback(report("uav_policy", heard))
+    assert reports.ready(topics) and not reports.ready(["/uav5/action"])

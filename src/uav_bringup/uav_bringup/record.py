@@ -29,7 +29,8 @@ from .taps import DEFAULT_TOPICS, TopicTap, typestore
 
 PROGRESS_S = 5.0
 # The policy's per-step topics: a launcher that wants every step on record starts the simulator only
-# once the recorder has matched these publishers (`RecorderReports.wait_for_policy`).
+# once the recorder has matched these publishers and the policy has matched the recorder's subscriptions
+# (discovery matches each side at its own time: `RecorderReports.wait_for_policy`).
 POLICY_TOPICS = (contract.ACTION_TOPIC, contract.CMD_VEL_TOPIC, contract.Q_VALUES_TOPIC)
 
 
@@ -131,11 +132,13 @@ class Recorder(Node):
 
 class RecorderReports:
     """What the recorder says on /diagnostics, kept up to date through `node`: `heard` {topic: publishers matched},
-    `written` {topic: messages written}, `lost` {topic: messages lost to it}, and `reports`, how many reports came."""
+    `written` {topic: messages written}, `lost` {topic: messages lost to it}, and `reports`, how many reports came;
+    and what policy_node says: `heard_by_policy` {topic: subscriptions its publishers matched}."""
 
     def __init__(self, node):
         self.node = node
         self.heard: dict[str, int] = {}
+        self.heard_by_policy: dict[str, int] = {}
         self.written: dict[str, int] = {}
         self.lost: dict[str, int] = {}
         self.reports = 0
@@ -149,14 +152,22 @@ class RecorderReports:
                 self.written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
                 self.lost.update({kv.key[len("lost ") :]: int(kv.value) for kv in st.values if kv.key.startswith("lost ")})
                 self.reports += 1
+            elif st.name == "uav_policy":
+                subs = {kv.key[len("subscribers ") :]: int(kv.value) for kv in st.values if kv.key.startswith("subscribers ")}
+                self.heard_by_policy.update(subs)
+
+    def ready(self, topics) -> bool:
+        """The recorder and policy_node have matched each other on every one of `topics` (resolved names)."""
+        return all(self.heard.get(t, 0) >= 1 and self.heard_by_policy.get(t, 0) >= 1 for t in topics)
 
     def wait_for_policy(self, executor, procs: dict, timeout_s: float, stopped=lambda: False) -> bool:
         """Spin `executor` until the recorder has matched policy_node's publishers (POLICY_TOPICS, resolved in
-        the node's namespace); False if `stopped()` first. RuntimeError when a process of `procs` (name: Popen)
+        the node's namespace) and the policy has matched the recorder's subscriptions (else its first answers are
+        sent to no recorder); False if `stopped()` first. RuntimeError when a process of `procs` (name: Popen)
         exits, TimeoutError after `timeout_s`."""
         wanted = [self.node.resolve_topic_name(t) for t in POLICY_TOPICS]
         end = time.monotonic() + timeout_s
-        while not all(self.heard.get(t, 0) >= 1 for t in wanted):
+        while not self.ready(wanted):
             executor.spin_once(timeout_sec=0.05)
             if stopped():
                 return False
@@ -164,7 +175,10 @@ class RecorderReports:
                 if p.poll() is not None:
                     raise RuntimeError(f"{name} exited early (code {p.returncode})")
             if time.monotonic() > end:
-                raise TimeoutError(f"the recorder did not hear policy_node within {timeout_s:g} s (it hears {self.heard})")
+                raise TimeoutError(
+                    f"the recorder and policy_node did not hear each other within {timeout_s:g} s (the recorder hears "
+                    f"{self.heard}, the policy's publishers {self.heard_by_policy})"
+                )
         return True
 
     def wait_until_idle(self, executor, timeout_s: float) -> bool:

@@ -34,6 +34,13 @@ class Outputs:
         self.q_label = "action:" + ",".join(a.name for a in actions)
         self.last_cmd, self.last_cmd_unheard = None, False
 
+    def listeners(self) -> dict[str, int]:
+        """{`subscribers TOPIC`: subscriptions matched} of the decision's record (the action, the command, q_values and the
+        attention map), as this node's publishers see them: discovery matches a subscription on each side at its own
+        time, and a recorder that hears us may not be heard yet (fly waits for both before the first frame)."""
+        pubs = (self.action, self.cmd, self.q_values, self.attention[0])
+        return {f"subscribers {p.topic_name}": p.get_subscription_count() for p in pubs}
+
     def decision(self, img: Image, d: Decision, command_of) -> None:
         """The network's choice (the record: it goes out before the command, so whatever is flown is on record)
         and the command flown: the action's (`command_of(action)`), or what the safety layer made of it."""

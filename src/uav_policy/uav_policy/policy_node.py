@@ -284,8 +284,8 @@ class PolicyNode(Node):
             **self.camera.values(),
             **self.identity.values(),
             **(self.safety.counts if self.safety else Interventions()).values(on=self.safety is not None),
-            "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)",
-            **self.explainer.values(),
+            "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)", **self.explainer.values(),
+            **self.out.listeners(),  # a recorder waits until we hear it too (uav_bringup.record)
         }
         message = "; ".join(problems) or ("acting" if self.stats.recent else "waiting for depth frames")
         level = "ERROR" if self.identity.problem(now) else "WARN" if problems else "OK"
