@@ -95,8 +95,8 @@ def main(argv=None) -> int:
         "--sam-readout",
         choices=SAM_READOUTS,
         default=None,
-        help="SAM readout: max (the paper), flatten or attend (attention pooling) (default: the recipe's, else "
-        "trainer.yaml's); the policy takes it from the pushed weights",
+        help="SAM readout (uav_policy/networks.py; default: the recipe's, else trainer.yaml's); the policy takes it "
+        "from the pushed weights",
     )
     ap.add_argument(
         "--input-size",

@@ -63,8 +63,9 @@ class TrainerConfig:
     )
     sam_readout: str = setting(
         "max",
-        "SAM readout: max pools the nodes (the paper), flatten keeps their places, attend pools them by attention (the "
-        "attention shown forms the Q-values; the shipped recipe); policy_node takes it from the weights",
+        "SAM readout (uav_policy/networks.py): max pools the nodes (the paper); flatten keeps their places; attend, "
+        "query (the shipped recipe), topk and query_topk form the Q-values from the attention shown; policy_node takes "
+        "it from the weights",
         choices=SAM_READOUTS,
     )
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
