@@ -158,8 +158,8 @@ def evaluate_once(
         sim_extra = []
         recorder = None
         if record_to is not None:
-            # Recorder and policy first. The simulator starts once the recorder hears the policy's
-            # publishers, and holds its first frame until the policy, the recorder and this monitor
+            # Recorder and policy first. The simulator starts once the recorder and the policy hear each
+            # other, and holds its first frame until the policy, the recorder and this monitor
             # all listen: the bag holds every step from the first frame on.
             from uav_bringup.record import RecorderReports
 
