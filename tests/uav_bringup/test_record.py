@@ -147,7 +147,9 @@ def test_a_launcher_waits_until_the_recorder_and_the_policy_have_matched_each_ot
             self.callback = callback
 
     def report(name: str, values: dict) -> DiagnosticArray:
-        return DiagnosticArray(status=[DiagnosticStatus(name=name, values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])])
+        return DiagnosticArray(
+            status=[DiagnosticStatus(name=name, values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
+        )
 
     node = Node()
     reports = RecorderReports(node)

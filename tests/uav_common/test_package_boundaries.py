@@ -54,7 +54,7 @@ def test_recording_and_watching_import_no_network_and_no_simulator(module):
 
 @pytest.mark.parametrize(
     "module",
-    ["uav_trainer.train", "uav_trainer.inprocess", "uav_trainer.trainer_node", "uav_trainer.distill", "uav_policy.rollout"],
+    ["uav_trainer.inprocess", "uav_trainer.trainer_node", "uav_trainer.distill", "uav_policy.rollout"],
 )
 def test_learning_imports_no_measuring(module):
     loaded = imported_after(module)
@@ -80,3 +80,11 @@ def test_no_package_but_uav_eval_imports_uav_eval_anywhere_in_its_code():
     assert offenders == []
     evaluate = (ROOT / "src/uav_eval/uav_eval/evaluate.py").read_text()
     assert pattern.search("from uav_eval.tables import pool") and "from .tables import" in evaluate  # the check can match
+
+
+def test_the_training_launcher_and_the_run_settings_import_no_network():
+    """`train` parses and checks its settings before anything learns: it starts (and refuses bad flags) without
+    torch, whose import is most of a second-and-a-half start."""
+    for module in ("uav_trainer.train", "uav_trainer.training_config", "uav_policy.net_config"):
+        loaded = imported_after(module)
+        assert "uav_policy" in loaded and not {"torch", "pybullet", "uav_eval"} & loaded, module

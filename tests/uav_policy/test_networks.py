@@ -203,8 +203,9 @@ def test_forward_flops_price_an_architecture_without_building_it():
 @pytest.mark.parametrize("readout", ["query", "topk", "query_topk"])
 def test_grounded_readouts_reach_the_q_values_only_through_their_attended_cells(readout):
     """Readouts `query` (one query per action and one for the value, computed from the frame), `topk` (only each
-    head's top eighth of the nodes) and `query_topk` (`query`, each query over its top eighth alone): their weights are what the forward pass returns, and with the attended values
-    silenced the Q-values are the same whatever the depth: there is no path around the attention."""
+    head's top eighth of the nodes) and `query_topk` (`query`, each query over its top eighth alone): their weights
+    are what the forward pass returns, and with the attended values silenced the Q-values are the same whatever the
+    depth: there is no path around the attention."""
     net = build_network(NetConfig(model="sam", sam_readout=readout), seed=0)
     x = depth_batch(2)
     q, w = net(x)

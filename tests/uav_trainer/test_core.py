@@ -6,13 +6,9 @@ from uav_common.frame_stack import FrameStack
 from uav_policy.networks import NetConfig
 from uav_trainer import checkpoint
 from uav_trainer.episodes import EpisodeStats
-from uav_trainer.learner import (
-    Learner,
-    LearnerConfig,
-    double_dqn_target,
-    linear_epsilon,
-)
+from uav_trainer.learner import Learner, double_dqn_target
 from uav_trainer.replay import LanedReplay, ReplayMemory
+from uav_trainer.training_config import LearnerConfig, linear_epsilon
 
 
 def frame(v):

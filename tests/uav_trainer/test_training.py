@@ -15,9 +15,8 @@ from uav_sim.simulator import SimConfig
 from uav_sim.world import WorldChoice
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run
-from uav_trainer.learner import LearnerConfig
 from uav_trainer.training import RunDirError, Training
-from uav_trainer.training_config import TrainerConfig
+from uav_trainer.training_config import LearnerConfig, TrainerConfig
 
 
 def run_inprocess(cfg, run_dir, log=print, world="basic", mix_world_every=0, hfov_deg=120.0, window=0.2, **sim):

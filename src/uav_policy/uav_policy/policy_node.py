@@ -90,7 +90,6 @@ class PolicyNode(Node):
         if st.accept_pushes:
             self.receiver.time_inference(self.agent)
         self.explainer = Explainer(net.grid_hw, st.insight_every, st.insight_window, st.seed, log)
-
         self.out = Outputs(self, self.actions, st.publish_stamped, st.publish_overlay, st.max_range_m)
         self.stats = AnswerStats()
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
@@ -284,7 +283,8 @@ class PolicyNode(Node):
             **self.camera.values(),
             **self.identity.values(),
             **(self.safety.counts if self.safety else Interventions()).values(on=self.safety is not None),
-            "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)", **self.explainer.values(),
+            "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)",
+            **self.explainer.values(),
             **self.out.listeners(),  # a recorder waits until we hear it too (uav_bringup.record)
         }
         message = "; ".join(problems) or ("acting" if self.stats.recent else "waiting for depth frames")

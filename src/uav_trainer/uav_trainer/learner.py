@@ -5,26 +5,14 @@ periodic hard or Polyak target updates. Reads top to bottom; hyperparameters in 
 from __future__ import annotations
 
 import copy
-import dataclasses
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from uav_common.settings import setting
 from uav_policy.networks import NetConfig, build_network
 
-
-@dataclasses.dataclass(frozen=True)
-class LearnerConfig:
-    gamma: float = setting(0.99, "Discount factor", 0.0, 1.0)
-    learning_rate: float = setting(2.5e-4, "Adam learning rate", 1e-7, 1.0)
-    batch_size: int = setting(32, "Transitions per update", 1, 4096)
-    grad_clip_norm: float = setting(10.0, "Max global gradient norm", 0.01, 1e6)
-    target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
-    target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
-    huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
-    seed: int = 0  # TrainerConfig's seed (not a setting of its own)
+from .training_config import LearnerConfig
 
 
 def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
@@ -83,11 +71,3 @@ class Learner:
         tau = self.cfg.target_tau
         for t, o in zip(self.target.parameters(), self.online.parameters(), strict=True):
             t.mul_(1.0 - tau).add_(o, alpha=tau)
-
-
-def linear_epsilon(step: int, start: float, end: float, decay_steps: int) -> float:
-    """Linear decay from start to end over decay_steps environment steps, then constant."""
-    if decay_steps <= 0 or step >= decay_steps:
-        return end
-    frac = min(max(step, 0) / decay_steps, 1.0)
-    return start + frac * (end - start)

@@ -38,7 +38,7 @@ from pathlib import Path
 
 from uav_common.launching import Processes, find_executable, params_args, ros_log_dir, stop_signals
 from uav_common.settings import refuse_retired_flags
-from uav_policy.networks import MAX_FRAMES, SAM_READOUTS
+from uav_policy.net_config import MAX_FRAMES, SAM_READOUTS
 from uav_policy.push import write_key
 from uav_sim.world import VALIDATION_STEPS
 

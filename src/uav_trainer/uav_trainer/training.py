@@ -25,10 +25,10 @@ from uav_sim.reward import step_reward
 
 from . import checkpoint
 from .episodes import EpisodeStats
-from .learner import Learner, NonFiniteLoss, linear_epsilon
+from .learner import Learner, NonFiniteLoss
 from .replay import LanedReplay, ReplayMemory
 from .run_logs import METRICS_COLUMNS, plot_curves, record_machine
-from .training_config import SAM_SIZES, TrainerConfig, snapshot_file, snapshot_steps
+from .training_config import SAM_SIZES, TrainerConfig, linear_epsilon, snapshot_file, snapshot_steps
 
 
 class RunDirError(ValueError):

@@ -7,9 +7,28 @@ import dataclasses
 from pathlib import Path
 
 from uav_common.settings import setting
-from uav_policy.networks import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig
+from uav_policy.net_config import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig
 
-from .learner import LearnerConfig, linear_epsilon
+
+@dataclasses.dataclass(frozen=True)
+class LearnerConfig:
+    gamma: float = setting(0.99, "Discount factor", 0.0, 1.0)
+    learning_rate: float = setting(2.5e-4, "Adam learning rate", 1e-7, 1.0)
+    batch_size: int = setting(32, "Transitions per update", 1, 4096)
+    grad_clip_norm: float = setting(10.0, "Max global gradient norm", 0.01, 1e6)
+    target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
+    target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
+    huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
+    seed: int = 0  # TrainerConfig's seed (not a setting of its own)
+
+
+def linear_epsilon(step: int, start: float, end: float, decay_steps: int) -> float:
+    """Linear decay from start to end over decay_steps environment steps, then constant."""
+    if decay_steps <= 0 or step >= decay_steps:
+        return end
+    frac = min(max(step, 0) / decay_steps, 1.0)
+    return start + frac * (end - start)
+
 
 DEVICES = ("auto", "cpu", "cuda")
 
