@@ -8,8 +8,8 @@ import dataclasses
 import json
 
 MODELS = ("sam", "cnn")
-SAM_READOUTS = ("max", "flatten", "attend", "query", "topk", "query_topk")
-TOPK_SHARE = 8  # topk and query_topk keep a node in every TOPK_SHARE (8 of the default 64) per head and query
+SAM_READOUTS = ("max", "flatten", "attend", "query", "topk")
+TOPK_SHARE = 8  # the topk readout keeps a node in every TOPK_SHARE (8 of the default 64)
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends

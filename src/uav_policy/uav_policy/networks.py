@@ -22,9 +22,6 @@ the value) is computed from its own attended vector alone, with no path around t
 Readout `topk` (Tang, Nguyen & Ha 2020): one learned query per head scores the self-attended nodes; only the top
 nodes/TOPK_SHARE of each head, unmixed, reach the dueling head, weighted by their softmax over the kept ones
 (B, heads, 1, nodes; zero off the kept nodes).
-Readout `query_topk` (an extension): `query` with each query's softmax over its top nodes/TOPK_SHARE nodes alone (zero
-elsewhere), so an action's value reads nothing but the few cells it attends to; its queries come from the frame, where
-`topk`'s one learned query kept the same open space on every frame.
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
@@ -130,10 +127,9 @@ class AttentionPooling(nn.Module):
 class QueryReadout(nn.Module):
     """Frame-dependent queries, one per action and one for the value, over the unmixed nodes (see the module doc)."""
 
-    def __init__(self, d_model: int, heads: int, actions: int, hidden: int, feature_norm: bool = False, keep: int = 0):
+    def __init__(self, d_model: int, heads: int, actions: int, hidden: int, feature_norm: bool = False):
         super().__init__()
         self.heads, self.d_head, self.actions = heads, d_model // heads, actions
-        self.keep = keep  # > 0: each query's weights are zero off its `keep` top nodes (query_topk)
         self.queries = nn.Linear(d_model, (actions + 1) * d_model)
         self.feature_norm = nn.LayerNorm(d_model) if feature_norm else nn.Identity()
         self.norm = nn.LayerNorm(d_model)
@@ -148,11 +144,7 @@ class QueryReadout(nn.Module):
         m = self.actions + 1
         q = self.queries(mixed.mean(dim=1)).view(b, m, self.heads, self.d_head).transpose(1, 2)  # (b, h, m, d_head)
         k, v = self.kv(self.norm(unmixed)).view(b, n, 2, self.heads, self.d_head).permute(2, 0, 3, 1, 4)
-        logits = q @ k.transpose(-1, -2) / math.sqrt(self.d_head)  # (b, h, m, n)
-        if 0 < self.keep < n:
-            kth = logits.topk(self.keep, dim=-1).values[..., -1:]
-            logits = logits.masked_fill(logits < kth, -math.inf)
-        weights = torch.softmax(logits, dim=-1)
+        weights = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.d_head), dim=-1)  # (b, h, m, n)
         attended = self.feature_norm((weights @ v).transpose(1, 2).reshape(b, m, d))
         h = self.hidden(attended)  # (b, m, hidden): one vector per query
         a = (h[:, : self.actions] * self.advantage).sum(dim=-1) + self.advantage_bias
@@ -221,9 +213,8 @@ class D3QNSam(nn.Module):
         if cfg.sam_readout == "topk":
             self.pooling = TopKPooling(cfg.d_model, cfg.heads, max(1, self.trunk.grid_h * self.trunk.grid_w // TOPK_SHARE))
         self.readout = None
-        if cfg.sam_readout in ("query", "query_topk"):
-            keep = max(1, self.trunk.grid_h * self.trunk.grid_w // TOPK_SHARE) if cfg.sam_readout == "query_topk" else 0
-            self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden, cfg.feature_norm, keep)
+        if cfg.sam_readout == "query":
+            self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden, cfg.feature_norm)
             self.dueling_head = None  # its own heads, one per query
         elif cfg.sam_readout == "flatten":
             c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
@@ -240,8 +231,8 @@ class D3QNSam(nn.Module):
 
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Q-values (B, actions) and the attention the decision uses: the last block's weights (B, heads, nodes,
-        nodes), or the readout's weights with `attend` / `topk` (B, heads, 1, nodes) and `query` / `query_topk`
-        (B, heads, actions + 1, nodes)."""
+        nodes), or the readout's weights with `attend` / `topk` (B, heads, 1, nodes) and `query` (B, heads,
+        actions + 1, nodes)."""
         return self.from_features(self.trunk(depth_m))
 
     def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -83,7 +83,7 @@ class TrainerConfig:
     sam_readout: str = setting(
         "max",
         "SAM readout (uav_policy/networks.py): max pools the nodes (the paper); flatten keeps their places; attend, "
-        "query (the shipped recipe), topk and query_topk form the Q-values from the attention shown; policy_node takes "
+        "query (the shipped recipe) and topk form the Q-values from the attention shown; policy_node takes "
         "it from the weights",
         choices=SAM_READOUTS,
     )
