@@ -130,6 +130,11 @@ class Recorder(Node):
         print(f"bag {self.out} closed: {self.summary()} ({counts})", flush=True)
 
 
+def counts(status, prefix: str) -> dict[str, int]:
+    """{topic: n} of a diagnostics status' `PREFIX TOPIC` keys."""
+    return {kv.key[len(prefix) :]: int(kv.value) for kv in status.values if kv.key.startswith(prefix)}
+
+
 class RecorderReports:
     """What the recorder says on /diagnostics, kept up to date through `node`: `heard` {topic: publishers matched},
     `written` {topic: messages written}, `lost` {topic: messages lost to it}, and `reports`, how many reports came;
@@ -147,14 +152,12 @@ class RecorderReports:
     def _on(self, msg) -> None:
         for st in msg.status:
             if st.name == "uav_bringup/record":
-                pubs = {kv.key[len("publishers ") :]: int(kv.value) for kv in st.values if kv.key.startswith("publishers ")}
-                self.heard.update(pubs)
+                self.heard.update(counts(st, "publishers "))
                 self.written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
-                self.lost.update({kv.key[len("lost ") :]: int(kv.value) for kv in st.values if kv.key.startswith("lost ")})
+                self.lost.update(counts(st, "lost "))
                 self.reports += 1
             elif st.name == "uav_policy":
-                subs = {kv.key[len("subscribers ") :]: int(kv.value) for kv in st.values if kv.key.startswith("subscribers ")}
-                self.heard_by_policy.update(subs)
+                self.heard_by_policy.update(counts(st, "subscribers "))
 
     def ready(self, topics) -> bool:
         """The recorder and policy_node have matched each other on every one of `topics` (resolved names)."""
