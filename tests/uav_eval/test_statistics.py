@@ -59,6 +59,27 @@ def test_the_iqm_ignores_one_outlier_seed_and_the_worst_seed_shows_it():
         aggregate([1.0, math.nan])
 
 
+def test_the_interval_does_not_depend_on_what_ran_before_in_the_process():
+    """rliable's bootstrap drew from numpy's process-wide generator: a CI run got two intervals for one table."""
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    table = [[1.0, 0.5], [2.0, 0.7], [3.0, 4.0], [4.0, 0.1], [100.0, 2.0]]
+    here = aggregate(table)
+    np.random.seed(12345)
+    np.random.random(1000)  # anything that draws from, or seeds, numpy's global generator
+    assert aggregate(table) == here
+    assert aggregate(table) == aggregate(table), "two calls in a row agree"
+    code = (
+        "import numpy as np, uav_eval.evaluate, uav_eval.tables, torch; np.random.seed(7); torch.manual_seed(3);"
+        f"from uav_eval.stats import aggregate; a = aggregate({table!r}); print(repr((a.low, a.high, a.iqm)))"
+    )
+    fresh = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert fresh == repr((here.low, here.high, here.iqm)), "a fresh process that imported what evaluate imports agrees"
+
+
 def result(weights: str, world: str, steps: int, crashes: int, reward: float = 1.0) -> EvalResult:
     return EvalResult("sam", world, weights, steps, crashes, reward, 100.0)
 
