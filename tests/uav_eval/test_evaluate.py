@@ -221,7 +221,7 @@ def test_from_csv_refuses_a_table_it_cannot_read_naming_file_and_line(tmp_path, 
     good = "sam,basic,a.safetensors,1000,2,2.00,1.5,900.00\n"
     cases = {
         "no_column.csv": ("model,world,weights,steps\nsam,basic,a,1000\n", "no column crashes, mean_reward, distance_m"),
-        "model.csv": (head + good + "dqn,basic,a,1000,0,0.00,1.0,1.0\n", "line 3: model must be sam or cnn, got 'dqn'"),
+        "model.csv": (head + good + "dqn,basic,a,1000,0,0.00,1.0,1.0\n", "line 3: model must be one of sam, cnn, planner"),
         "count.csv": (head + "sam,basic,a,1000,two,2.00,1.5,900.00\n", "line 2: crashes must be a whole number, got 'two'"),
         "impossible.csv": (head + "sam,basic,a,10,11,0,1.5,9.0\n", "needs steps >= 1 and 0 <= crashes <= steps, got 10 and 11"),
         "nan.csv": (head + "sam,basic,a,1000,0,0,nan,9.0\n", "line 2: mean_reward must be a finite number, got 'nan'"),

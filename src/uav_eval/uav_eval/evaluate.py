@@ -25,7 +25,7 @@ import os
 import time
 from pathlib import Path
 
-from . import ENSEMBLE_SEP
+from . import ENSEMBLE_SEP, MODELS, PLANNERS
 from .flights import (
     CRASH_FIELDS,
     INPROCESS_SIM_ARGS,
@@ -58,7 +58,13 @@ def main(argv=None) -> int:
     from uav_policy.weights import UNRECORDED_HFOV_DEG
 
     ap = argparse.ArgumentParser(prog="evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", action="append", choices=("sam", "cnn"), help="repeatable; default: sam")
+    ap.add_argument(
+        "--model",
+        action="append",
+        choices=MODELS,
+        help="repeatable; default: sam. planner / planner_all (with --inprocess) fly the privileged planner knowing what "
+        "the last five frames showed / the whole world (uav_sim.planner): the task's limit with the four actions",
+    )
     ap.add_argument(
         "--weights",
         nargs="*",
@@ -235,9 +241,18 @@ def main(argv=None) -> int:
         print(md.read_text())
         return 0
     models = a.model or ["sam"]
+    planners = [m for m in models if m in PLANNERS]
+    if planners and not a.inprocess:
+        ap.error(f"--model {planners[0]} needs --inprocess: the planner reads the simulator's world, which no ROS topic carries")
+    if planners and any(w.startswith(f"{m}=") for m in planners for w in a.weights or []):
+        ap.error(f"--model {planners[0]} flies no weights file")
     runs: list[tuple[str, list[str]]] = []  # (model, its files: one, an ensemble's, or none for the packaged weights)
-    packaged = {m: weights_or_packaged(m, "") for m in models}  # what a run without files flies (policy_node's default)
+    # What a run without files flies (policy_node's default); a planner flies none.
+    packaged = {m: [] if m in PLANNERS else weights_or_packaged(m, "") for m in models}
     for m in models:
+        if m in PLANNERS:
+            runs.append((m, []))
+            continue
         files = [w.split("=", 1)[1] for w in (a.weights or []) if w.startswith(f"{m}=")]
         files += [w for w in (a.weights or []) if "=" not in w] if len(models) == 1 else []
         if a.ensemble > 1 and not files:

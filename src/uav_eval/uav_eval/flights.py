@@ -11,7 +11,7 @@ import math
 from uav_policy.insight import Insight, InsightSummary, explanation
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 
-from . import ENSEMBLE_SEP
+from . import ENSEMBLE_SEP, PLANNER_WEIGHTS, PLANNERS
 
 
 @dataclasses.dataclass
@@ -174,7 +174,8 @@ def evaluate_inprocess(
     safety: bool = False,
     max_crashes: int = 0,
 ) -> EvalResult:
-    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks.
+    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks. A model of
+    PLANNERS flies uav_sim.planner on the world and pose (no weights; the packaged networks' camera by default).
 
     `weights`: a file, or an ensemble's files joined by ENSEMBLE_SEP, or "" for the packaged files.
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
@@ -187,53 +188,35 @@ def evaluate_inprocess(
     `insight_every`-th step (policy_node's parameter; 0 = never). With `safety` the commands pass policy_node's
     safety layer (its default settings), as `evaluate --safety` flies them through the node; its interventions
     are counted. `max_crashes` N > 0 ends the flight at its N-th crash (the result's steps are those flown)."""
-    from uav_policy import weights as wio
-    from uav_policy.agent import Agent
     from uav_policy.rollout import Flight
-    from uav_policy.safety import SafetyLayer, SafetySettings
-    from uav_sim.simulator import SimConfig, Simulator
-    from uav_sim.stacked_sim import StackedSim
-    from uav_sim.world import load_world
 
-    if net is None:
-        files = weights_or_packaged(model, weights)
-        if not files:
-            raise FileNotFoundError(f"no weights given and no packaged {model} weights")
-        net, net_cfg, hfov_deg, reward_window_fraction = wio.load_policy(
-            model, files, hfov_deg, reward_window_fraction, CENTER_WINDOW_FRACTION
+    if model in PLANNERS:
+        weights = weights or PLANNER_WEIGHTS
+        sim, env, agent, layer = planner_flight(
+            model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety
         )
-    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
-    if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
-        hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
-    if reward_window_fraction is None:
-        reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
-    if sensor is None:
-        from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
-
-        sensor = preset_for_camera(hfov_deg)
-        sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
-    sensor_scale = 1.0 if sensor_scale is None else sensor_scale
-    agent = Agent(net, cfg, seed=seed)
-    sim_cfg = SimConfig(
-        seed=seed,
-        start_yaw_jitter_deg=start_yaw_jitter_deg,
-        hfov_deg=hfov_deg,
-        image_width=cfg.width,
-        image_height=cfg.height,
-        reward_window_fraction=reward_window_fraction,
-        sensor=sensor,
-        sensor_scale=sensor_scale,
-    )
-    sim = Simulator(load_world(world), sim_cfg)
-    layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
-    env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
+    else:
+        sim, env, agent, layer, net = network_flight(
+            model,
+            weights,
+            world,
+            seed,
+            net,
+            start_yaw_jitter_deg,
+            hfov_deg,
+            net_cfg,
+            reward_window_fraction,
+            sensor,
+            sensor_scale,
+            safety,
+        )
     flight = Flight(env, agent, safety=layer)
     r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
     start_yaw = r.pose.yaw_rad  # the episode's start heading
     # What the decisions look at, for the stack's networks (a stand-in network without a grid is not measured).
-    insight = Insight(net.grid_hw, seed=seed) if hasattr(net, "grid_hw") and insight_every > 0 else None
+    insight = Insight(net.grid_hw, seed=seed) if net is not None and hasattr(net, "grid_hw") and insight_every > 0 else None
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
@@ -285,3 +268,88 @@ def evaluate_inprocess(
         layer.counts.total if layer is not None else -1,
         insight=insight.summary() if insight is not None else None,
     )
+
+
+def network_flight(
+    model,
+    weights,
+    world,
+    seed,
+    net,
+    start_yaw_jitter_deg,
+    hfov_deg,
+    net_cfg,
+    reward_window_fraction,
+    sensor,
+    sensor_scale,
+    safety,
+):
+    """evaluate_inprocess's simulator, stacked frames, agent and safety layer for a network (and the network)."""
+    from uav_policy import weights as wio
+    from uav_policy.agent import Agent
+    from uav_policy.safety import SafetyLayer, SafetySettings
+    from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.stacked_sim import StackedSim
+    from uav_sim.world import load_world
+
+    if net is None:
+        files = weights_or_packaged(model, weights)
+        if not files:
+            raise FileNotFoundError(f"no weights given and no packaged {model} weights")
+        net, net_cfg, hfov_deg, reward_window_fraction = wio.load_policy(
+            model, files, hfov_deg, reward_window_fraction, CENTER_WINDOW_FRACTION
+        )
+    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
+    if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
+        hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
+    if reward_window_fraction is None:
+        reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
+    if sensor is None:
+        from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
+
+        sensor = preset_for_camera(hfov_deg)
+        sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
+    sensor_scale = 1.0 if sensor_scale is None else sensor_scale
+    agent = Agent(net, cfg, seed=seed)
+    sim_cfg = SimConfig(
+        seed=seed,
+        start_yaw_jitter_deg=start_yaw_jitter_deg,
+        hfov_deg=hfov_deg,
+        image_width=cfg.width,
+        image_height=cfg.height,
+        reward_window_fraction=reward_window_fraction,
+        sensor=sensor,
+        sensor_scale=sensor_scale,
+    )
+    sim = Simulator(load_world(world), sim_cfg)
+    layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
+    env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
+    return sim, env, agent, layer, net
+
+
+def planner_flight(model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety):
+    """evaluate_inprocess's simulator, stacked frames and agent for the privileged planner: behind the camera the
+    packaged networks were trained behind (sensor None), measured with their reward window."""
+    from uav_policy.net_config import NetConfig
+    from uav_sim.planner import PlannerAgent, PlannerConfig, SimPlanner
+    from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
+    from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.stacked_sim import StackedSim
+    from uav_sim.world import load_world
+
+    if safety:
+        raise ValueError(f"--safety: the {model} flies no network, so there is no safety layer to measure")
+    if sensor is None:
+        sensor = preset_for_camera(flown_hfov_deg("sam", ""))
+        sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
+    window = flown_window("sam", "") if reward_window_fraction is None else reward_window_fraction
+    sim_cfg = SimConfig(
+        seed=seed,
+        start_yaw_jitter_deg=start_yaw_jitter_deg,
+        reward_window_fraction=window,
+        sensor=sensor,
+        sensor_scale=1.0 if sensor_scale is None else sensor_scale,
+    )
+    sim = Simulator(load_world(world), sim_cfg)
+    config = PlannerConfig(knowledge=PLANNERS[model], memory_frames=NetConfig.frames)
+    return sim, StackedSim(sim, NetConfig.frames), PlannerAgent(SimPlanner(sim, config)), None

@@ -13,7 +13,7 @@ import numpy as np
 
 from uav_policy.insight import InsightSummary
 
-from . import ENSEMBLE_SEP
+from . import ENSEMBLE_SEP, LABELS, MODELS, PLANNER_WEIGHTS
 from .flights import TURN_DEG, EvalResult
 from .stats import Rate, aggregate
 
@@ -112,7 +112,7 @@ def distance_cell(runs: list[EvalResult]) -> str:
 def pooled_table(results, models, worlds, title: str, column: str, cell, intro: str = "") -> list[str]:
     """A Markdown table with one cell per (world, model) computed from all runs of that pair."""
     lines = [f"### {title}", "", *([intro, ""] if intro else [])]
-    lines += ["| world | " + " | ".join(f"D3QN-{m.upper()}{column}" for m in models) + " |", "|" + "---|" * (1 + len(models))]
+    lines += ["| world | " + " | ".join(f"{LABELS[m]}{column}" for m in models) + " |", "|" + "---|" * (1 + len(models))]
     for world in worlds:
         cells = []
         for m in models:
@@ -145,7 +145,7 @@ def crash_count_table(results: list[EvalResult], models: list[str], worlds: list
         for weights in dict.fromkeys(r.weights for r in results if r.model == m):
             row = {r.world: r for r in results if r.model == m and r.weights == weights}
             cells = [count_cell(row[w]) if w in row else "-" for w in worlds]
-            lines.append(f"| D3QN-{m.upper()} | {short_weights(weights)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {LABELS[m]} | {short_weights(weights)} | " + " | ".join(cells) + " |")
     return [*lines, ""]
 
 
@@ -157,6 +157,8 @@ def short_weights(weights: str) -> str:
     """A weights column as a table shows it: the packaged set, one file's name or a group's first and size."""
     if not weights:
         return "packaged"
+    if weights == PLANNER_WEIGHTS:
+        return "no weights"
     files = weights.split(ENSEMBLE_SEP)
     name = f"{Path(files[0]).parent.name}/{Path(files[0]).name}"
     return name if len(files) == 1 else f"{name} + {len(files) - 1} more"
@@ -215,7 +217,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     *insight,
                 ]
             )
-    models = sorted({r.model for r in results}, key=["sam", "cnn"].index)
+    models = sorted({r.model for r in results}, key=MODELS.index)
     worlds = list(dict.fromkeys(r.world for r in results))
     lines = [
         f"Exploit-only (epsilon 0) evaluation, {steps} lockstep steps per run"
@@ -232,7 +234,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
     ):
         lines += [f"### {title}", ""]
         lines += [
-            "| world | " + " | ".join(f"D3QN-{m.upper()} IQM [95 %] | worst seed | paper" for m in models) + " |",
+            "| world | " + " | ".join(f"{LABELS[m]} IQM [95 %] | worst seed | paper" for m in models) + " |",
             "|" + "---|" * (1 + 3 * len(models)),
         ]
         for world in worlds:
@@ -341,7 +343,7 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
                 return " / ".join(f"{a:.2f}" for a in areas)
 
             lines.append(
-                f"| D3QN-{m.upper()} | {world} | {cell('entropy')} | {cell('top_share')} | {cell('map_correlation')} "
+                f"| {LABELS[m]} | {world} | {cell('entropy')} | {cell('top_share')} | {cell('map_correlation')} "
                 f"| {top:.3f} / {rand:.3f} / {by_prior:.3f} | {InsightSummary.ratio(top, rand):.2f} "
                 f"| {InsightSummary.ratio(top, by_prior) if prior else math.nan:.2f} | {cell('near_ratio')} "
                 f"| {curve('deletion')} | {curve('insertion')} |"
@@ -404,8 +406,8 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
             raise ValueError(f"{path}: cannot read it ({e})") from None
         for line, r in enumerate(rows, start=2):
             where = f"{path} line {line}"
-            if r["model"] not in ("sam", "cnn"):
-                raise ValueError(f"{where}: model must be sam or cnn, got {r['model']!r}")
+            if r["model"] not in MODELS:
+                raise ValueError(f"{where}: model must be one of {', '.join(MODELS)}, got {r['model']!r}")
             if not r["world"] or not r["weights"]:
                 raise ValueError(f"{where}: world and weights must not be empty (a short row?)")
             steps, crashes = _csv_whole(r, "steps", where), _csv_whole(r, "crashes", where)

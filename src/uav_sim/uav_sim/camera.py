@@ -58,19 +58,29 @@ class DepthCamera:
 
     def render(self, eye_xyz: tuple[float, float, float], yaw_rad: float) -> np.ndarray:
         """Depth image (H, W) float32 for a camera at `eye_xyz` looking along `yaw_rad` (level)."""
+        return self._render(eye_xyz, yaw_rad, False)[0]
+
+    def render_with_ids(self, eye_xyz: tuple[float, float, float], yaw_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """The depth image and, per pixel, the pybullet body id it shows (-1 where nothing is within range)."""
+        depth, seg = self._render(eye_xyz, yaw_rad, True)
+        ids = np.where(seg >= 0, seg & ((1 << 24) - 1), -1)  # the mask packs the link index above bit 24
+        ids[~np.isfinite(depth)] = -1
+        return depth, ids
+
+    def _render(self, eye_xyz, yaw_rad: float, with_ids: bool) -> tuple[np.ndarray, np.ndarray | None]:
         fwd = (math.cos(yaw_rad), math.sin(yaw_rad), 0.0)
         target = (eye_xyz[0] + fwd[0], eye_xyz[1] + fwd[1], eye_xyz[2])
         view = p.computeViewMatrix(eye_xyz, target, (0.0, 0.0, 1.0), physicsClientId=self.client)
         w, h = self.intrinsics.width, self.intrinsics.height
-        _, _, _, zbuf, _ = p.getCameraImage(
+        _, _, _, zbuf, seg = p.getCameraImage(
             w,
             h,
             view,
             self._projection,
             renderer=p.ER_TINY_RENDERER,
-            flags=p.ER_NO_SEGMENTATION_MASK,
+            flags=0 if with_ids else p.ER_NO_SEGMENTATION_MASK,
             physicsClientId=self.client,
         )
         depth = zbuffer_to_depth_m(np.reshape(zbuf, (h, w)), self.min_range_m, self._far_m)
         depth[depth > self.max_range_m] = np.inf
-        return depth
+        return depth, np.reshape(np.asarray(seg, dtype=np.int64), (h, w)) if with_ids else None

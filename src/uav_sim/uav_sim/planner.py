@@ -31,10 +31,11 @@ import numpy as np
 
 from uav_common.actions import PAPER_ACTIONS, Action
 
-from .world import World
+from .simulator import Simulator
+from .vehicle import BodyTwist, Pose, integrate
+from .world import World, wall_code
 
 KNOWLEDGE = ("stack", "all")
-WALLS = ("wall_x+", "wall_x-", "wall_y+", "wall_y-")  # the walls at x = +L/2, -L/2, y = +W/2, -W/2
 NO_REASON = -1
 
 
@@ -63,11 +64,6 @@ class Plan:
     scores: np.ndarray  # (actions,) the best plan's rank value starting with each action (higher is better)
     clearance_m: np.ndarray  # (actions,) the smallest clearance of the best plan starting with each action
     reason: tuple[int, ...]  # obstacle indices (walls: -2 - wall index) the decision is about; () when nothing bounds it
-
-
-def wall_code(i: int) -> int:
-    """How a reason names wall i of WALLS (obstacles are their index in world.obstacles, >= 0)."""
-    return -2 - i
 
 
 class Geometry:
@@ -101,19 +97,24 @@ class Geometry:
         # One code per column of distances(): cylinders, boxes, then the four walls.
         self.codes = np.concatenate([self.cyl_index, self.box_index, [wall_code(i) for i in range(4)]]).astype(np.int64)
 
-    def distances(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """(..., columns): horizontal distance from each point to each footprint and wall (0 inside)."""
-        x, y = np.asarray(x, dtype=np.float64)[..., None], np.asarray(y, dtype=np.float64)[..., None]
-        cx, cy, r = self.cyl.T
+    def distances(self, x: np.ndarray, y: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
+        """(..., columns): horizontal distance from each point to each footprint and wall (0 inside); with `known`
+        (a bool per column) only those columns."""
+        if known is None:
+            known = np.ones(len(self.codes), dtype=bool)
+        n_cyl, n_box = len(self.cyl), len(self.box)
+        x, y = np.asarray(x, dtype=np.float32)[..., None], np.asarray(y, dtype=np.float32)[..., None]
+        cx, cy, r = self.cyl[known[:n_cyl]].T.astype(np.float32)
         d_cyl = np.maximum(np.hypot(x - cx, y - cy) - r, 0.0)
-        bx, by, c, s, hx, hy = self.box.T
+        bx, by, c, s, hx, hy = self.box[known[n_cyl : n_cyl + n_box]].T.astype(np.float32)
         dx, dy = x - bx, y - by
         u = np.maximum(np.abs(dx * c + dy * s) - hx, 0.0)
         v = np.maximum(np.abs(-dx * s + dy * c) - hy, 0.0)
         d_box = np.hypot(u, v)
-        lx, ly = self.walls[0], self.walls[2]
-        d_wall = np.concatenate([np.maximum(lx - x, 0), np.maximum(x + lx, 0), np.maximum(ly - y, 0), np.maximum(y + ly, 0)], -1)
-        return np.concatenate([d_cyl, d_box, d_wall], axis=-1)
+        lx, ly = np.float32(self.walls[0]), np.float32(self.walls[2])
+        walls = [lx - x, x + lx, ly - y, y + ly]
+        d_wall = [np.maximum(w, 0.0) for w, k in zip(walls, known[-4:], strict=True) if k]
+        return np.concatenate([d_cyl, d_box, *d_wall], axis=-1)
 
 
 class Planner:
@@ -135,6 +136,18 @@ class Planner:
         self.dt = step_duration_s / self.n_sub
         self.speed = np.array([a.linear_x_mps for a in actions], dtype=np.float64)
         self.yaw_rate = np.array([a.yaw_rate_radps(step_duration_s) for a in actions], dtype=np.float64)
+        # Each action's sub-step positions from the origin facing +x, by the simulator's own integrate(): a plan's
+        # are these rotated onto its pose (the motion does not depend on where it starts).
+        offsets = []
+        for a in actions:
+            cmd = BodyTwist(a.linear_x_mps, yaw_rate_radps=a.yaw_rate_radps(step_duration_s))
+            pose, path = Pose(0.0, 0.0, 0.0, 0.0), []
+            for _ in range(self.n_sub):
+                pose = integrate(pose, cmd, self.dt)
+                path.append((pose.x_m, pose.y_m))
+            offsets.append(path)
+        self._offset_x, self._offset_y = np.array(offsets)[..., 0], np.array(offsets)[..., 1]  # (actions, sub-steps)
+        self._turn = np.array([math.radians(a.yaw_deg_per_step) for a in actions])
         turning = [a for a in actions if a.yaw_deg_per_step != 0.0]
         # The turning circle a plan must be able to end on: the slowest turn's radius.
         self.circle_m = min((a.linear_x_mps / abs(a.yaw_rate_radps(step_duration_s)) for a in turning), default=math.inf)
@@ -178,20 +191,15 @@ class Planner:
             # Every plan so far, extended by every action: the child k*n_act + a continues plan k with action a.
             x, y, yaw = (np.repeat(v, n_act) for v in (x, y, yaw))
             clear, bound, alive_steps, length = (np.repeat(v, n_act) for v in (clear, bound, alive_steps, length))
-            v = np.tile(self.speed, len(x) // n_act)
-            w = np.tile(self.yaw_rate, len(x) // n_act)
-            xs, ys = np.empty((len(x), self.n_sub)), np.empty((len(x), self.n_sub))
-            for k in range(self.n_sub):  # the simulator's integrate(), vectorised over the plans
-                yaw1 = yaw + w * self.dt
-                turning = np.abs(w) >= 1e-9
-                ws = np.where(turning, w, 1.0)
-                dx = np.where(turning, v * (np.sin(yaw1) - np.sin(yaw)) / ws, v * np.cos(yaw) * self.dt)
-                dy = np.where(turning, v * (np.cos(yaw) - np.cos(yaw1)) / ws, v * np.sin(yaw) * self.dt)
-                x, y, yaw = x + dx, y + dy, yaw1
-                xs[:, k], ys[:, k] = x, y
+            reps = len(x) // n_act
+            v = np.tile(self.speed, reps)
+            c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+            ox, oy = np.tile(self._offset_x, (reps, 1)), np.tile(self._offset_y, (reps, 1))  # (plans, sub-steps)
+            xs, ys = x[:, None] + c * ox - s * oy, y[:, None] + s * ox + c * oy
+            x, y, yaw = xs[:, -1], ys[:, -1], yaw + np.tile(self._turn, reps)
             length = length + v * self.step_duration_s
             if len(cols):
-                d = self.geometry.distances(xs, ys)[..., cols] - cfg.margin_m  # (plans, sub-steps, known)
+                d = self.geometry.distances(xs, ys, known) - cfg.margin_m  # (plans, sub-steps, known)
                 per = d.min(axis=1)  # (plans, known)
                 step_clear = per.min(axis=1)
                 step_bound = self.geometry.codes[cols][per.argmin(axis=1)]
@@ -200,7 +208,7 @@ class Planner:
                 bound = np.where(nearer, step_bound, bound)
             alive_steps = np.where((clear > 0.0) & (alive_steps == depth), depth + 1, alive_steps)
         survives = alive_steps == cfg.horizon
-        circle_free = survives & self._circle_free(x, y, yaw, cols)
+        circle_free = survives & self._circle_free(x, y, yaw, known)
         capped = np.where(np.isfinite(clear), np.minimum(clear, cfg.clearance_cap_m), cfg.clearance_cap_m)
         # The safety rank in one number (each term outweighs all below it), then progress (under 1e3 m).
         safety = circle_free * 1e7 + alive_steps * 1e5 + capped * 1e3
@@ -215,15 +223,15 @@ class Planner:
         reason = self._reason(action, first_safety, first_clear, first_bound)
         return Plan(action, scores, first_clear, reason)
 
-    def _circle_free(self, x, y, yaw, cols) -> np.ndarray:
+    def _circle_free(self, x, y, yaw, known) -> np.ndarray:
         """Whether a disc of the turning circle's radius beside the end pose (left or right) is free."""
-        if not len(cols) or not math.isfinite(self.circle_m):
+        if not known.any() or not math.isfinite(self.circle_m):
             return np.ones(len(x), dtype=bool)
         r = self.circle_m
         free = np.zeros(len(x), dtype=bool)
         for side in (1.0, -1.0):  # left, right
             cx, cy = x - side * r * np.sin(yaw), y + side * r * np.cos(yaw)
-            d = self.geometry.distances(cx, cy)[..., cols].min(axis=-1) - self.config.margin_m
+            d = self.geometry.distances(cx, cy, known).min(axis=-1) - self.config.margin_m
             free |= d >= r
         return free
 
@@ -237,3 +245,46 @@ class Planner:
             if a != action and safety[a] < safety[action] - 1e-6 and bound[a] != NO_REASON and int(bound[a]) not in out:
                 out.append(int(bound[a]))
         return tuple(out)
+
+
+class SimPlanner:
+    """The planner on a Simulator's frames: `label()` plans for the current frame, keeping what the stack of frames
+    has shown (knowledge 'stack' turns on the simulator's segmentation mask)."""
+
+    def __init__(self, sim: Simulator, config: PlannerConfig = PlannerConfig(), actions: tuple[Action, ...] = PAPER_ACTIONS):
+        self.sim = sim
+        cfg = sim.config
+        self.planner = Planner(sim.world, cfg.step_duration_s, cfg.physics_rate_hz, actions, config, sim.pose.z_m)
+        self._world, self._episode, self._frame, self._plan = sim.world, None, None, None
+        if config.knowledge == "stack" and not sim.see_bodies:
+            sim.see_bodies = True
+            sim.render()  # the current frame's mask (rendering draws no random numbers)
+
+    def label(self) -> Plan:
+        """The plan for the simulator's current frame (the same plan when asked again before the next step)."""
+        sim = self.sim
+        frame = (sim.total_steps, sim.episode, id(sim.world))
+        if frame == self._frame:
+            return self._plan
+        if sim.world is not self._world:
+            self.planner.set_world(sim.world, sim.pose.z_m)
+            self._world = sim.world
+        if sim.episode != self._episode:
+            self.planner.forget()
+            self._episode = sim.episode
+        self.planner.observe(sim.visible)
+        pose = sim.pose
+        self._frame, self._plan = frame, self.planner.plan(pose.x_m, pose.y_m, pose.yaw_rad)
+        return self._plan
+
+
+class PlannerAgent:
+    """The planner as uav_policy.rollout.Flight's agent: it acts on the simulator's world and pose, not on the state."""
+
+    def __init__(self, planner: SimPlanner):
+        self.planner = planner
+
+    def act(self, state: np.ndarray, epsilon: float = 0.0) -> tuple[int, np.ndarray, None, bool]:
+        """(action, the plan scores per first action as its 'Q-values', no attention, never explored)."""
+        plan = self.planner.label()
+        return plan.action, plan.scores, None, False

@@ -27,7 +27,7 @@ from .reward import DELTA_M, center_window_min_depth, floor_beta_m, step_reward
 from .sensor import SENSORS, SensorModel, preset, scaled_size
 from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from .weather import Particles
-from .world import Obstacle, World
+from .world import Obstacle, World, wall_code
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,6 +175,9 @@ class Simulator:
         p_ = preset(config.sensor)
         self.sensor = SensorModel(p_, config.seed + 2) if p_ is not None else None
         self.next_worlds = next_worlds
+        self.see_bodies = False  # render the segmentation mask too (the planner and the decision's reason need it)
+        self.body_ids: np.ndarray | None = None
+        self.visible: frozenset[int] = frozenset()
         self.rng = np.random.default_rng(config.seed)
         self.client = p.connect(p.DIRECT)
         self.camera = DepthCamera(
@@ -204,29 +207,33 @@ class Simulator:
         self.body = p.createMultiBody(1.0, shape, -1, (0, 0, 1), physicsClientId=self.client)
         self.particles = Particles(self.client, self.world.weather, self.config.seed + 1)
 
-    def _static_box(self, center, half, yaw_rad=0.0) -> None:
+    def _static_box(self, center, half, yaw_rad=0.0) -> int:
         c = self.client
         col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
         vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
         orn = p.getQuaternionFromEuler((0, 0, yaw_rad))
-        p.createMultiBody(0, col, vis, center, orn, physicsClientId=c)
+        return p.createMultiBody(0, col, vis, center, orn, physicsClientId=c)
 
     def _build_world(self) -> None:
         w, c, t = self.world, self.client, 0.1
         L, W, H = w.length_m, w.width_m, w.wall_height_m
         self._static_box((0, 0, -t), (L / 2 + t, W / 2 + t, t))  # floor
-        self._static_box((L / 2 + t, 0, H / 2), (t, W / 2 + 2 * t, H / 2))
-        self._static_box((-L / 2 - t, 0, H / 2), (t, W / 2 + 2 * t, H / 2))
-        self._static_box((0, W / 2 + t, H / 2), (L / 2 + 2 * t, t, H / 2))
-        self._static_box((0, -W / 2 - t, H / 2), (L / 2 + 2 * t, t, H / 2))
-        for o in w.obstacles:
+        # What each body is, for the pixels that show it (body_ids): the walls in planner.WALLS's order, the obstacles.
+        self.body_codes = {
+            self._static_box((L / 2 + t, 0, H / 2), (t, W / 2 + 2 * t, H / 2)): wall_code(0),
+            self._static_box((-L / 2 - t, 0, H / 2), (t, W / 2 + 2 * t, H / 2)): wall_code(1),
+            self._static_box((0, W / 2 + t, H / 2), (L / 2 + 2 * t, t, H / 2)): wall_code(2),
+            self._static_box((0, -W / 2 - t, H / 2), (L / 2 + 2 * t, t, H / 2)): wall_code(3),
+        }
+        for i, o in enumerate(w.obstacles):
             if o.shape == "box":
                 half = (o.size_x_m / 2, o.size_y_m / 2, o.height_m / 2)
-                self._static_box((o.x_m, o.y_m, o.height_m / 2), half, math.radians(o.yaw_deg))
+                body = self._static_box((o.x_m, o.y_m, o.height_m / 2), half, math.radians(o.yaw_deg))
             else:
                 col = p.createCollisionShape(p.GEOM_CYLINDER, radius=o.radius_m, height=o.height_m, physicsClientId=c)
                 vis = p.createVisualShape(p.GEOM_CYLINDER, radius=o.radius_m, length=o.height_m, physicsClientId=c)
-                p.createMultiBody(0, col, vis, (o.x_m, o.y_m, o.height_m / 2), physicsClientId=c)
+                body = p.createMultiBody(0, col, vis, (o.x_m, o.y_m, o.height_m / 2), physicsClientId=c)
+            self.body_codes[body] = i
 
     def _start_pose(self) -> Pose:
         x, y, z = self.world.start_xyz_m
@@ -255,8 +262,18 @@ class Simulator:
 
     # -- public API -----------------------------------------------------------------------
     def render(self) -> np.ndarray:
-        """The current depth frame (m), exact."""
-        return self.camera.render(self.camera_xyz(), self.pose.yaw_rad)
+        """The current depth frame (m), exact. With `see_bodies` set, `body_ids` is its mask of what each pixel shows
+        (an obstacle's index, a wall's wall_code, -1 for the floor, particles or nothing in range) and `visible` the
+        set of those codes."""
+        if not self.see_bodies:
+            return self.camera.render(self.camera_xyz(), self.pose.yaw_rad)
+        depth, ids = self.camera.render_with_ids(self.camera_xyz(), self.pose.yaw_rad)
+        lookup = np.full(max(self.body_codes) + 2, -1, dtype=np.int64)  # body id -> code (-1: not an obstacle or wall)
+        for body, code in self.body_codes.items():
+            lookup[body] = code
+        self.body_ids = np.where((ids >= 0) & (ids < len(lookup) - 1), lookup[np.clip(ids, 0, len(lookup) - 1)], -1)
+        self.visible = frozenset(int(c) for c in np.unique(self.body_ids) if c != -1)
+        return depth
 
     def measure(self, depth_m: np.ndarray) -> np.ndarray:
         """What the sensor reports for the exact depth (the reward's beta comes from the exact one)."""

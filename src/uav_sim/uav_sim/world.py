@@ -52,6 +52,16 @@ VALIDATION_WORLDS = tuple(f"{VALIDATION}:{k}" for k in range(8))  # the set `eva
 VALIDATION_STEPS = 500  # a choice flies each weights file this many steps per validation world: 4000 in all
 
 
+# The room's walls, at x = +L/2, -L/2, y = +W/2, -W/2. Where a body must be named by one number (what a pixel shows,
+# what a decision is about), an obstacle is its index in World.obstacles and wall i is wall_code(i).
+WALLS = ("wall_x+", "wall_x-", "wall_y+", "wall_y-")
+
+
+def wall_code(i: int) -> int:
+    """The number that names wall i of WALLS (-2 .. -5; obstacles are >= 0, -1 is nothing)."""
+    return -2 - i
+
+
 class WorldError(ValueError):
     """A world name, file or field that cannot be used; the message says which and why."""
 
