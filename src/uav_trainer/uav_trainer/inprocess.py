@@ -14,6 +14,7 @@ import dataclasses
 import sys
 import time
 
+import numpy as np
 import torch
 
 from uav_common.actions import PAPER_ACTIONS, turning_indices
@@ -22,6 +23,7 @@ from uav_policy import weights as wio
 from uav_policy.agent import Agent
 from uav_policy.networks import build_network
 from uav_policy.rollout import Flight
+from uav_sim.planner import PlannerConfig, SimPlanner
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 from uav_sim.simulator import RewardWindowError, SimConfig, Simulator, reward_floor_problem, with_sensor
 from uav_sim.stacked_sim import StackedSim
@@ -99,15 +101,27 @@ def run(
     flight = Flight(StackedSim(sim, net_cfg.frames, input_hw=(net_cfg.height, net_cfg.width)), acting)
     training.add_first(flight.env.last_input)
     loaded = None  # the version of the released weights the acting network has
+    # The teacher labels every frame; it flies a step instead of the student with a probability that falls to 0.
+    teacher = (
+        SimPlanner(sim, PlannerConfig(knowledge=cfg.teacher, memory_frames=net_cfg.frames)) if cfg.teacher != "none" else None
+    )
+    who_flies = np.random.default_rng([cfg.seed, 7])
+    label, agreed = -1, []  # the teacher's action for the frame decided on; whether the student's greedy choice was it
 
     def decide():
-        nonlocal loaded
+        nonlocal loaded, label
         version, blob = training.released_weights()
         if version != loaded:
             wio.load_bytes(blob, training.net_cfg, into=acting.net)
             loaded = version
         decision = flight.decide(training.epsilon())
         training.after_release()
+        if teacher is not None:
+            label = teacher.label().action
+            agreed.append(int(np.argmax(decision.q)) == label)
+            if who_flies.random() < cfg.teacher_act_probability(training.env_steps):
+                vx, wz = flight.pilot.command_of(label)
+                decision = dataclasses.replace(decision, action=label, explored=False, linear_x_mps=vx, yaw_rate_radps=wz)
         return decision
 
     t0 = time.perf_counter()
@@ -120,7 +134,7 @@ def run(
             if r.truncated:
                 training.add_truncated(frame)
             else:
-                training.add_step(step.action, r.beta_m, r.collided, frame)
+                training.add_step(step.action, r.beta_m, r.collided, frame, teacher=label)
             if not training.budget_done:
                 # The policy acts on the new frame before this step's updates, as over ROS, where trainer_node
                 # releases the frame first and learns while the policy acts and the simulator steps.
@@ -137,7 +151,9 @@ def run(
                     f"mean ep reward {row['mean_episode_reward']:8.1f}  "
                     f"{training.env_steps / (time.perf_counter() - t0):6.1f} steps/s  "
                     f"{row['updates_per_s']:5.1f} updates/s"
+                    + (f"  student picks the teacher's action {100 * np.mean(agreed):3.0f} %" if agreed else "")
                 )
+                agreed.clear()
     finally:
         sim.close()
         training.save_checkpoint(final=True)

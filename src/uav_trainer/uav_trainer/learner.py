@@ -21,6 +21,18 @@ def double_dqn_target(reward, done, gamma, q_next_online, q_next_target):
     return reward + gamma * (1.0 - done) * q_next_target.gather(1, best).squeeze(1)
 
 
+def large_margin_loss(q: torch.Tensor, teacher: torch.Tensor, margin: float) -> torch.Tensor:
+    """DQfD's supervised loss (Hester et al. 2018): J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), l = `margin` for
+    a != a_E and 0 for the teacher's a_E, averaged over the states with a teacher action (teacher >= 0); 0 when none.
+    It is 0 once the teacher's action leads every other by the margin, and pushes the others below it until then."""
+    labelled = teacher >= 0
+    if not bool(labelled.any()):
+        return q.sum() * 0.0
+    q, a_e = q[labelled], teacher[labelled].unsqueeze(1)
+    lift = torch.full_like(q, margin).scatter_(1, a_e, 0.0)
+    return ((q + lift).max(dim=1).values - q.gather(1, a_e).squeeze(1)).mean()
+
+
 class NonFiniteLoss(RuntimeError):
     """The loss became NaN or Inf: learning must stop; the last good checkpoint stays."""
 
@@ -45,16 +57,20 @@ class Learner:
             torch.from_numpy(batch["reward"]).to(d),
             torch.from_numpy(batch["done"]).to(d),
             torch.from_numpy(batch["next_state"]).to(d),
+            torch.from_numpy(batch["teacher"]).to(d) if "teacher" in batch else None,
         )
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
-        """One gradient step on a sampled batch; returns loss, mean Q and gradient norm."""
-        s, a, r, done, s2 = self._tensors(batch)
+        """One gradient step on a sampled batch; returns loss, mean Q and gradient norm. With teacher_weight > 0 the
+        large-margin loss on the batch's teacher actions is added to the TD loss."""
+        s, a, r, done, s2, teacher = self._tensors(batch)
         with torch.no_grad():
             y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
         q, _ = self.online(s)
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
+        if self.cfg.teacher_weight > 0.0 and teacher is not None:
+            loss = loss + self.cfg.teacher_weight * large_margin_loss(q, teacher, self.cfg.teacher_margin)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"loss is {loss.item()} at update {self.updates}")
         self.optimizer.zero_grad(set_to_none=True)

@@ -30,6 +30,7 @@ class ReplayMemory:
         self.reward = np.zeros(capacity, dtype=np.float32)
         self.done = np.zeros(capacity, dtype=bool)
         self.has_transition = np.zeros(capacity, dtype=bool)
+        self.teacher = np.full(capacity, -1, dtype=np.int64)  # the teacher's action for the frame (-1: none)
         self.writes = 0  # frames written since the memory began (slot = write % capacity)
         self.rng = np.random.default_rng(seed)
 
@@ -51,6 +52,7 @@ class ReplayMemory:
         "reward": np.float32,
         "done": np.bool_,
         "has_transition": np.bool_,
+        "teacher": np.int64,
     }
 
     def _geometry(self) -> tuple[int, int, int, int]:
@@ -73,8 +75,10 @@ class ReplayMemory:
         depth), holds values no run could have written (actions outside [0, n_actions), NaN or negative
         depths, ...), or a journal with a gap."""
         spans = []
-        for seg in segments:
+        for k, seg in enumerate(segments):
             span, geometry = seg.get("span"), seg.get("geometry")
+            if "teacher" not in seg and "action" in seg:  # a journal written before teacher labels: none
+                seg = segments[k] = {**seg, "teacher": np.full(seg["action"].shape, -1, dtype=np.int64)}
             if span is None or span.dtype != np.int64 or span.shape != (2,) or not 0 <= span[0] <= span[1]:
                 raise ValueError("replay segment has no valid span")
             ok = geometry is not None and geometry.dtype == np.int64 and geometry.shape == (4,)
@@ -106,6 +110,7 @@ class ReplayMemory:
             newest = (end - 1) % self.capacity
             fresh["has_transition"][newest] = False
             fresh["action"][newest], fresh["reward"][newest], fresh["done"][newest] = 0, 0.0, False
+            fresh["teacher"][newest] = -1
         for name, a in fresh.items():
             setattr(self, name, a)
         self.writes = end
@@ -120,6 +125,8 @@ class ReplayMemory:
             raise ValueError("replay segment has NaN or negative depths")
         if ((arrays["action"] < 0) | (arrays["action"] >= n_actions)).any():
             raise ValueError(f"replay segment has actions outside [0, {n_actions})")
+        if ((arrays["teacher"] < -1) | (arrays["teacher"] >= n_actions)).any():
+            raise ValueError(f"replay segment has teacher actions outside [-1, {n_actions})")
         if not np.isfinite(arrays["reward"]).all():
             raise ValueError("replay segment has non-finite rewards")
 
@@ -133,21 +140,23 @@ class ReplayMemory:
             self.frame[i] = np.nan_to_num(depth, nan=np.inf).astype(np.float16)
         self.start[i] = start
         self.has_transition[i] = False
+        self.teacher[i] = -1
         self.writes += 1
 
     def add_first(self, depth: np.ndarray) -> None:
         """A frame that starts an episode or a new chain (no transition leads into it)."""
         self._write_frame(depth, start=True)
 
-    def add_transition(self, action: int, reward: float, done: bool, next_depth: np.ndarray) -> None:
-        """Complete the transition from the newest frame; `next_depth` is the frame it led to.
+    def add_transition(self, action: int, reward: float, done: bool, next_depth: np.ndarray, teacher: int = -1) -> None:
+        """Complete the transition from the newest frame; `next_depth` is the frame it led to, `teacher` the teacher's
+        action for the newest frame (-1: none).
 
         After a collision (done=True) the next frame is the first of a new episode.
         """
         if self.count == 0:
             raise RuntimeError("add_first must come before add_transition")
         i = (self.cursor - 1) % self.capacity
-        self.action[i], self.reward[i], self.done[i] = action, reward, done
+        self.action[i], self.reward[i], self.done[i], self.teacher[i] = action, reward, done, teacher
         self.has_transition[i] = True
         self._write_frame(next_depth, start=done)
 
@@ -195,6 +204,7 @@ class ReplayMemory:
         return {
             "state": self.stacks(picks),
             "action": self.action[picks],
+            "teacher": self.teacher[picks],
             "index": picks,
             "reward": self.reward[picks],
             "done": self.done[picks].astype(np.float32),

@@ -94,7 +94,7 @@ class TrainerNode(Node):
             self.actions = st.actions.table()
         except ValueError as e:
             raise ParameterError(f"parameters 'action_*': {e}") from None
-        namespaces = st.actor_namespaces()
+        namespaces = st.actor_namespaces()  # ParameterError for bad namespaces, or a setting ROS cannot train with
         self.cfg = dataclasses.replace(st.trainer, turning_actions=turning_indices(self.actions))
         try:
             resolve_device(self.cfg.device)

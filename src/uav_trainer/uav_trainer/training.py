@@ -220,15 +220,18 @@ class Training:
     def add_first(self, frame: np.ndarray, actor: int = 0) -> None:
         self._memory(actor).add_first(frame)
 
-    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, actor: int = 0) -> float:
-        """One transition of `actor`; the reward comes from the simulator package's reward function. Steps after
-        the budget is spent are not recorded (not learnt from, counted or logged)."""
+    def add_step(
+        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, actor: int = 0, teacher: int = -1
+    ) -> float:
+        """One transition of `actor` (`teacher`: the teacher's action for the frame it left, -1 for none); the reward
+        comes from the simulator package's reward function. Steps after the budget is spent are not recorded (not
+        learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
         if self.cfg.turn_penalty > 0.0 and not collided and action in self.cfg.turning_actions:
             reward -= self.cfg.turn_penalty
         if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
             return reward
-        self._memory(actor).add_transition(action, reward, collided, next_frame)
+        self._memory(actor).add_transition(action, reward, collided, next_frame, teacher)
         self.env_steps += 1
         self.actor_steps[actor] += 1
         self.reward_sum += reward

@@ -19,6 +19,10 @@ class LearnerConfig:
     target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
     target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
     huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
+    teacher_weight: float = setting(
+        1.0, "With a teacher: weight of the large-margin loss on its actions (DQfD's lambda_2) beside the TD loss", 0.0, 100.0
+    )
+    teacher_margin: float = setting(0.8, "With a teacher: the margin the teacher's action must lead by (DQfD's 0.8)", 0.0, 100.0)
     seed: int = 0  # TrainerConfig's seed (not a setting of its own)
 
 
@@ -31,6 +35,7 @@ def linear_epsilon(step: int, start: float, end: float, decay_steps: int) -> flo
 
 
 DEVICES = ("auto", "cpu", "cuda")
+TEACHERS = ("none", "stack", "all")  # none, or uav_sim.planner's knowledge
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +78,19 @@ class TrainerConfig:
         0.0,
         100.0,
     )
+    teacher: str = setting(
+        "none",
+        "A teacher for every training frame (uav_sim.planner, in-process trainer only): stack, the planner knowing what "
+        "the last frame_stack frames showed (realizable from the state); all, knowing the whole world; none, pure RL",
+        choices=TEACHERS,
+    )
+    teacher_act_start: float = setting(
+        1.0,
+        "With a teacher: the probability that it flies a step instead of the student at the start, falling linearly "
+        "to 0 at the end of the budget (DAgger: the student's own states are labelled too)",
+        0.0,
+        1.0,
+    )
     snapshots: int = setting(
         0,
         "Weight snapshots policy_<model>_step<N>.safetensors, one every thirtieth of total_steps, the last one a "
@@ -106,6 +124,12 @@ class TrainerConfig:
     def first_update_after(self) -> int:
         """Transitions before the first update: learning_starts, or a thirtieth of the budget."""
         return self.learning_starts or max(1, (self.total_steps or NOMINAL_BUDGET) // 30)
+
+    def teacher_act_probability(self, step: int) -> float:
+        """The chance that the teacher flies step `step`: teacher_act_start falling to 0 over the budget."""
+        if self.teacher == "none":
+            return 0.0
+        return linear_epsilon(step, self.teacher_act_start, 0.0, self.total_steps or NOMINAL_BUDGET)
 
     @property
     def decay_steps(self) -> int:
