@@ -7,7 +7,8 @@ footprints and walls it knows (minus `margin_m`), and keeps the first action of 
 1. surviving the whole horizon and ending where a turning circle (either way, 1 m/s at 30 deg a step) is free, so
    the vehicle could circle there for ever: no plan is accepted that only postpones a crash;
 2. its smallest clearance, capped at `clearance_cap_m` (beyond it every plan is as safe);
-3. progress: the path length flown (the 2 m/s action flies twice as far as the others).
+3. progress: the path length flown (the 2 m/s action flies twice as far as the others), each step's discounted by
+   `progress_discount` per step ahead, so that of two plans as fast the one that is fast first wins.
 
 Ties go to the plan whose actions come first in the table (a deterministic choice).
 
@@ -44,6 +45,7 @@ class PlannerConfig:
     horizon: int = 5  # actions a plan looks ahead (4^horizon plans)
     margin_m: float = 0.3  # subtracted from every footprint distance (the body's half diagonal 0.28 m, and a little)
     clearance_cap_m: float = 0.5  # clearances above it rank alike
+    progress_discount: float = 0.9  # a metre flown one step later counts this much
     knowledge: str = "stack"  # "stack" (what the last memory_frames frames showed) or "all"
     memory_frames: int = 5
 
@@ -197,7 +199,7 @@ class Planner:
             ox, oy = np.tile(self._offset_x, (reps, 1)), np.tile(self._offset_y, (reps, 1))  # (plans, sub-steps)
             xs, ys = x[:, None] + c * ox - s * oy, y[:, None] + s * ox + c * oy
             x, y, yaw = xs[:, -1], ys[:, -1], yaw + np.tile(self._turn, reps)
-            length = length + v * self.step_duration_s
+            length = length + cfg.progress_discount**depth * v * self.step_duration_s
             if len(cols):
                 d = self.geometry.distances(xs, ys, known) - cfg.margin_m  # (plans, sub-steps, known)
                 per = d.min(axis=1)  # (plans, known)
