@@ -122,3 +122,16 @@ def test_bad_planner_settings_are_refused_by_name():
         with pytest.raises(ValueError, match=field):
             PlannerConfig(**bad).validate()
     assert np.isfinite(Planner(pillar_world(), 0.5, 40.0).plan(0.0, 0.0, 0.0).scores).all()
+
+
+def test_the_reason_maps_onto_the_network_input_where_its_depth_shows():
+    sim = Simulator(pillar_world(2.0), SimConfig(**D435))
+    try:
+        env = StackedSim(sim, 5, input_hw=(64, 64), trained_hfov_deg=87.0)
+        plan = SimPlanner(sim).label()
+        mask = env.input_mask(np.isin(sim.body_ids, plan.reason))
+        assert mask.shape == (64, 64) and 0 < mask.mean() < 0.3
+        depth = env.last_input
+        assert np.nanmedian(depth[mask]) < 2.0 < np.nanmedian(depth[~mask & np.isfinite(depth)]), "the pillar is nearest"
+    finally:
+        sim.close()

@@ -8,6 +8,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
+
 from uav_policy.insight import Insight, InsightSummary, explanation
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 
@@ -217,13 +219,19 @@ def evaluate_inprocess(
     start_yaw = r.pose.yaw_rad  # the episode's start heading
     # What the decisions look at, for the stack's networks (a stand-in network without a grid is not measured).
     insight = Insight(net.grid_hw, seed=seed) if net is not None and hasattr(net, "grid_hw") and insight_every > 0 else None
+    if insight is not None:
+        from uav_sim.planner import SimPlanner
+
+        reasons = SimPlanner(sim)  # what each measured decision is about
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
             state = flight.env.state  # a new array every step: the step below leaves it as it is
+            measured = insight is not None and step % insight_every == 0
+            reason = reason_pixels(reasons, env) if measured else None
             s = flight.step(0.0)
-            if insight is not None and step % insight_every == 0:
-                insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention))
+            if measured:
+                insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention), reason)
             before, r = s.before.pose, s.after
             reward += r.reward
             if r.collided:
@@ -268,6 +276,15 @@ def evaluate_inprocess(
         layer.counts.total if layer is not None else -1,
         insight=insight.summary() if insight is not None else None,
     )
+
+
+def reason_pixels(reasons, env) -> np.ndarray | None:
+    """The pixels of the newest frame, on the network's input, of what the planner's decision on it is about (its
+    reason: uav_sim.planner), or None when nothing bounds that decision."""
+    plan = reasons.label()
+    if not plan.reason:
+        return None
+    return env.input_mask(np.isin(env.sim.body_ids, plan.reason))
 
 
 def network_flight(

@@ -348,7 +348,43 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
                 f"| {InsightSummary.ratio(top, by_prior) if prior else math.nan:.2f} | {cell('near_ratio')} "
                 f"| {curve('deletion')} | {curve('insertion')} |"
             )
-    return [*lines, ""]
+    return [*lines, *checks_table(results, models, worlds), ""]
+
+
+def checks_table(results: list[EvalResult], models: list[str], worlds: list[str]) -> list[str]:
+    """Why a map can be ignored (conicity, sufficiency) and how much of it is on the planner's reason."""
+    lines = [
+        "",
+        "### Can the map be ignored? Does it show the reason?",
+        "",
+        "Conicity: the mean cosine of the values the attention weighs with their mean (1 = all alike: any weighting "
+        "gives the same output; the CNN's Grad-CAM weighs none). Sufficiency: the share of steps that keep their action "
+        "with only the top 10 % of the nodes kept (the rest 'no return'), in the map's / a random / the mean map's "
+        "order. Reason: what the planner's decision on the frame is about (uav_sim.planner, docs/INSIGHT.md); the "
+        "map's mass on its pixels over their share of the image, and the share of steps whose top node sees it "
+        "(steps where the reason shows in the newest frame).",
+        "",
+        "| model | world | conicity | sufficiency top / random / mean map | mass on the reason | top node on the reason |",
+        "|---|---|---|---|---|---|",
+    ]
+    for m in models:
+        for world in worlds:
+            got = [r.insight for r in results if r.model == m and r.world == world and r.insight is not None]
+            if not got:
+                continue
+
+            def mean(k: str, got=got) -> float:
+                v = [getattr(i, k) for i in got if not math.isnan(getattr(i, k))]
+                return float(np.mean(v)) if v else math.nan
+
+            num = lambda v, unit="": "-" if math.isnan(v) else f"{v:.2f}{unit}"  # noqa: E731
+            kept = " / ".join(num(mean(k)) for k in ("sufficiency_top", "sufficiency_random", "sufficiency_mean_map"))
+            top = mean("reason_top")
+            lines.append(
+                f"| {LABELS[m]} | {world} | {num(mean('conicity'))} | {kept} | {num(mean('reason_mass'), 'x')} "
+                f"| {'-' if math.isnan(top) else f'{100 * top:.0f} %'} |"
+            )
+    return lines
 
 
 def _csv_insight(row: dict, where: str) -> InsightSummary | None:

@@ -257,6 +257,15 @@ class InsightSummary:
     insertion_area: float = math.nan
     insertion_area_mean_map: float = math.nan
     insertion_area_random: float = math.nan
+    # Why a map can be ignored, and its ground truth (uav_policy.map_checks): the conicity of the values it weighs, the
+    # share of frames that keep their action from the top 10 % of the nodes alone in the map's, a random and the mean
+    # map's order; the mass on the planner's reason over its share, the share of frames whose top node sees it.
+    conicity: float = math.nan
+    sufficiency_top: float = math.nan
+    sufficiency_random: float = math.nan
+    sufficiency_mean_map: float = math.nan
+    reason_mass: float = math.nan
+    reason_top: float = math.nan
 
     @staticmethod
     def ratio(top: float, baseline: float) -> float:
@@ -277,17 +286,18 @@ class InsightSummary:
 
     CURVES = tuple(f"{c}_area{b}" for c in ("deletion", "insertion") for b in ("", "_mean_map", "_random"))
     FIELDS = ("entropy", "top_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio", "deletion_mean_map")
-    FIELDS += CURVES
+    CHECKS = ("conicity", "sufficiency_top", "sufficiency_random", "sufficiency_mean_map", "reason_mass", "reason_top")
+    FIELDS += CURVES + CHECKS
     # Their names in values() (after "insight_") and in evaluate's results.csv, in FIELDS' order.
     NAMES = ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio", "deletion_mean_map")
-    NAMES += CURVES
+    NAMES += CURVES + CHECKS
 
     @staticmethod
     def from_values(values: dict) -> InsightSummary | None:
         """The summary from its values() (policy_node's /diagnostics); None when they hold none."""
         if "insight_frames" not in values:
             return None
-        num = lambda k: math.nan if values[k] in ("-", "") else float(values[k])  # noqa: E731
+        num = lambda k: math.nan if values.get(k, "-") in ("-", "") else float(values[k])  # noqa: E731
         return InsightSummary(int(values["insight_frames"]), *(num(f"insight_{k}") for k in InsightSummary.NAMES))
 
     @staticmethod
@@ -325,9 +335,12 @@ class Insight:
         #  curve areas: deletion and insertion in the map's, a random and the mean map's order (nan without a mean map))
         self.frames = collections.deque(maxlen=window)
 
-    def observe(self, net, state: np.ndarray, action: int, rows: np.ndarray) -> None:
-        """Measure one decision: `state` (frames, H, W) in metres, its greedy `action`, and the `explanation` of it.
-        The mean-map baseline is the mean of the maps observed before it (none for the first frame)."""
+    def observe(self, net, state: np.ndarray, action: int, rows: np.ndarray, reason: np.ndarray | None = None) -> None:
+        """Measure one decision: `state` (frames, H, W) in metres, its greedy `action`, and the `explanation` of it;
+        `reason`, when known (in simulation), the pixels of the newest frame the planner's decision is about, on the
+        network's input. The mean-map baseline is the mean of the maps observed before it (none for the first frame)."""
+        from .map_checks import conicity, readout_values, reason_measures, sufficiency_test
+
         dist = received(rows)
         prior = np.mean([f[0] for f in self.frames], axis=0) if self.frames else None
         top, rand, by_prior = deletion_test(net, state, dist, action, self.grid_hw, self.rng, prior)
@@ -337,17 +350,24 @@ class Insight:
         )
         areas = np.full((3, 2), np.nan)
         areas[: len(orders)] = curve_areas(net, state, orders, action, self.grid_hw)
-        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near, by_prior, areas))
+        values = readout_values(net, state)
+        kept = sufficiency_test(net, state, dist, action, self.grid_hw, self.rng, prior)
+        on_reason = reason_measures(dist, reason, self.grid_hw) if reason is not None else None
+        checks = (math.nan if values is None else conicity(values), *kept, on_reason)
+        self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near, by_prior, areas, checks))
 
     def summary(self) -> InsightSummary | None:
         if not self.frames:
             return None
-        maps, ent, share, top, rand, near, by_prior, areas = zip(*self.frames, strict=True)
+        maps, ent, share, top, rand, near, by_prior, areas, checks = zip(*self.frames, strict=True)
         near = [n for n in near if n is not None]
         by_prior = [b for b in by_prior if b is not None]
         a = np.stack(areas)  # (frames, order: map, random, mean map; deletion, insertion)
-        mean = lambda v: float(np.nanmean(v)) if not np.isnan(v).all() else math.nan  # noqa: E731
+        mean = lambda v: float(np.nanmean(v)) if len(v) and not np.isnan(v).all() else math.nan  # noqa: E731
         curves = [mean(a[:, o, c]) for c in (0, 1) for o in (0, 2, 1)]  # CURVES' order
+        cone, kept_top, kept_random, kept_prior, on_reason = zip(*checks, strict=True)
+        kept_prior = [float(k) for k in kept_prior if k is not None]
+        on_reason = [r for r in on_reason if r is not None]
         return InsightSummary(
             len(maps),
             float(np.mean(ent)),
@@ -358,4 +378,10 @@ class Insight:
             float(np.mean(near)) if near else math.nan,
             float(np.mean(by_prior)) if by_prior else math.nan,
             *curves,
+            mean(np.array(cone)),
+            float(np.mean(kept_top)),
+            float(np.mean(kept_random)),
+            mean(np.array(kept_prior)),
+            mean(np.array([r[0] for r in on_reason])),
+            mean(np.array([float(r[1]) for r in on_reason])),
         )
