@@ -53,7 +53,8 @@ def two_hosts():
             sh("ip", "netns", "del", ns)  # takes its end of the veth pair with it
 
 
-@pytest.mark.timeout(240)  # about 12 s
+@pytest.mark.slow  # two hosts in network namespaces (about 20 s)
+@pytest.mark.timeout(240)
 def test_a_remote_actor_on_another_host_feeds_the_trainer_over_static_peers(two_hosts, tmp_path):
     learner, actor = two_hosts
     run_dir, key = tmp_path / "run", tmp_path / "push.key"  # the key file stands for the copy on the actor host

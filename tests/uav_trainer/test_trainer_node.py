@@ -51,6 +51,7 @@ def pushes_signed_in(run_dir):
     return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={run_dir / 'push.key'}", "-p", "safety:=false")
 
 
+@pytest.mark.slow  # recovery: Ctrl-C, checkpoint, resume over ROS (about 28 s); pairing itself: test_pairing and the main job's test
 def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
     diag = diagnostics(ros)
     actions = set()
@@ -100,6 +101,7 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert f"replay memory restored: {t['env_steps']} transitions" in ros.log_of(again), ros.log_of(again)
 
 
+@pytest.mark.slow  # recovery from a kill (about 21 s)
 def test_a_killed_trainer_resumes_from_its_journal_and_learns_on_in_lockstep(ros, tmp_path):
     """SIGKILL leaves no final checkpoint: the next trainer_node resumes from the periodic one, rebuilds the
     replay memory from the journal, learns at once, and pairs on in lockstep with the same policy (the sim
@@ -205,6 +207,7 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
     assert ros.stop(trainer) == 0, log[-3000:]
 
 
+@pytest.mark.slow  # a learning run of two actors, one killed (about 43 s)
 def test_train_with_two_actors_learns_from_both_and_goes_on_when_one_dies(tmp_path):
     """`train --actors 2`: both actors' steps reach the trainer; SIGKILL one actor's nodes and the run goes on
     with the other to its budget, the lost actor logged and counted."""
@@ -430,6 +433,7 @@ def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_nam
         assert what in err, (args, err[-500:])
 
 
+@pytest.mark.slow  # a main job with other sizes over ROS (about 17 s)
 def test_the_main_job_sets_the_input_size_and_frame_stack_everywhere_and_takes_sam_sizes(tmp_path):
     run_dir = tmp_path / "run"
     sizes = ("--trainer-arg", "d_model:=24", "--trainer-arg", "heads:=2", "--trainer-arg", "conv_channels:=[8, 16]")
