@@ -51,7 +51,7 @@ def pushes_signed_in(run_dir):
     return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={run_dir / 'push.key'}", "-p", "safety:=false")
 
 
-@pytest.mark.slow  # recovery: Ctrl-C, checkpoint, resume over ROS (about 28 s); pairing itself: test_pairing and the main job's test
+@pytest.mark.slow  # recovery: Ctrl-C, checkpoint, resume (28 s); pairing alone: test_pairing, the main job's test
 def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_path):
     diag = diagnostics(ros)
     actions = set()

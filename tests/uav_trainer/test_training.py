@@ -720,3 +720,42 @@ def test_a_release_carries_the_weights_the_learner_had_at_the_release_before(tmp
     versions = [v for v, _ in sent]
     assert versions == sorted(versions) and len(set(versions)) == len({b for _, b in sent}), "a new blob, a new version"
     t.close()
+
+
+def test_a_teacher_labels_every_step_flies_a_falling_share_and_the_run_is_reproducible(tmp_path):
+    """--teacher stack: the planner's action beside every transition in the replay memory, flown instead of the
+    student's at a share falling from teacher_act_start to 0, the large-margin loss learnt; seeded, so reproducible."""
+    cfg = TrainerConfig(model="cnn", seed=2, total_steps=120, learning_starts=40, teacher="stack", teacher_act_start=1.0)
+    runs = []
+    for k in range(2):
+        t = run_inprocess(cfg, tmp_path / f"r{k}", log=lambda s: None, world="complex", window=0.2)
+        m = t.replay
+        done = np.flatnonzero(m.has_transition[: m.count])
+        assert len(done) >= 100 and (m.teacher[done] >= 0).all() and (m.teacher[done] < 4).all(), "every step labelled"
+        followed = m.action[done] == m.teacher[done]
+        assert followed[:40].mean() > 0.75 and followed[-40:].mean() < followed[:40].mean(), "the teacher's share falls"
+        runs.append((m.action[done].copy(), m.teacher[done].copy(), [p.detach().clone() for p in t.learner.online.parameters()]))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    for a, b in zip(runs[0][2], runs[1][2], strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_the_margin_loss_is_zero_once_the_teacher_leads_by_the_margin_and_positive_until_then():
+    from uav_trainer.learner import large_margin_loss
+
+    q = torch.tensor([[1.0, 0.0, 0.1, 0.2], [1.0, 0.5, 0.0, 0.0], [0.0, 3.0, 0.0, 0.0]])
+    teacher = torch.tensor([0, 0, -1])  # the third state has no teacher action
+    assert large_margin_loss(q[:1], teacher[:1], 0.8) == 0.0, "leads by 0.8: nothing to learn"
+    assert large_margin_loss(q[1:2], teacher[1:2], 0.8) == pytest.approx(0.3), "0.5 + 0.8 - 1.0"
+    assert large_margin_loss(q, teacher, 0.8) == pytest.approx(0.15), "the mean over labelled states only"
+    assert large_margin_loss(q[2:], teacher[2:], 0.8) == 0.0, "no label, no loss"
+
+
+def test_a_teacher_is_refused_over_ros_by_name():
+    from uav_common.ros_params import ParameterError
+    from uav_trainer.trainer_settings import TrainerNodeSettings
+
+    with pytest.raises(ParameterError, match="'teacher'='stack'.*in process only"):
+        TrainerNodeSettings(trainer=TrainerConfig(teacher="stack")).actor_namespaces()
+    assert TrainerNodeSettings().actor_namespaces() == [""]
