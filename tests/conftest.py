@@ -198,3 +198,20 @@ def start_up_error(node_class, *ros_args: str) -> str:
     finally:
         torch.set_num_threads(threads)
         context.try_shutdown()
+
+
+def one_region_net():
+    """A constructed network for the map measures: it turns (action 1) when anything in the top-left 8x8 pixels is
+    nearer than 2 m, else flies straight (0)."""
+    import torch
+
+    class OneRegionNet(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.dummy = torch.nn.Parameter(torch.zeros(1))
+
+        def forward(self, x):
+            near = (x[:, :, :8, :8] < 2.0).flatten(1).any(dim=1).float()
+            return torch.stack([1 - near, near, 0 * near, 0 * near], dim=1), None
+
+    return OneRegionNet()

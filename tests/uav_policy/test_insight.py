@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import one_region_net
 from uav_policy import insight
 from uav_policy.insight import Insight, InsightSummary
 
@@ -42,20 +43,8 @@ def test_near_ratio_says_where_the_mass_is_against_what_is_near():
     assert insight.near_ratio(on, np.full((64, 64), np.inf, np.float32), (8, 8)) is None, "nothing near: undefined"
 
 
-class OneRegionNet(torch.nn.Module):
-    """Turns (action 1) when anything in the top-left 8x8 pixels is nearer than 2 m, else flies straight (0)."""
-
-    def __init__(self):
-        super().__init__()
-        self.dummy = torch.nn.Parameter(torch.zeros(1))
-
-    def forward(self, x):
-        near = (x[:, :, :8, :8] < 2.0).flatten(1).any(dim=1).float()
-        return torch.stack([1 - near, near, 0 * near, 0 * near], dim=1), None
-
-
 def test_a_decision_that_depends_on_one_region_is_faithful_to_an_explanation_of_that_region():
-    net, rng = OneRegionNet(), np.random.default_rng(1)
+    net, rng = one_region_net(), np.random.default_rng(1)
     faithful, unfaithful = Insight((8, 8)), Insight((8, 8))
     right, wrong = np.zeros((1, 64)), np.zeros((1, 64))
     right[0, 0], wrong[0, 56:] = 1.0, 1 / 8  # the region, or the bottom row

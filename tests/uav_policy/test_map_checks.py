@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import one_region_net
 from uav_policy import map_checks
 from uav_policy.insight import Insight
 from uav_policy.networks import NetConfig, build_network
@@ -47,20 +48,8 @@ def test_a_network_whose_values_are_identical_scores_conicity_one_and_the_same_s
     assert map_checks.readout_values(cnn, state) is None, "Grad-CAM weighs no values"
 
 
-class OneRegionNet(torch.nn.Module):
-    """Turns (action 1) when anything in the top-left 8x8 pixels is nearer than 2 m, else flies straight (0)."""
-
-    def __init__(self):
-        super().__init__()
-        self.dummy = torch.nn.Parameter(torch.zeros(1))
-
-    def forward(self, x):
-        near = (x[:, :, :8, :8] < 2.0).flatten(1).any(dim=1).float()
-        return torch.stack([1 - near, near, 0 * near, 0 * near], dim=1), None
-
-
 def test_a_network_that_reads_only_its_attended_cells_keeps_its_action_when_only_they_are_kept():
-    net, rng = OneRegionNet(), np.random.default_rng(2)
+    net, rng = one_region_net(), np.random.default_rng(2)
     on_region = np.zeros(64)
     on_region[0] = 1.0
     kept_top, kept_random = [], []

@@ -146,9 +146,11 @@ def sim_arg_hfov_deg(sim_args) -> float | None:
     return sim_arg_number(sim_args, "hfov_deg")
 
 
-def weights_label(files: list[str]) -> str:
+def weights_label(files: list[str], model: str = "sam") -> str:
     """How progress lines name a policy: its file, "packaged", or an ensemble's size, first and last file
-    (the weights column of results.csv keeps every file)."""
+    (the weights column of results.csv keeps every file); a planner flies none."""
+    if model in PLANNERS:
+        return "no weights"
     if len(files) > 1:
         return f"ensemble of {len(files)} ({files[0]} ... {files[-1]})"
     return files[0] if files else "packaged"
@@ -198,20 +200,45 @@ def evaluate_inprocess(
             model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety
         )
     else:
-        sim, env, agent, layer, net = network_flight(
-            model,
-            weights,
-            world,
-            seed,
-            net,
-            start_yaw_jitter_deg,
-            hfov_deg,
-            net_cfg,
-            reward_window_fraction,
-            sensor,
-            sensor_scale,
-            safety,
+        from uav_policy import weights as wio
+        from uav_policy.agent import Agent
+        from uav_policy.safety import SafetyLayer, SafetySettings
+        from uav_sim.simulator import SimConfig, Simulator
+        from uav_sim.stacked_sim import StackedSim
+        from uav_sim.world import load_world
+
+        if net is None:
+            files = weights_or_packaged(model, weights)
+            if not files:
+                raise FileNotFoundError(f"no weights given and no packaged {model} weights")
+            net, net_cfg, hfov_deg, reward_window_fraction = wio.load_policy(
+                model, files, hfov_deg, reward_window_fraction, CENTER_WINDOW_FRACTION
+            )
+        cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
+        if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
+            hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
+        if reward_window_fraction is None:
+            reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
+        if sensor is None:
+            from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
+
+            sensor = preset_for_camera(hfov_deg)
+            sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
+        sensor_scale = 1.0 if sensor_scale is None else sensor_scale
+        agent = Agent(net, cfg, seed=seed)
+        sim_cfg = SimConfig(
+            seed=seed,
+            start_yaw_jitter_deg=start_yaw_jitter_deg,
+            hfov_deg=hfov_deg,
+            image_width=cfg.width,
+            image_height=cfg.height,
+            reward_window_fraction=reward_window_fraction,
+            sensor=sensor,
+            sensor_scale=sensor_scale,
         )
+        sim = Simulator(load_world(world), sim_cfg)
+        layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
+        env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
     flight = Flight(env, agent, safety=layer)
     r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
@@ -285,63 +312,6 @@ def reason_pixels(reasons, env) -> np.ndarray | None:
     if not plan.reason:
         return None
     return env.input_mask(np.isin(env.sim.body_ids, plan.reason))
-
-
-def network_flight(
-    model,
-    weights,
-    world,
-    seed,
-    net,
-    start_yaw_jitter_deg,
-    hfov_deg,
-    net_cfg,
-    reward_window_fraction,
-    sensor,
-    sensor_scale,
-    safety,
-):
-    """evaluate_inprocess's simulator, stacked frames, agent and safety layer for a network (and the network)."""
-    from uav_policy import weights as wio
-    from uav_policy.agent import Agent
-    from uav_policy.safety import SafetyLayer, SafetySettings
-    from uav_sim.simulator import SimConfig, Simulator
-    from uav_sim.stacked_sim import StackedSim
-    from uav_sim.world import load_world
-
-    if net is None:
-        files = weights_or_packaged(model, weights)
-        if not files:
-            raise FileNotFoundError(f"no weights given and no packaged {model} weights")
-        net, net_cfg, hfov_deg, reward_window_fraction = wio.load_policy(
-            model, files, hfov_deg, reward_window_fraction, CENTER_WINDOW_FRACTION
-        )
-    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
-    if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
-        hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
-    if reward_window_fraction is None:
-        reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
-    if sensor is None:
-        from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
-
-        sensor = preset_for_camera(hfov_deg)
-        sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
-    sensor_scale = 1.0 if sensor_scale is None else sensor_scale
-    agent = Agent(net, cfg, seed=seed)
-    sim_cfg = SimConfig(
-        seed=seed,
-        start_yaw_jitter_deg=start_yaw_jitter_deg,
-        hfov_deg=hfov_deg,
-        image_width=cfg.width,
-        image_height=cfg.height,
-        reward_window_fraction=reward_window_fraction,
-        sensor=sensor,
-        sensor_scale=sensor_scale,
-    )
-    sim = Simulator(load_world(world), sim_cfg)
-    layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
-    env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
-    return sim, env, agent, layer, net
 
 
 def planner_flight(model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety):

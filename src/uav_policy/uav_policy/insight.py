@@ -159,6 +159,21 @@ def top_nodes(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return ranked(dist, rng)[: top_count(received(dist).size)]
 
 
+def compared_sets(dist: np.ndarray, rng: np.random.Generator, prior: np.ndarray | None = None) -> list[np.ndarray]:
+    """The node sets a deletion or sufficiency test compares: the map's top 10 %, RANDOM_DRAWS sets of as many random
+    nodes, and with a `prior` its top 10 %."""
+    d = received(dist)
+    sets = [top_nodes(d, rng)] + [rng.choice(d.size, size=top_count(d.size), replace=False) for _ in range(RANDOM_DRAWS)]
+    return sets + ([top_nodes(prior, rng)] if prior is not None else [])
+
+
+@torch.no_grad()
+def decisions_with(net: torch.nn.Module, state: np.ndarray, gone: list[np.ndarray], grid_hw) -> np.ndarray:
+    """(len(gone),) the greedy action on `state` with the image regions of each set of nodes read as no return."""
+    q, _ = net(torch.from_numpy(masked_states(state, gone, grid_hw)).to(next(net.parameters()).device))
+    return q.argmax(dim=1).cpu().numpy()
+
+
 @torch.no_grad()
 def deletion_test(
     net: torch.nn.Module,
@@ -172,15 +187,7 @@ def deletion_test(
     """(does masking the top-k explained nodes change the greedy action, the share of RANDOM_DRAWS masks of
     k random nodes that change it, does masking the top-k nodes of `prior` change it (None without a prior)),
     k = the top 10 % of the nodes."""
-    d = received(dist)
-    k = top_count(d.size)
-    sets = [top_nodes(d, rng)] + [rng.choice(d.size, size=k, replace=False) for _ in range(RANDOM_DRAWS)]
-    if prior is not None:
-        sets.append(top_nodes(prior, rng))
-    x = torch.from_numpy(masked_states(state, sets, grid_hw))
-    device = next(net.parameters()).device
-    q, _ = net(x.to(device))
-    changed = q.argmax(dim=1).cpu().numpy() != action
+    changed = decisions_with(net, state, compared_sets(dist, rng, prior), grid_hw) != action
     return bool(changed[0]), float(changed[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(changed[-1])
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .insight import RANDOM_DRAWS, masked_states, mass_ratio, node_slices, received, top_count, top_nodes
+from .insight import RANDOM_DRAWS, compared_sets, decisions_with, mass_ratio, node_slices, received
 
 
 def conicity(values: np.ndarray) -> float:
@@ -50,26 +50,12 @@ def readout_values(net: torch.nn.Module, state: np.ndarray) -> np.ndarray | None
     return np.concatenate(out)
 
 
-@torch.no_grad()
-def sufficiency_test(
-    net: torch.nn.Module,
-    state: np.ndarray,
-    dist: np.ndarray,
-    action: int,
-    grid_hw,
-    rng: np.random.Generator,
-    prior: np.ndarray | None = None,
-) -> tuple[bool, float, bool | None]:
+def sufficiency_test(net, state: np.ndarray, dist: np.ndarray, action: int, grid_hw, rng, prior=None) -> tuple:
     """(does keeping only the map's top 10 % of the nodes keep the greedy action, the share of RANDOM_DRAWS sets of as
     many random nodes that keep it, does keeping the top 10 % of `prior` keep it (None without a prior))."""
-    d = received(dist)
-    k, everything = top_count(d.size), np.arange(d.size)
-    kept = [top_nodes(d, rng)] + [rng.choice(d.size, size=k, replace=False) for _ in range(RANDOM_DRAWS)]
-    if prior is not None:
-        kept.append(top_nodes(prior, rng))
-    gone = [np.setdiff1d(everything, keep) for keep in kept]
-    q, _ = net(torch.from_numpy(masked_states(state, gone, grid_hw)).to(next(net.parameters()).device))
-    same = q.argmax(dim=1).cpu().numpy() == action
+    everything = np.arange(received(dist).size)
+    gone = [np.setdiff1d(everything, keep) for keep in compared_sets(dist, rng, prior)]
+    same = decisions_with(net, state, gone, grid_hw) == action
     return bool(same[0]), float(same[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(same[-1])
 
 
