@@ -358,7 +358,8 @@ def main(argv=None) -> int:
                 elapsed = time.monotonic() - t0
                 eta = elapsed / len(results) * (rows - len(results))
                 bar.write(
-                    f"[{len(results)}/{rows}, {elapsed:.0f} s, ETA {eta:.0f} s] {model:3s} {world:10s} {weights_label(files, model)}: "
+                    f"[{len(results)}/{rows}, {elapsed:.0f} s, ETA {eta:.0f} s] {model:3s} {world:10s} "
+                    f"{weights_label(files, model)}: "
                     f"{r.crashes} crashes at {r.crash_sites} sites, mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                     + (f", {r.interventions} safety interventions" if r.interventions >= 0 else "")
                     + (
