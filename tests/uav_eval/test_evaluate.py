@@ -40,6 +40,8 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
         "basic",
         "--steps",
         "50",
+        "--insight-every",
+        "0",
         "--out",
         str(tmp_path / "eval"),
         "--params-dir",
@@ -206,6 +208,7 @@ def test_tables_rebuilt_from_several_csv_files_equal_the_measured_ones(tmp_path)
     wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), ws[0])
     wio.save_file(build_network(flat, seed=0), flat, ws[1])
     proto = ["--inprocess", "--worlds", "basic", "--steps", "30", "--start-yaw-jitter-deg", "180", "--repeats", "2"]
+    proto += ["--insight-every", "3"]  # measured, and rebuilt from the CSVs too
     assert main([*proto, "--weights", *map(str, ws), "--out", str(tmp_path / "both")]) == 0
     for i, w in enumerate(ws):
         assert main([*proto, "--weights", str(w), "--out", str(tmp_path / f"one{i}")]) == 0
@@ -272,7 +275,7 @@ def test_evaluate_flies_an_ensemble_of_weights_files_as_one_policy(tmp_path, cap
 
     a, a_copy, b = save("e_sam_seed0", 0), save("e_sam_seed1", 0), save("e_sam_seed2", 1)
     flat = save("flat_sam_seed0", 0, NetConfig(sam_readout="flatten"))
-    proto = ["--inprocess", "--worlds", "basic", "--steps", "40", "--start-yaw-jitter-deg", "180"]
+    proto = ["--inprocess", "--worlds", "basic", "--steps", "40", "--start-yaw-jitter-deg", "180", "--insight-every", "0"]
     assert main([*proto, "--weights", a, "--out", str(tmp_path / "one")]) == 0
     assert main([*proto, "--ensemble", "2", "--weights", a, a_copy, "--out", str(tmp_path / "ens")]) == 0
     progress = [line.split("] ", 1)[-1] for line in capsys.readouterr().out.splitlines() if "] sam basic " in line]
