@@ -103,7 +103,7 @@ def test_evaluate_pools_repeats_with_a_random_start_heading(tmp_path):
 def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_path):
     w = tmp_path / "sam.safetensors"
     wio.save_file(build_network(NetConfig(), seed=3), NetConfig(), w)
-    args = ["--weights", str(w), "--worlds", "complex", "--steps", "60", "--params-dir", str(ROOT / "params")]
+    args = ["--weights", str(w), "--worlds", "complex", "--steps", "40", "--params-dir", str(ROOT / "params")]
     args += ["--start-yaw-jitter-deg", "180", "--repeats", "2", "--sim-arg", "hfov_deg:=120.0"]
     paper = run_tool(  # crashes and reward only
         "uav_eval", "evaluate", *args, "--inprocess", "--insight-every", "0", "--out", str(tmp_path / "paper"), domain="77"
@@ -115,14 +115,14 @@ def test_inprocess_evaluation_measures_exactly_what_the_ros_nodes_measure(tmp_pa
     assert ros.returncode == 0 and local.returncode == 0, ros.stderr[-2000:] + local.stderr[-2000:]
     assert "Measured in-process" in (tmp_path / "local" / "results.md").read_text()
     a, b = ([r for r in csv.DictReader(open(tmp_path / d / "results.csv"))] for d in ("ros", "local"))
-    assert len(a) == len(b) == 1 and int(a[0]["steps"]) == 120
-    assert 0 <= int(a[0]["turn_steps"]) <= 120 and 1 <= int(a[0]["cells_visited"]) <= 120
+    assert len(a) == len(b) == 1 and int(a[0]["steps"]) == 80
+    assert 0 <= int(a[0]["turn_steps"]) <= 80 and 1 <= int(a[0]["cells_visited"]) <= 80
     assert "Flight behaviour" in (tmp_path / "ros" / "results.md").read_text()
     for k in ("crashes", "mean_reward", "distance_m", "crash_sites", "turn_steps", "cells_visited"):
         assert a[0][k] == b[0][k], (k, a[0], b[0])
     # What the decisions looked at, measured on every step: policy_node (its /diagnostics, 3 decimals a run, two
     # runs pooled) and in process alike. No frame comes after the budget's last step, so both measure the same frames.
-    assert int(a[0]["insight_frames"]) == int(b[0]["insight_frames"]) == 120
+    assert int(a[0]["insight_frames"]) == int(b[0]["insight_frames"]) == 80
     for k in ("entropy", "top10_share", "map_correlation", "deletion_top", "deletion_random", "near_ratio"):
         assert float(a[0][k]) == pytest.approx(float(b[0][k]), abs=0.0006), (k, a[0], b[0])  # 3 decimals, then 4 in results.csv
     top, rand = float(b[0]["deletion_top"]), float(b[0]["deletion_random"])
@@ -597,16 +597,16 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov, reward_window_fraction=window)
     monkeypatch.setenv("ROS_DOMAIN_ID", "79")
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
-    over_ros = evaluate_once("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args, safety=safety)
+    over_ros = evaluate_once("sam", str(w), "basic", 100, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args, safety=safety)
     flown = hfov if hfov is not None else trained_hfov
-    local = evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=flown, safety=safety)
+    local = evaluate_inprocess("sam", str(w), "basic", 100, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=flown, safety=safety)
     assert (over_ros.crashes, over_ros.steps, over_ros.crash_sites) == (local.crashes, local.steps, local.crash_sites)
     assert (over_ros.turn_steps, over_ros.cells, over_ros.interventions) == (local.turn_steps, local.cells, local.interventions)
     assert local.interventions > 0 if safety else local.interventions == -1, local.interventions
     assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6
     if trained_hfov is not None:  # the recorded camera was used: the default camera flies otherwise
         assert trained_hfov != SimConfig.hfov_deg
-        fly = lambda **kw: evaluate_inprocess("sam", str(w), "basic", 150, seed=3, start_yaw_jitter_deg=jitter, **kw)  # noqa: E731
+        fly = lambda **kw: evaluate_inprocess("sam", str(w), "basic", 100, seed=3, start_yaw_jitter_deg=jitter, **kw)  # noqa: E731
         by_header, default = fly(), fly(hfov_deg=SimConfig.hfov_deg)
         assert by_header.mean_reward == local.mean_reward and default.mean_reward != local.mean_reward
         paper_window = fly(reward_window_fraction=SimConfig.reward_window_fraction)  # same flight, another reward
