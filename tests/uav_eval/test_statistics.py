@@ -3,6 +3,7 @@ validation worlds and the rule that picks one network on them."""
 
 import csv
 import dataclasses
+import itertools
 import math
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from uav_eval.stats import Rate, aggregate, poisson_interval
 from uav_eval.tables import read_results_csvs, write_tables
 from uav_sim.world import (
     BUILTIN_WORLDS,
+    PARTITIONS,
     TRAINING_LAYOUTS_FROM,
     VALIDATION_FAMILIES,
     VALIDATION_SEEDS_FROM,
@@ -21,6 +23,7 @@ from uav_sim.world import (
     WorldError,
     load_world,
     procedural_world,
+    training_layout,
     training_layouts,
 )
 
@@ -113,6 +116,13 @@ def test_validation_training_held_out_and_test_worlds_are_disjoint():
     reported = {procedural_world(s, partitions=p).obstacles for s in range(3) for p in (False, True)}
     test = {load_world(name).obstacles for name in BUILTIN_WORLDS}
     assert not {w.obstacles for w in worlds} & (reported | test)
+    # The mixed training stream (plain, partitions, doorways) shares no layout with validation or the tests either.
+    mixed = [w for seed in range(5) for w in itertools.islice(training_layouts(seed, families="mixed"), 30)]
+    assert {w.name.split(":")[0] for w in mixed} == {"random", PARTITIONS, "doorways"}
+    assert min(int(w.name.split(":")[1]) for w in mixed) >= TRAINING_LAYOUTS_FROM
+    assert not {w.obstacles for w in mixed} & ({w.obstacles for w in worlds} | reported | test)
+    with pytest.raises(ValueError, match="start at 1000"):
+        training_layout(999, "mixed")
     # Every family is there, with what it promises.
     families = [VALIDATION_FAMILIES[int(n.split(":")[1]) % len(VALIDATION_FAMILIES)] for n in VALIDATION_WORLDS]
     assert set(families) == set(VALIDATION_FAMILIES)

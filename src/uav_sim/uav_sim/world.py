@@ -385,14 +385,30 @@ def doorway_world(seed: int) -> World:
     return World(f"doorways:{seed}", length, width, 3.0, start, 0.0, tuple(obstacles), Weather())
 
 
-def training_layouts(seed: int, world: World | None = None, world_every: int = 0) -> Iterator[World]:
+LAYOUT_FAMILIES = ("plain", "mixed")  # the training stream's layouts: plain, or plain, partitions and doorways in turn
+
+
+def training_layout(s: int, families: str = "plain") -> World:
+    """Training layout seed `s` (>= TRAINING_LAYOUTS_FROM): a plain procedural layout, or with families 'mixed' by
+    s % 3 a plain one, one with partitions among the boxes, or a room crossed by walls with doorways."""
+    if s < TRAINING_LAYOUTS_FROM:
+        raise ValueError(f"training layout seeds start at {TRAINING_LAYOUTS_FROM} (below: validation and tests), got {s}")
+    if families == "plain" or s % 3 == 0:
+        return procedural_world(s)
+    if families != "mixed":
+        raise ValueError(f"layout families {families!r} are invalid: expected one of {', '.join(LAYOUT_FAMILIES)}")
+    return procedural_world(s, partitions=True) if s % 3 == 1 else doorway_world(s)
+
+
+def training_layouts(seed: int, world: World | None = None, world_every: int = 0, families: str = "plain") -> Iterator[World]:
     """The procedural layouts a run with this seed trains on, one per episode:
-    random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear.
+    random:1000+100000*seed, then +1, ... so that the held-out random:0..999 never appear (`families` 'mixed':
+    partitions and doorways among them, from the same seeds).
 
     With `world` and `world_every` = K >= 2, every K-th episode flies `world` instead (an extension:
     e.g. the paper's training room Basic between the layouts); the layouts keep their order."""
     start = TRAINING_LAYOUTS_FROM + 100_000 * seed
-    layouts = (procedural_world(s) for s in itertools.count(start))
+    layouts = (training_layout(s, families) for s in itertools.count(start))
     if not world_every:
         return layouts
     if world is None or world_every < 2:
@@ -417,6 +433,12 @@ class WorldChoice:
         0,
         10**6,
     )
+    layout_families: str = setting(
+        "plain",
+        f"world:={EACH_EPISODE}: plain procedural layouts, or mixed (plain, partitions among the boxes, walls with "
+        "doorways in turn; seeds disjoint from validation and tests)",
+        choices=LAYOUT_FAMILIES,
+    )
 
     def load(self, seed: int) -> tuple[World, Iterator[World] | None]:
         """(the first world, the worlds of the episodes after it or None for one fixed world). Raises
@@ -432,5 +454,5 @@ class WorldChoice:
             mix = load_world(self.mix_world, seed=seed) if self.mix_world_every else None
         except WorldError as e:
             raise WorldError(f"'mix_world': {e}") from None
-        layouts = training_layouts(seed, mix, self.mix_world_every)
+        layouts = training_layouts(seed, mix, self.mix_world_every, self.layout_families)
         return next(layouts), layouts
