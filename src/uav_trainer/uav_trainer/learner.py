@@ -69,7 +69,7 @@ class Learner:
         q, _ = self.online(s)
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
-        if self.cfg.teacher_weight > 0.0 and teacher is not None:
+        if self.cfg.teacher_weight > 0.0 and teacher is not None and bool((teacher >= 0).any()):  # a run without one: TD alone
             loss = loss + self.cfg.teacher_weight * large_margin_loss(q, teacher, self.cfg.teacher_margin)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"loss is {loss.item()} at update {self.updates}")
