@@ -218,11 +218,13 @@ def main(argv=None) -> int:
         )
     if a.sim_arg:
         protocol += f" sim_node parameters: {', '.join(a.sim_arg)}."
-    if hfov_deg is None:
+    if hfov_deg is None and any(m not in PLANNERS for m in a.model or ["sam"]):
         protocol += (
             " Camera: each weights file flies with the field of view it was trained with (its header;"
             f" {UNRECORDED_HFOV_DEG:g}° when it has none)."
         )
+    if any(m in PLANNERS for m in a.model or []):
+        protocol += " The planner (uav_sim.planner) flies behind the packaged networks' camera and plans on the true geometry."
     if a.safety:
         protocol += " Flown through policy_node's safety layer (--safety, its default settings)."
     if a.inprocess:
