@@ -611,3 +611,20 @@ def test_ros_evaluation_equals_the_in_process_measurement(
         assert by_header.mean_reward == local.mean_reward and default.mean_reward != local.mean_reward
         paper_window = fly(reward_window_fraction=SimConfig.reward_window_fraction)  # same flight, another reward
         assert paper_window.crashes == local.crashes and paper_window.mean_reward != local.mean_reward
+
+
+def test_the_planner_is_a_row_of_the_tables_in_process_only(tmp_path, capsys):
+    """evaluate --model planner flies the privileged planner beside a network; over ROS it is refused by name."""
+    from uav_eval.evaluate import main
+
+    out = tmp_path / "p"
+    args = ["--inprocess", "--model", "planner", "--worlds", "complex", "--steps", "40", "--insight-every", "0"]
+    assert main([*args, "--start-yaw-jitter-deg", "180", "--out", str(out)]) == 0
+    row = next(csv.DictReader(open(out / "results.csv")))
+    assert (row["model"], row["weights"], row["steps"], row["crashes"]) == ("planner", "none", "40", "0")
+    md = (out / "results.md").read_text()
+    assert "| planner (5 frames) | no weights | 0 / 40: " in md and "flies behind the packaged networks' camera" in md
+    assert main(["--from-csv", str(out / "results.csv"), "--out", str(tmp_path / "again")]) == 0, "its rows read back"
+    with pytest.raises(SystemExit) as e:
+        main(["--model", "planner", "--worlds", "basic", "--out", str(tmp_path / "ros")])
+    assert e.value.code == 2 and "--model planner needs --inprocess" in capsys.readouterr().err
