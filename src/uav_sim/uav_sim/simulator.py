@@ -218,8 +218,8 @@ class Simulator:
         w, c, t = self.world, self.client, 0.1
         L, W, H = w.length_m, w.width_m, w.wall_height_m
         self._static_box((0, 0, -t), (L / 2 + t, W / 2 + t, t))  # floor
-        # What each body is, for the pixels that show it (body_ids): the walls in planner.WALLS's order, the obstacles.
-        self.body_codes = {
+        # What each body is, for the pixels that show it (body_ids): the walls in world.WALLS's order, the obstacles.
+        codes = {
             self._static_box((L / 2 + t, 0, H / 2), (t, W / 2 + 2 * t, H / 2)): wall_code(0),
             self._static_box((-L / 2 - t, 0, H / 2), (t, W / 2 + 2 * t, H / 2)): wall_code(1),
             self._static_box((0, W / 2 + t, H / 2), (L / 2 + 2 * t, t, H / 2)): wall_code(2),
@@ -233,7 +233,9 @@ class Simulator:
                 col = p.createCollisionShape(p.GEOM_CYLINDER, radius=o.radius_m, height=o.height_m, physicsClientId=c)
                 vis = p.createVisualShape(p.GEOM_CYLINDER, radius=o.radius_m, length=o.height_m, physicsClientId=c)
                 body = p.createMultiBody(0, col, vis, (o.x_m, o.y_m, o.height_m / 2), physicsClientId=c)
-            self.body_codes[body] = i
+            codes[body] = i
+        self._code_of_body = np.full(max(codes) + 1, -1, dtype=np.int64)  # body id -> code (-1: no obstacle or wall)
+        self._code_of_body[list(codes)] = list(codes.values())
 
     def _start_pose(self) -> Pose:
         x, y, z = self.world.start_xyz_m
@@ -268,10 +270,8 @@ class Simulator:
         if not self.see_bodies:
             return self.camera.render(self.camera_xyz(), self.pose.yaw_rad)
         depth, ids = self.camera.render_with_ids(self.camera_xyz(), self.pose.yaw_rad)
-        lookup = np.full(max(self.body_codes) + 2, -1, dtype=np.int64)  # body id -> code (-1: not an obstacle or wall)
-        for body, code in self.body_codes.items():
-            lookup[body] = code
-        self.body_ids = np.where((ids >= 0) & (ids < len(lookup) - 1), lookup[np.clip(ids, 0, len(lookup) - 1)], -1)
+        known = (ids >= 0) & (ids < len(self._code_of_body))  # particles were made after the world: not in the table
+        self.body_ids = np.where(known, self._code_of_body[np.where(known, ids, 0)], -1)
         self.visible = frozenset(int(c) for c in np.unique(self.body_ids) if c != -1)
         return depth
 
