@@ -41,9 +41,7 @@ def readout_values(net: torch.nn.Module, state: np.ndarray) -> np.ndarray | None
     x = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)).unsqueeze(0).to(device)
     out = []
     for m in members:
-        fmap = m.trunk(x)
-        nodes = fmap.flatten(2).transpose(1, 2)
-        unmixed = m.node_projection(torch.cat([nodes, m.coords.unsqueeze(0)], dim=-1))
+        unmixed = m.unmixed_nodes(m.trunk(x))
         r = m.query_readout
         _, v = r.kv(r.norm(unmixed)).view(1, unmixed.shape[1], 2, r.heads, r.d_head).permute(2, 0, 3, 1, 4)
         out.append(v[0].cpu().numpy())  # (heads, nodes, d_head)

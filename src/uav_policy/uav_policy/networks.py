@@ -235,11 +235,15 @@ class D3QNSam(nn.Module):
         actions + 1, nodes)."""
         return self.from_features(self.trunk(depth_m))
 
-    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """forward() from the trunk's feature map (B, C, h, w) on."""
+    def unmixed_nodes(self, fmap: torch.Tensor) -> torch.Tensor:
+        """(B, h*w, d_model): one node per cell of the feature map (row-major), its coordinates appended, projected."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
         coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
-        nodes = unmixed = self.node_projection(torch.cat([nodes, coords], dim=-1))
+        return self.node_projection(torch.cat([nodes, coords], dim=-1))
+
+    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward() from the trunk's feature map (B, C, h, w) on."""
+        nodes = unmixed = self.unmixed_nodes(fmap)
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)

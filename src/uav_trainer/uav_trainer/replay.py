@@ -74,11 +74,14 @@ class ReplayMemory:
         unchanged, for a segment that does not fit this memory (another capacity, frame size or stack
         depth), holds values no run could have written (actions outside [0, n_actions), NaN or negative
         depths, ...), or a journal with a gap."""
+        # A journal written before teacher labels has none (the caller's segments are left as they are).
+        segments = [
+            seg if "teacher" in seg or "action" not in seg else {**seg, "teacher": np.full(seg["action"].shape, -1, np.int64)}
+            for seg in segments
+        ]
         spans = []
-        for k, seg in enumerate(segments):
+        for seg in segments:
             span, geometry = seg.get("span"), seg.get("geometry")
-            if "teacher" not in seg and "action" in seg:  # a journal written before teacher labels: none
-                seg = segments[k] = {**seg, "teacher": np.full(seg["action"].shape, -1, dtype=np.int64)}
             if span is None or span.dtype != np.int64 or span.shape != (2,) or not 0 <= span[0] <= span[1]:
                 raise ValueError("replay segment has no valid span")
             ok = geometry is not None and geometry.dtype == np.int64 and geometry.shape == (4,)
