@@ -136,7 +136,7 @@ def test_pushes_are_taken_only_signed_in_sequence_releasing_nothing_too_far_and_
     key_file = write_key(tmp_path / "push.key")
     key = bytes.fromhex(key_file.read_text().strip())
     link = SimulatorLink(5, hold=True, wait_timeout_s=10.0, log=Log())
-    r = PushReceiver(str(key_file), link.gate, 5.0, Log())  # a period no loaded machine's pass comes near
+    r = PushReceiver(str(key_file), link.gate, 5.0, Log(), 4)  # a period no loaded machine's pass comes near
     with pytest.raises(Refused, match="signature does not match"):
         r.authenticate(push_text(None, 0.5, key=b"k" * 32, seq=1))
     assert r.authenticate(push_text(None, 0.5, key=key, seq=1)).epsilon == 0.5
@@ -149,6 +149,20 @@ def test_pushes_are_taken_only_signed_in_sequence_releasing_nothing_too_far_and_
     with pytest.raises(ValueError, match="push"):
         r.authenticate("not a push")
     assert (r.unauthenticated, r.releases_refused) == (2, 1)
+    # A release may say that a teacher answers its frame: an action of the table, signed with the rest.
+    with pytest.raises(ValueError, match="'fly_action' 4 is not an action"):
+        r.authenticate(push_text(None, None, release_stamp_ns=1_000, key=key, seq=3, fly_action=4))
+    forged = push_text(None, None, release_stamp_ns=1_000, key=key, seq=4, fly_action=1).replace(
+        '"fly_action": 1', '"fly_action": 2'
+    )
+    with pytest.raises(Refused, match="signature"):
+        r.authenticate(forged)
+    push = r.authenticate(push_text(None, None, release_stamp_ns=1_000, key=key, seq=5, fly_action=2))
+    assert push.fly_action == 2 and link.gate.fly_action_for(1_000) is None, "not before it is released"
+    link.gate.release(push.release_stamp_ns, push.fly_action)
+    assert link.gate.fly_action_for(1_000) == 2 and link.gate.fly_action_for(2_000) is None, "its own frame only"
+    with pytest.raises(ValueError, match="come with 'release_stamp_ns'"):
+        r.authenticate(push_text(None, 0.5, key=key, seq=6, fly_action=1))
     r.time_inference(Agent(build_network(NetConfig(), seed=0), NetConfig()))
     assert r.seconds_per_flop > 0
     blob = wio.to_bytes(build_network(NetConfig(), seed=0), NetConfig())

@@ -21,7 +21,7 @@ class Sink:
     def add_first(self, frame):
         self.events.append(("first", frame))
 
-    def add_step(self, action, beta, collided, frame):
+    def add_step(self, action, beta, collided, frame, teacher=-1):
         self.events.append(("step", action, step_reward(beta, collided), collided, frame))
 
     def add_truncated(self, frame):
@@ -55,7 +55,7 @@ def simulate(n_steps, seed=0, max_episode_steps=0):
 
 def shuffled_across_streams(msgs, rng, window=6):
     """Each stream keeps its order (DDS reliable), but streams interleave arbitrarily."""
-    streams = {s: [m for st, m in msgs if st == s] for s in ("frame", "outcome", "action")}
+    streams = {s: [m for st, m in msgs if st == s] for s in dict.fromkeys(st for st, _ in msgs)}
     out, pos = [], {s: 0 for s in streams}
     while any(pos[s] < len(streams[s]) for s in streams):
         # the lagging streams are at most `window` messages behind the leading one
@@ -84,6 +84,46 @@ def test_thousands_of_steps_pair_exactly_in_any_interleaving():
         assert abs(e[2] - rew) < 1e-4, f"step {k}: reward mis-paired"
         np.testing.assert_array_equal(e[4], depth, err_msg=f"step {k}: next frame mis-paired")
     assert all(v == 0 for v in asm.report().values())
+
+
+def test_teacher_labels_pair_exactly_and_each_release_knows_its_frames_label():
+    """With a teacher (sim_node's teacher_action, stamped as its frame), every stored transition carries the teacher's
+    action for the frame it left, in any interleaving, and the release of a frame can tell the trainer that label."""
+    msgs, truth = simulate(600, seed=5)
+    rng = np.random.default_rng(6)
+    labels, with_teacher = [], []
+    for stream, m in msgs:
+        with_teacher.append((stream, m))
+        if stream == "outcome":  # one teacher action per frame, a label that is not the action flown
+            a = int(rng.integers(4))
+            labels.append(a)
+            ts = TwistStamped()
+            ts.header.stamp = m.header.stamp
+            ts.twist.linear.x, ts.twist.angular.z = PAPER_ACTIONS[a].linear_x_mps, PAPER_ACTIONS[a].yaw_rate_radps(0.5)
+            with_teacher.append(("teacher", ts))
+
+    class LabelSink(Sink):
+        def add_step(self, action, beta, collided, frame, teacher=-1):
+            super().add_step(action, beta, collided, frame)
+            self.events[-1] += (teacher,)
+
+    sink, released = LabelSink(), []
+    asm = TransitionAssembler(
+        sink, PAPER_ACTIONS, STEP_NS, (64, 64), on_ready=lambda s: released.append(asm.teacher_of(s)), teacher=True
+    )
+    for stream, m in shuffled_across_streams(with_teacher, np.random.default_rng(7)):
+        asm.add(stream, m)
+    steps = [e for e in sink.events if e[0] == "step"]
+    assert len(steps) == 600 and [e[5] for e in steps] == labels[:600], "each transition has its own frame's label"
+    assert [e[1] for e in steps] == [t[0] for t in truth], "the action flown is still the policy's"
+    assert released == labels, "every frame released with its own label"
+    assert all(v == 0 for v in asm.report().values()), asm.report()
+    # Without its teacher action a frame is not an observation yet: nothing stored, nothing released.
+    sink, released = LabelSink(), []
+    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), on_ready=released.append, teacher=True)
+    for stream, m in msgs[:30]:
+        asm.add(stream, m)
+    assert sink.events == [] and released == []
 
 
 def test_faults_are_counted_and_never_paired_wrongly():

@@ -306,18 +306,26 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
 
 
-def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path):
+@pytest.mark.parametrize("teacher", ["none", "stack"])
+def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, teacher):
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
-    trainer train one recipe, read from one file."""
+    trainer train one recipe, read from one file. With a teacher (sim_node's planner labelling every frame, and flying
+    the steps the trainer's releases say), too."""
     import torch
 
     from uav_trainer import inprocess
 
-    steps, seed, learn = 420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300}
+    steps, seed, learn = (
+        (420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300})
+        if teacher == "none"
+        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200, "teacher": teacher})
+    )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
-    r, logs = run_train(ros_dir, "80", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
+    r, logs = run_train(
+        ros_dir, "80" if teacher == "none" else "81", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240
+    )
     assert "recipes/shipped.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
@@ -330,7 +338,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     finally:
         torch.set_num_threads(threads)
     ros_rows = (ros_dir / "episodes.csv").read_text().splitlines()
-    assert len(ros_rows) > 20 and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
+    assert len(ros_rows) > (20 if teacher == "none" else 5) and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
     names = [f"policy_sam_step{n}.safetensors" for n in snaps] + ["policy_sam.safetensors"]
     for name in names:
         made = wio.config_for("sam", ros_dir / name)  # the recipe's readout
@@ -338,7 +346,25 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
         for (k, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
             assert torch.equal(x, y), f"{name}: tensor {k} differs"
     # replay_ratio 0.5 after learning_starts, the last step's updates included; no step after the budget.
-    assert f"({steps} env steps, {(steps - 150) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
+    starts = learn["learning_starts"]
+    assert f"({steps} env steps, {(steps - starts) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
+    if teacher != "none":  # both runs learnt from the planner's labels, flying its actions at first
+        assert f"teacher: the planner ({teacher})" in capsys.readouterr().out
+        assert f"teacher_action: the planner ({teacher})" in logs["sim"]
+
+
+def test_a_trainer_with_a_teacher_beside_a_simulator_without_one_stops_naming_why(ros, tmp_path):
+    """A teacher is sim_node's planner: frames without its teacher_action (a sim_node without teacher:=..., or a camera)
+    would never be learnt from, so the trainer stops at once (exit code 2), naming the parameter and the fix."""
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.1")  # no policy: the first frame, said again
+    trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path / 'run'}", "-p", "teacher:=stack")
+    try:
+        code = trainer.wait(90)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the trainer kept waiting for teacher actions:\n" + ros.log_of(trainer)[-2000:])
+    log = ros.log_of(trainer)
+    assert code == 2, log[-2000:]
+    assert "parameter 'teacher'='stack'" in log and "no teacher_action" in log and "sim_node teacher:=stack" in log
 
 
 def test_a_lockstep_trainer_beside_a_policy_that_does_not_wait_says_so(ros, tmp_path):

@@ -752,10 +752,17 @@ def test_the_margin_loss_is_zero_once_the_teacher_leads_by_the_margin_and_positi
     assert large_margin_loss(q[2:], teacher[2:], 0.8) == 0.0, "no label, no loss"
 
 
-def test_a_teacher_is_refused_over_ros_by_name():
-    from uav_common.ros_params import ParameterError
-    from uav_trainer.trainer_settings import TrainerNodeSettings
+def test_a_run_with_a_teacher_whose_frames_come_without_one_is_stopped_naming_why():
+    """A teacher is sim_node's planner; frames with no teacher_action (a camera, or a sim_node without teacher:=...)
+    would never be learnt from: the actor says so, naming the parameter, once it has heard a few frames."""
+    from uav_trainer.actors import TEACHERLESS_FRAMES, ActorState
 
-    with pytest.raises(ParameterError, match="'teacher'='stack'.*in process only"):
-        TrainerNodeSettings(trainer=TrainerConfig(teacher="stack")).actor_namespaces()
-    assert TrainerNodeSettings().actor_namespaces() == [""]
+    actor = ActorState(0, "", "/step_outcome")
+    actor.frames_heard = TEACHERLESS_FRAMES - 1
+    assert actor.no_teacher("stack") is None, "a few frames may come before the first teacher action is matched"
+    actor.frames_heard = TEACHERLESS_FRAMES
+    assert actor.no_teacher("none") is None, "no teacher asked for"
+    why = actor.no_teacher("stack")
+    assert "'teacher'='stack'" in why and "no teacher_action" in why and "a camera has no world" in why
+    actor.teachers_heard = 1
+    assert actor.no_teacher("stack") is None

@@ -1,13 +1,12 @@
 """The ROS contract shared by every node: topic names, QoS, message conversions, stamp joins.
 
-Pairing without custom messages: every message of one simulator step carries the same
-`header.stamp` (the sim time of the frame). The policy's `action` (TwistStamped) carries the
-stamp of the frame it answered. `step_outcome` (sensor_msgs/Range) carries, with the frame's
-stamp, beta (the centre-window minimum depth, m) or -Inf when the step that produced this
-frame ended in a collision (REP 117 "too close"), which also means the frame is the first
-of a new episode. NaN (no valid reading) marks the first frame of a new episode that began
-without a collision: the time limit (`max_episode_steps`) or `~/reset`; the step that led
-to it has no outcome to learn from.
+Pairing without custom messages: every message of one simulator step carries the same `header.stamp` (the sim time
+of the frame). The policy's `action` (TwistStamped) carries the stamp of the frame it answered, and so does a teacher's
+(`teacher_action`, sim_node's planner). `step_outcome` (sensor_msgs/Range) carries, with the frame's stamp, beta (the
+centre-window minimum depth, m) or -Inf when the step that produced this frame ended in a collision (REP 117 "too
+close"), which also means the frame is the first of a new episode. NaN (no valid reading) marks the first frame of a
+new episode that began without a collision: the time limit (`max_episode_steps`) or `~/reset`; the step that led to it
+has no outcome to learn from.
 """
 
 from __future__ import annotations
@@ -29,6 +28,10 @@ OUTCOME_TOPIC = "step_outcome"
 CMD_VEL_TOPIC = "cmd_vel"
 CMD_VEL_STAMPED_TOPIC = "cmd_vel_stamped"
 ACTION_TOPIC = "action"
+# Training with a teacher: sim_node's planner's action for a frame (TwistStamped, the frame's stamp), paired by
+# trainer_node like the policy's `action`. Its knowledge: none (no teacher), or uav_sim.planner's stack or all.
+TEACHER_TOPIC = "teacher_action"
+TEACHERS = ("none", "stack", "all")
 Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
 ATTENTION_OVERLAY_TOPIC = "attention/overlay"

@@ -20,7 +20,7 @@ from .safety import SafetyLayer
 
 @dataclasses.dataclass(frozen=True)
 class Decision:
-    action: int  # the network's own choice: what a trainer learns from and `action` records
+    action: int  # the network's choice (or in training a teacher's): the action flown, learnt from and recorded
     q: np.ndarray  # the Q-values it was chosen on
     attention: np.ndarray | None  # SAM's attention on the state (None for the CNN)
     explored: bool  # a random action (epsilon)
@@ -41,10 +41,21 @@ class Pilot:
         a = self.actions[action]
         return a.linear_x_mps, a.yaw_rate_radps(self.step_duration_s)
 
-    def decide(self, state: np.ndarray, newest_input: np.ndarray, epsilon: float = 0.0) -> Decision:
-        """The decision on `state` (frames, H, W); `newest_input` (its last frame on the network's input) is what the
-        safety layer checks the corridor in."""
-        action, q, w, explored = self.agent.act(state, epsilon)
+    def decide(
+        self,
+        state: np.ndarray,
+        newest_input: np.ndarray,
+        epsilon: float = 0.0,
+        instead: int | None = None,
+        past: np.ndarray | None = None,
+    ) -> Decision:
+        """The decision on `state` (frames, H, W) and `past` (the actions since its older frames, FrameStack.past);
+        `newest_input` (its last frame on the network's input) is what the safety layer checks the corridor in.
+        `instead`: the action flown in place of the network's (a teacher's, in training), after the network has decided
+        as ever (its Q-values, attention and exploration draw)."""
+        action, q, w, explored = self.agent.act(state, epsilon, past)
+        if instead is not None:
+            action, explored = instead, False
         vx, wz = self.command_of(action)
         why = ""
         if self.safety is not None:

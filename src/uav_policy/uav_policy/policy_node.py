@@ -86,7 +86,7 @@ class PolicyNode(Node):
         self.identity = CameraIdentity(st.camera_switch_s, log, stacks=(self.control, self.link))  # one camera a stack
         self.agent = Agent(net, self.cfg, device, st.seed)
         self.pilot = Pilot(self.agent, self.actions, st.step_duration_s, self.safety)
-        self.receiver = PushReceiver(st.push_key_file, self.link.gate, period, log)
+        self.receiver = PushReceiver(st.push_key_file, self.link.gate, period, log, len(self.actions))
         if st.accept_pushes:
             self.receiver.time_inference(self.agent)
         self.explainer = Explainer(net.grid_hw, st.insight_every, st.insight_window, st.seed, log)
@@ -112,7 +112,6 @@ class PolicyNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
         log.info(st.describe(parameter_count(net), self.source, device, hfov))
 
-    # -- frames -------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
         intrinsics = contract.camera_info_intrinsics(msg)
         if not self.camera.on_info(intrinsics, contract.camera_info_hfov_deg(msg) if intrinsics else None):
@@ -199,20 +198,21 @@ class PolicyNode(Node):
         if depth is not None:
             net_in = self.camera(depth)
             state = self.link.state(net_in, contract.outcome_new_episode(outcome))
-            self._decide(img, depth, net_in, state, t_in)
+            self._decide(img, depth, net_in, state, t_in, self.link.stack.past())
 
-    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float) -> None:
+    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float, past=None) -> None:
         t0 = time.perf_counter()
-        d = self.pilot.decide(state, net_in, self.epsilon)
+        fly = self.link.gate.fly_action_for(contract.stamp_ns(img.header.stamp))  # a teacher's, in training
+        d = self.pilot.decide(state, net_in, self.epsilon, instead=fly, past=past)
+        self.link.flown = d.action
         if d.safety:
             self.get_logger().info(f"safety: {d.safety}", throttle_duration_sec=2.0)
         self.out.decision(img, d, self.pilot.command_of)
         t_out = time.perf_counter()
         self.link.last_stamp = contract.stamp_ns(img.header.stamp)
-        net = self.agent.net
-        saliency = self.out.explained(img, depth, d, net.grid_hw, self.camera.view)
+        saliency = self.out.explained(img, depth, d, (net := self.agent.net).grid_hw, self.camera.view)
         inline = not self.control.active  # a simulator waits for our answer: measure now
-        self.explainer.explain(net, state, d.q, d.attention, self.stats.answered, saliency, inline)
+        self.explainer.explain(net, state, d.q, d.attention, self.stats.answered, saliency, inline, past)
         self.stats.answer(t_in, t0, t_out)
 
     async def _on_push(self, request, response):
@@ -245,7 +245,7 @@ class PolicyNode(Node):
         if not response.success:
             response.message = self.receiver.reject(response.message, released)
         if released:
-            for joined in self.link.gate.release(push.release_stamp_ns):
+            for joined in self.link.gate.release(push.release_stamp_ns, push.fly_action):
                 self._act(joined["frame"], joined["outcome"], time.perf_counter())
         if response.success and push.epsilon is not None:  # after the answer: ros2 param get and /diagnostics agree
             self.epsilon_param.set(push.epsilon)

@@ -3,8 +3,9 @@
 The request's one string is the push: `uav_push/1 ` and a JSON object of its small fields on the first
 line, then, when the push carries weights, the safetensors blob in base64. The fields: `epsilon` (the
 exploration rate to act with from now on), `release_stamp_ns` (with policy_node's wait_for_trainer,
-answer the frames stamped up to this sim time, ns) and, to be accepted, `push_seq` (larger than any
-sequence number accepted before: a recorded push cannot be played again) and `signature` (HMAC-SHA256,
+answer the frames stamped up to this sim time, ns), `fly_action` (with a release: answer the released frame
+with this action of the table, not the network's choice: a teacher flies the step) and, to be accepted,
+`push_seq` (larger than any sequence number accepted before: a recorded push cannot be played again) and `signature` (HMAC-SHA256,
 in hex, of the weights and every field under the run's key, `push_key_file`). The answer's `success`
 and `message` say whether it was taken, and why not.
 
@@ -41,6 +42,7 @@ PREFIX = "uav_push/1 "
 MAX_HEADER_CHARS = 1024  # the first line: prefix and JSON fields
 EPSILON_FIELD = "epsilon"
 RELEASE_FIELD = "release_stamp_ns"
+FLY_FIELD = "fly_action"
 SEQUENCE_FIELD = "push_seq"
 SIGNATURE_FIELD = "signature"
 KEY_BYTES = 32
@@ -49,7 +51,13 @@ KEY_BYTES = 32
 PUSH_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST, depth=100
 )
-_FIELDS = {EPSILON_FIELD: "a number", RELEASE_FIELD: "an integer", SEQUENCE_FIELD: "an integer", SIGNATURE_FIELD: "a string"}
+_FIELDS = {
+    EPSILON_FIELD: "a number",
+    RELEASE_FIELD: "an integer",
+    FLY_FIELD: "an integer",
+    SEQUENCE_FIELD: "an integer",
+    SIGNATURE_FIELD: "a string",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,23 +67,29 @@ class Push:
     release_stamp_ns: int | None = None
     seq: int | None = None
     signature: str | None = None
+    fly_action: int | None = None
 
 
-def signed_text(blob: bytes | None, epsilon: float | None, release_stamp_ns: int | None, seq: int) -> bytes:
+def signed_text(
+    blob: bytes | None, epsilon: float | None, release_stamp_ns: int | None, seq: int, fly_action: int | None = None
+) -> bytes:
     """What a signature covers: every field of the push (the blob by its SHA-256)."""
     digest = hashlib.sha256(blob).hexdigest() if blob is not None else "-"
-    return f"uav_push/1|{seq}|{digest}|{epsilon!r}|{release_stamp_ns!r}".encode()
+    fly = "" if fly_action is None else f"|{fly_action!r}"
+    return f"uav_push/1|{seq}|{digest}|{epsilon!r}|{release_stamp_ns!r}{fly}".encode()
 
 
-def sign(key: bytes, blob: bytes | None, epsilon: float | None, release_stamp_ns: int | None, seq: int) -> str:
-    return hmac.new(key, signed_text(blob, epsilon, release_stamp_ns, seq), hashlib.sha256).hexdigest()
+def sign(
+    key: bytes, blob: bytes | None, epsilon: float | None, release_stamp_ns: int | None, seq: int, fly_action: int | None = None
+) -> str:
+    return hmac.new(key, signed_text(blob, epsilon, release_stamp_ns, seq, fly_action), hashlib.sha256).hexdigest()
 
 
 def verify(key: bytes, push: Push, last_seq: int) -> None:
     """ValueError unless `push` is signed with `key` and newer than `last_seq`."""
     if push.signature is None or push.seq is None:
         raise ValueError(f"unsigned push refused: a push must carry '{SEQUENCE_FIELD}' and '{SIGNATURE_FIELD}'")
-    good = sign(key, push.weights, push.epsilon, push.release_stamp_ns, push.seq)
+    good = sign(key, push.weights, push.epsilon, push.release_stamp_ns, push.seq, push.fly_action)
     if not hmac.compare_digest(good, push.signature):
         raise ValueError("push refused: its signature does not match this run's key (push_key_file)")
     if push.seq <= last_seq:
@@ -122,20 +136,28 @@ def push_text(
     release_stamp_ns: int | None = None,
     key: bytes | None = None,
     seq: int | None = None,
+    fly_action: int | None = None,
 ) -> str:
-    """A push of weights (None: none), and optionally an exploration rate and a release stamp; with `key`,
-    signed as push `seq`."""
+    """A push of weights (None: none), and optionally an exploration rate, a release stamp and the action the released
+    frame is answered with; with `key`, signed as push `seq`."""
     fields: dict[str, object] = {}
     if epsilon is not None:
         fields[EPSILON_FIELD] = float(epsilon)
     if release_stamp_ns is not None:
         fields[RELEASE_FIELD] = int(release_stamp_ns)
+    if fly_action is not None:
+        fields[FLY_FIELD] = int(fly_action)
     if key is not None:
         if seq is None:
             raise ValueError("a signed push needs its sequence number")
         fields[SEQUENCE_FIELD] = int(seq)
         fields[SIGNATURE_FIELD] = sign(
-            key, None if blob is None else bytes(blob), fields.get(EPSILON_FIELD), fields.get(RELEASE_FIELD), int(seq)
+            key,
+            None if blob is None else bytes(blob),
+            fields.get(EPSILON_FIELD),
+            fields.get(RELEASE_FIELD),
+            int(seq),
+            fields.get(FLY_FIELD),
         )
     body = base64.b64encode(blob).decode("ascii") if blob is not None else ""
     return f"{PREFIX}{json.dumps(fields)}\n{body}"
@@ -198,7 +220,10 @@ def read_push(text, max_bytes: int) -> Push:
     stamp = fields.get(RELEASE_FIELD)
     if stamp is not None and stamp < 0:
         raise ValueError(f"push field 'release_stamp_ns' must be >= 0, got {stamp}")
-    return Push(blob, eps, stamp, fields.get(SEQUENCE_FIELD), fields.get(SIGNATURE_FIELD))
+    fly = fields.get(FLY_FIELD)
+    if fly is not None and (stamp is None or fly < 0):
+        raise ValueError(f"push field '{FLY_FIELD}' must be an action index >= 0 and come with '{RELEASE_FIELD}', got {fly}")
+    return Push(blob, eps, stamp, fields.get(SEQUENCE_FIELD), fields.get(SIGNATURE_FIELD), fly)
 
 
 # How far a release may lead the newest frame the policy has seen: trainer_node releases frames it has
@@ -216,6 +241,7 @@ class ReleaseGate:
         self.released_ns = -1  # frames stamped up to this may be answered
         self.newest_ns = -1  # the newest frame stamp seen
         self.timed_out = 0  # frames answered without a release
+        self.fly: tuple[int, int] | None = None  # (stamp, action): the released frame a teacher answers
 
     def beyond(self, stamp: int) -> str | None:
         """Why a release up to `stamp` is refused (it leads every frame seen by more than MAX_RELEASE_LEAD_NS: it
@@ -237,11 +263,18 @@ class ReleaseGate:
 
     def restart(self) -> int:
         """The stamps started again (a restarted simulator): the held frames are dropped; how many."""
-        dropped, self.held, self.released_ns, self.newest_ns = len(self.held), [], -1, -1
+        dropped, self.held, self.released_ns, self.newest_ns, self.fly = len(self.held), [], -1, -1, None
         return dropped
 
-    def release(self, stamp: int) -> list:
-        """The held items released by a release up to `stamp`, oldest first."""
+    def fly_action_for(self, stamp: int) -> int | None:
+        """The action a release said the frame at `stamp` is answered with (a teacher's), or None: the network's."""
+        return self.fly[1] if self.fly is not None and self.fly[0] == stamp else None
+
+    def release(self, stamp: int, fly_action: int | None = None) -> list:
+        """The held items released by a release up to `stamp`, oldest first; with `fly_action`, the frame at `stamp` is
+        to be answered with that action (fly_action_for)."""
+        if fly_action is not None:
+            self.fly = (stamp, fly_action)
         self.released_ns = max(self.released_ns, stamp)
         out = []
         while self.held and self.held[0][0] <= self.released_ns:

@@ -23,8 +23,9 @@ class Refused(ValueError):
 
 
 class PushReceiver:
-    def __init__(self, key_file: str, gate: ReleaseGate, control_period_s: float, log):
+    def __init__(self, key_file: str, gate: ReleaseGate, control_period_s: float, log, actions: int):
         self.key_file, self.gate, self.control_period_s, self.log = key_file, gate, control_period_s, log
+        self.actions = actions  # the action table's size: a release's fly_action must index it
         self.key: bytes | None = None
         self.last_seq = -1
         self.seconds_per_flop = 0.0  # this machine's inference time per operation (time_inference)
@@ -61,6 +62,8 @@ class PushReceiver:
             self.releases_refused += 1
             self.log.warning(f"weights push refused: {beyond}", throttle_duration_sec=5.0)
             raise Refused(beyond)
+        if push.fly_action is not None and push.fly_action >= self.actions:
+            raise ValueError(f"push field 'fly_action' {push.fly_action} is not an action of this policy's {self.actions}")
         return push
 
     def check_cost(self, blob: bytes, cfg: NetConfig) -> None:

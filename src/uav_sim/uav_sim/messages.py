@@ -1,14 +1,27 @@
-"""The simulator's state as ROS messages: the vehicle's odometry and the depth camera's CameraInfo (the world and
-the path flown are in markers.py, the frames and step outcomes in uav_common.contract)."""
+"""The simulator's state as ROS messages: the vehicle's odometry, the depth camera's CameraInfo and a teacher's action
+(the world and the path flown are in markers.py, the frames and step outcomes in uav_common.contract)."""
 
 from __future__ import annotations
 
 import math
 
+from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo
 
+from uav_common.actions import PAPER_ACTIONS
+
 from .vehicle import BodyTwist
+
+
+def teacher_msg(action: int, stamp, base_frame: str, step_duration_s: float) -> TwistStamped:
+    """The teacher's action for the frame at `stamp` as the body command it flies (as policy_node's `action`)."""
+    a = PAPER_ACTIONS[action]
+    msg = TwistStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = base_frame
+    msg.twist.linear.x, msg.twist.angular.z = a.linear_x_mps, a.yaw_rate_radps(step_duration_s)
+    return msg
 
 
 def odometry_msg(pose, flown: BodyTwist, stamp, odom_frame: str, base_frame: str) -> Odometry:

@@ -2,7 +2,8 @@
 
 Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, world/markers (the
 room and obstacles, latched), trajectory (this episode's path), /clock (unless publish_clock:=false:
-several simulators in one graph would each say their own time) and /diagnostics; consumes cmd_vel.
+several simulators in one graph would each say their own time), /diagnostics and, with a teacher
+(teacher:=stack|all, for training), teacher_action: the planner's action for each frame; consumes cmd_vel.
 Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
 `lockstep` mode one cmd_vel advances one step; in `realtime` mode the simulator steps at a fixed
 rate with the latest command and a watchdog.
@@ -15,7 +16,7 @@ import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Twist
+from geometry_msgs.msg import Twist, TwistStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -29,7 +30,8 @@ from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
 
 from .markers import path_msg, path_pose, world_markers
-from .messages import camera_info_msg, odometry_msg
+from .messages import camera_info_msg, odometry_msg, teacher_msg
+from .planner import PlannerConfig, SimPlanner
 from .reward import window_fov_rad
 from .sim_settings import REMOVED, SimNodeSettings, describe
 from .simulator import Simulator, StepResult, reward_floor_problem
@@ -63,6 +65,11 @@ class SimNode(Node):
         except ValueError as e:
             raise ParameterError(str(e)) from None
         self.cfg = cfg = self.sim.config  # with the sensor preset's camera
+        self.teacher = (
+            None
+            if st.teacher == "none"
+            else SimPlanner(self.sim, PlannerConfig(knowledge=st.teacher, memory_frames=st.teacher_frames))
+        )
         self.depth_encoding = st.depth_encoding
         floor = reward_floor_problem(cfg, world.start_xyz_m[2])
         if floor:  # crash counts stay meaningful (evaluation); training on this reward does not
@@ -73,6 +80,7 @@ class SimNode(Node):
         self.pub_info = self.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, q)
         self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, q)
         self.pub_outcome = self.create_publisher(Range, contract.OUTCOME_TOPIC, q)
+        self.pub_teacher = self.create_publisher(TwistStamped, contract.TEACHER_TOPIC, q) if self.teacher else None
         self.pub_clock = self.create_publisher(Clock, "/clock", q) if st.publish_clock else None
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.pub_markers = self.create_publisher(MarkerArray, contract.WORLD_MARKERS_TOPIC, contract.LATCHED_QOS)
@@ -113,6 +121,8 @@ class SimNode(Node):
             self.create_timer(min(self.republish_s, 0.25), self.on_lockstep_idle)
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(describe(world, layouts, st.worlds, self.mode, cfg, self.depth_encoding))
+        if self.teacher is not None:
+            self.get_logger().info(f"teacher_action: the planner ({st.teacher}) answers every frame, for a trainer to learn")
 
     # -- commands ----------------------------------------------------------------------
     def on_cmd_vel(self, msg: Twist) -> None:
@@ -211,6 +221,8 @@ class SimNode(Node):
         if self.pub_clock is not None:
             self.pub_clock.publish(Clock(clock=stamp))
         cfg = self.cfg
+        if self.teacher is not None and not self.budget_flown():  # the teacher's answer goes out before the frame
+            self.pub_teacher.publish(teacher_msg(self.teacher.label().action, stamp, self.base_frame, cfg.step_duration_s))
         self.pub_outcome.publish(
             contract.make_outcome(
                 r.beta_m,

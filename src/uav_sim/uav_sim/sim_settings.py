@@ -65,6 +65,14 @@ class SimNodeSettings:
         "publish the simulated time on /clock; false when several simulators share a graph (train --actors N with "
         "N > 1 sets it: each actor's stamps are its own sim time, and no one clock fits them all)",
     )
+    teacher: str = setting(
+        "none",
+        "training with a teacher: publish on teacher_action, stamped as each frame, the action uav_sim.planner flies from "
+        "it (stack: knowing what the last teacher_frames frames showed; all: the whole world); train sets it from the "
+        "trainer's teacher. none: no planning",
+        choices=contract.TEACHERS,
+    )
+    teacher_frames: int = setting(5, "the frames the stack teacher remembers (the trainer's frame_stack; train sets it)", 1, 16)
     depth_encoding: str = setting(
         "32FC1",
         "depth/image_raw encoding: 32FC1 (metres) or 16UC1 (millimetres, 0 = no return, as camera drivers)",

@@ -19,6 +19,11 @@ REJECTED_WEIGHTS = (
 )
 
 
+# Frames heard without a single teacher_action before a run with a teacher stops: a lockstep step is released only
+# with its teacher's action, so without them nothing is learnt.
+TEACHERLESS_FRAMES = 10
+
+
 class ActorState:
     def __init__(self, index: int, namespace: str, outcome_topic: str):
         self.index, self.ns, self.outcome_topic = index, namespace, outcome_topic
@@ -31,6 +36,18 @@ class ActorState:
         self.last_heard: float | None = None  # its sim's latest message
         self.unanswered_since: float | None = None  # its policy was sent a release not answered since
         self.silent: str | None = None  # reported missing or lost: "sim" (said nothing) or "policy" (answered nothing)
+        self.frames_heard = self.teachers_heard = 0  # depth frames and teacher actions from its simulator
+
+    def no_teacher(self, teacher: str) -> str | None:
+        """With a teacher, the error that stops the run when its simulator sends frames but no teacher_action: a camera
+        has no world to plan in; else None."""
+        if teacher == "none" or self.teachers_heard or self.frames_heard < TEACHERLESS_FRAMES:
+            return None
+        return (
+            f"parameter 'teacher'={teacher!r}: {self.frames_heard} depth frames came from {self.label} but no "
+            "teacher_action. A teacher is sim_node's planner (sim_node teacher:=stack or all; train sets it); a camera "
+            "has no world to plan in, so a run from a camera trains with teacher:=none"
+        )
 
     def heard(self, now: float) -> str | None:
         """Its simulator said something; a line to log when it was silent."""

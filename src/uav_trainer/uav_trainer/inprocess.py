@@ -93,7 +93,9 @@ def run(
     training.camera_hfov_deg = sim_cfg.hfov_deg  # recorded in every weights file this run writes
     paper_window = sim_cfg.reward_window_fraction == CENTER_WINDOW_FRACTION
     training.reward_window_fraction = None if paper_window else sim_cfg.reward_window_fraction
-    log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}, window {sim_cfg.reward_window_fraction:g}")
+    teaching = f", teacher: the planner ({cfg.teacher})" if cfg.teacher != "none" else ""
+    window = sim_cfg.reward_window_fraction
+    log(f"training {cfg.model}, seed {cfg.seed}: reward {reward_description(cfg)}, window {window:g}{teaching}")
     sim = Simulator(first, sim_cfg, next_worlds=layouts)
     # The policy's own network, answering each frame with the weights its release carries (as over ROS).
     acting = Agent(build_network(training.net_cfg, seed=cfg.seed), training.net_cfg, str(training.learner.device), seed=cfg.seed)
@@ -105,7 +107,6 @@ def run(
     teacher = (
         SimPlanner(sim, PlannerConfig(knowledge=cfg.teacher, memory_frames=net_cfg.frames)) if cfg.teacher != "none" else None
     )
-    who_flies = np.random.default_rng([cfg.seed, 7])
     label, agreed = -1, []  # the teacher's action for the frame decided on; whether the student's greedy choice was it
 
     def decide():
@@ -114,14 +115,11 @@ def run(
         if version != loaded:
             wio.load_bytes(blob, training.net_cfg, into=acting.net)
             loaded = version
-        decision = flight.decide(training.epsilon())
+        label = teacher.label().action if teacher is not None else -1
+        decision = flight.decide(training.epsilon(), instead=training.teacher_flies(label))
         training.after_release()
         if teacher is not None:
-            label = teacher.label().action
             agreed.append(int(np.argmax(decision.q)) == label)
-            if who_flies.random() < cfg.teacher_act_probability(training.env_steps):
-                vx, wz = flight.pilot.command_of(label)
-                decision = dataclasses.replace(decision, action=label, explored=False, linear_x_mps=vx, yaw_rate_radps=wz)
         return decision
 
     t0 = time.perf_counter()

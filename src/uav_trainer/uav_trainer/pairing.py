@@ -15,6 +15,10 @@ the next episode's chain.
 `on_ready(stamp)` (optional) hears of each observation once nothing more will be stored before
 the policy's answer to it: after its transition is stored, or at once when it cannot be chained.
 An observation whose predecessor's answer has not arrived yet waits for it.
+
+With `teacher`, an observation is also sim_node's `teacher_action` for the frame (the planner's action, stamped as
+it): each stored transition carries the teacher's action for the frame it left (-1 when it matches no action, counted),
+and `teacher_of(stamp)` gives it for a frame about to be released.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ class _Prev:
     stamp: int
     action: int | None
     answered: bool = True  # False: the frame is stored, the policy's answer to it is not joined yet
+    teacher: int = -1  # the teacher's action for the frame (-1: none)
 
 
 class TransitionAssembler:
@@ -38,14 +43,17 @@ class TransitionAssembler:
 
     STREAMS = ("frame", "outcome", "action")
 
-    def __init__(self, sink, actions, step_ns: int, net_hw: tuple[int, int], max_pending: int = 500, on_ready=None):
+    def __init__(
+        self, sink, actions, step_ns: int, net_hw: tuple[int, int], max_pending: int = 500, on_ready=None, teacher=False
+    ):
         self.sink, self.actions, self.step_ns, self.net_hw = sink, actions, step_ns, net_hw
         self.on_ready = on_ready
-        self.joiner = contract.StampJoiner(self.STREAMS, max_pending=max_pending)
+        self.observation = ("frame", "outcome") + (("teacher",) if teacher else ())  # what a step's simulator says
+        self.joiner = contract.StampJoiner(self.STREAMS + self.observation[2:], max_pending=max_pending)
         self.prev: _Prev | None = None
         self.early: tuple[int, bool] | None = None  # (stamp, frame usable) stored before its record completed
         self.released = -1  # the newest stamp handed to on_ready
-        self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0}
+        self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0, "unmatched_teacher_actions": 0}
         self.to_input = NetworkInput(*net_hw)
 
     def set_camera(self, intrinsics, hfov_deg: float) -> None:
@@ -79,6 +87,21 @@ class TransitionAssembler:
             self.counts["unmatched_actions"] += 1
         return action
 
+    def _teacher(self, slot: dict) -> int:
+        """The teacher's action in an observation (-1: none given, or one that matches no action)."""
+        if "teacher" not in slot:
+            return -1
+        tw = slot["teacher"].twist
+        action = match_action(self.actions, tw.linear.x, tw.angular.z, self.step_ns / 1e9)
+        return -1 if action is None else action
+
+    def teacher_of(self, stamp: int) -> int:
+        """The teacher's action for the observation at `stamp` (-1: none): for its release."""
+        slot = self.joiner.pending.get(stamp)
+        if slot is not None and "teacher" in slot:
+            return self._teacher(slot)
+        return self.prev.teacher if self.prev is not None and self.prev.stamp == stamp else -1
+
     def _store(self, frame, out) -> None:
         """The step from record self.prev to (frame, out), one step later."""
         if contract.outcome_truncated(out):  # a new episode without a collision: nothing to learn
@@ -86,13 +109,15 @@ class TransitionAssembler:
         else:
             collided = contract.outcome_collided(out)
             beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
-            self.sink.add_step(self.prev.action, beta, collided, frame)
+            if len(self.observation) > 2 and self.prev.teacher < 0:
+                self.counts["unmatched_teacher_actions"] += 1
+            self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher)
 
     def _record(self, rec: dict) -> None:
         stamp = contract.stamp_ns(rec["frame"].header.stamp)
         if self.early is not None and self.early[0] == stamp:  # the frame went in before its answer came
             usable, self.early = self.early[1], None
-            self.prev = _Prev(stamp, self._action(rec)) if usable else None
+            self.prev = _Prev(stamp, self._action(rec), teacher=self._teacher(rec)) if usable else None
             return
         frame = self._frame(rec["frame"])
         if frame is None:
@@ -106,7 +131,7 @@ class TransitionAssembler:
             if prev is not None and not contract.outcome_truncated(out):  # ~/reset republishes at the same stamp
                 self.counts["chain_breaks"] += 1
             self.sink.add_first(frame)
-        self.prev = _Prev(stamp, action)
+        self.prev = _Prev(stamp, action, teacher=self._teacher(rec))
 
     def _store_next(self) -> None:
         """Store the observation one step after a complete record without waiting for its own answer."""
@@ -115,7 +140,7 @@ class TransitionAssembler:
             return
         stamp = prev.stamp + self.step_ns
         slot = self.joiner.pending.get(stamp)
-        if slot is None or "frame" not in slot or "outcome" not in slot:
+        if slot is None or not all(k in slot for k in self.observation):
             return
         frame = self._frame(slot["frame"])
         self.early = (stamp, frame is not None)
@@ -123,16 +148,16 @@ class TransitionAssembler:
             self.prev = None
             return
         self._store(frame, slot["outcome"])
-        self.prev = _Prev(stamp, None, answered=False)
+        self.prev = _Prev(stamp, None, answered=False, teacher=self._teacher(slot))
 
     def _release(self) -> None:
         if self.on_ready is None:
             return
         pending = self.joiner.pending
 
-        def observed(stamp: int) -> bool:  # frame and outcome in, the policy's answer not yet (else joined)
+        def observed(stamp: int) -> bool:  # frame and outcome (and teacher) in, the policy's answer not yet (else joined)
             slot = pending.get(stamp)
-            return slot is not None and "frame" in slot and "outcome" in slot
+            return slot is not None and all(k in slot for k in self.observation)
 
         ready = {s for s in pending if s > self.released and observed(s)}
         if self.prev is not None and self.prev.stamp > self.released:  # joined at once (its answer came first)
@@ -148,6 +173,7 @@ class TransitionAssembler:
         return {
             "frames_without_action": j.dropped["action"],
             "frames_without_outcome": j.dropped["outcome"],
+            **({"frames_without_teacher_action": j.dropped["teacher"]} if "teacher" in j.dropped else {}),
             "outcomes_or_actions_without_frame": j.dropped["frame"],
             "duplicates": j.duplicates,
             "said_again": j.late,

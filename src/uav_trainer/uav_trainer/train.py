@@ -38,7 +38,7 @@ from pathlib import Path
 
 from uav_common.launching import Processes, find_executable, params_args, ros_log_dir, stop_signals
 from uav_common.settings import refuse_retired_flags
-from uav_policy.net_config import MAX_FRAMES, SAM_READOUTS
+from uav_policy.net_config import MAX_FRAMES, SAM_READOUTS, NetConfig
 from uav_policy.push import write_key
 from uav_sim.world import VALIDATION_STEPS
 
@@ -142,6 +142,10 @@ def main(argv=None) -> int:
     except ValueError as e:
         ap.error(f"--steps {a.steps} with recipe {recipe.path}: {e}")
     frames = [] if a.frames is None else [f"frame_stack:={a.frames}"]
+    # A teacher is sim_node's planner: it remembers what the trainer's frame stack holds.
+    teacher = str(trainer_values.get("teacher", "none"))
+    stack = a.frames or int(trainer_values.get("frame_stack", NetConfig.frames))
+    teach = [f"teacher:={teacher}", f"teacher_frames:={stack}"] if teacher != "none" else []
     size = [] if a.input_size is None else [a.input_size]
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
@@ -166,7 +170,7 @@ def main(argv=None) -> int:
         remap = ["-r", f"__ns:={ns}"] if ns else []
         # wait_for_subscribers: the sim steps once policy and trainer both listen (no step goes unlearnt).
         sim_extra = [*world, f"seed:={seed}", "wait_for_subscribers:=2", *(["publish_clock:=false"] if ns else [])]
-        sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + a.sim_arg
+        sim_extra += [f"image_{side}:={px}" for px in size for side in ("width", "height")] + teach + a.sim_arg
         procs.start(f"sim{name}", "uav_sim", "sim_node", remap + node_args("sim") + p(sim_extra))
         procs.start(
             f"policy{name}",

@@ -1,17 +1,16 @@
 """trainer_node: replay memory, learning, weight pushes and checkpoints over ROS 2.
 
-Joins depth/image_raw, step_outcome and the policy's action by exact stamp into transitions (uav_trainer.pairing;
-the reward from uav_sim.reward); anything that does not pair is counted on /diagnostics and in the log, never
-guessed. Learning is in lockstep with acting (policy_node needs wait_for_trainer:=true; train sets it): each stored
-step's frame is released on policy_node/push_weights with the exact epsilon and the weights as at the release before
-(Training.released_weights), then the updates replay_ratio allows run while the policy acts and the simulator steps,
-as in process (for a seed, the same episodes and weights as `inprocess`): no frame waits for an update's weights.
+Joins depth/image_raw, step_outcome, the policy's action (and with a teacher sim_node's teacher_action) by exact stamp
+into transitions (uav_trainer.pairing; reward: uav_sim.reward); what does not pair is counted, never guessed. Learning
+is in lockstep with acting (policy_node's wait_for_trainer:=true; train sets it): each stored step's frame is released
+on policy_node/push_weights with the exact epsilon, the weights as at the release before (Training.released_weights) and
+whether the teacher flies it (Training.teacher_flies); then the updates replay_ratio allows run while the policy acts and
+the simulator steps, as in process (for a seed, the same episodes and weights as `inprocess`).
 
-With `actors` (namespaces, e.g. [/actor0, /actor1]; `train --actors N` sets them) it learns from several
-sim_node/policy_node pairs, each joined on its own, into its lane of one replay memory, each released with its own
-epsilon (Ape-X's spread); they interleave in arrival order (asynchronous, not bit-reproducible). An actor that falls
-silent is reported and training goes on with the others (uav_trainer.actors); step outcomes from namespaces not in
-`actors` are ignored and counted. The camera and reward window go into the weights files (camera_record).
+With `actors` (namespaces; `train --actors N` sets them) it learns from several sim_node/policy_node pairs, each joined
+on its own into its lane of one replay memory and released with its own epsilon (Ape-X); they interleave in arrival
+order (not bit-reproducible). An actor that falls silent is reported and training goes on (uav_trainer.actors); outcomes
+from other namespaces are counted and ignored. The camera and reward window go into the weights files (camera_record).
 """
 
 from __future__ import annotations
@@ -45,9 +44,9 @@ from .trainer_settings import TrainerNodeSettings, describe
 from .trainer_status import progress_line, status_values
 from .training import RunDirError, Training
 from .training_config import RETIRED
+from .unknown_actors import UnknownActors
 
 UNWRITTEN_EXIT_CODE = 4  # the run ended, but weights files it names were not written (train says which)
-UNKNOWN_SCAN_S = 2.0  # how often the graph is searched for step outcomes from namespaces not in `actors`
 
 
 class Actor(ActorState):
@@ -57,11 +56,14 @@ class Actor(ActorState):
     def __init__(self, node: TrainerNode, index: int, namespace: str, policy: str, hw: tuple[int, int]):
         topic = lambda name: f"{namespace.rstrip('/')}/{name}" if namespace else name  # noqa: E731 ("/": the root)
         super().__init__(index, namespace, node.resolve_topic_name(topic(contract.OUTCOME_TOPIC)))
-        self.pairing = TransitionAssembler(
-            node.training.sink(index), node.actions, node.step_ns, hw, on_ready=lambda stamp: node._on_ready(self, stamp)
-        )
+        teacher = node.cfg.teacher != "none"  # sim_node's teacher_action completes each observation
+        on_ready = lambda stamp: node._on_ready(self, stamp)  # noqa: E731
+        sink = node.training.sink(index)
+        self.pairing = TransitionAssembler(sink, node.actions, node.step_ns, hw, on_ready=on_ready, teacher=teacher)
         self.node = node
         q = contract.DEEP_QOS
+        if teacher:
+            node.create_subscription(TwistStamped, topic(contract.TEACHER_TOPIC), self.on_teacher, q)
         node.create_subscription(Image, topic(contract.DEPTH_TOPIC), self.on_frame, q)
         node.create_subscription(Range, topic(contract.OUTCOME_TOPIC), self.on_outcome, q)
         node.create_subscription(TwistStamped, topic(contract.ACTION_TOPIC), lambda m: node._on_action(self, m), q)
@@ -73,7 +75,12 @@ class Actor(ActorState):
 
     def on_frame(self, msg: Image) -> None:
         self._heard()
+        self.frames_heard += 1
         self.pairing.add("frame", msg)
+
+    def on_teacher(self, msg: TwistStamped) -> None:
+        self.teachers_heard += 1
+        self.pairing.add("teacher", msg)
 
     def on_outcome(self, msg: Range) -> None:
         self._heard()
@@ -125,13 +132,12 @@ class TrainerNode(Node):
         self.started = time.monotonic()
         # unreleased_answers: answers to frames this node had not released, i.e. not in lockstep
         self.counts = {"pushes_ok": 0, "pushes_rejected": 0, "unreleased_answers": 0, "release_retries": 0}
-        self.counts.update(actors_missing=0, actors_lost=0, unknown_actor_messages=0)
-        self.unknown: dict[str, object] = {}  # step_outcome topics outside `actors`: the subscriptions counting them
+        self.counts.update(actors_missing=0, actors_lost=0)
+        self.unknown = UnknownActors(self, self.actors, self.counts)
         self.push_latency_ms: list[float] = []
         self.exit_code = 0
         self.create_timer(0.05, self._service_tick)
         self.create_timer(st.log_interval_s, self._report)
-        self.create_timer(UNKNOWN_SCAN_S, self._scan_for_unknown_actors)
         self._closed = False
         parameters = parameter_count(self.training.learner.online)
         self.get_logger().info(describe(self.cfg, self.training, parameters, namespaces, key_file))
@@ -193,7 +199,9 @@ class TrainerNode(Node):
         blob = blob if actor.weights_due(version) else None
         # Larger than any number sent before, also by this run before a restart: the policy refuses replays.
         self.push_seq = max(self.push_seq + 1, time.time_ns())
-        request = push_request(blob, self.training.epsilon(actor.index), actor.go_stamp, key=self.push_key, seq=self.push_seq)
+        fly = self.training.teacher_flies(actor.pairing.teacher_of(actor.go_stamp))  # a teacher's action, or None
+        eps = self.training.epsilon(actor.index)
+        request = push_request(blob, eps, actor.go_stamp, key=self.push_key, seq=self.push_seq, fly_action=fly)
         fut = actor.push_client.call_async(request)
         t0 = time.perf_counter()
         actor.sent(fut, time.monotonic())  # in flight before its answer can be heard
@@ -203,9 +211,10 @@ class TrainerNode(Node):
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
-        if self.training.failed and self.exit_code == 0:
-            self.get_logger().error(self.training.failed)
-            self.exit_code = 3
+        why = self.training.failed or next(filter(None, (a.no_teacher(self.cfg.teacher) for a in self.actors)), None)
+        if why and self.exit_code == 0:  # a failed run (3), or one whose simulator has no teacher (2)
+            self.get_logger().error(why)
+            self.exit_code = 3 if self.training.failed else 2
             rclpy.try_shutdown(context=self.context)
             return
         if self.training.budget_done and not self._closed:
@@ -246,23 +255,6 @@ class TrainerNode(Node):
             self.get_logger().error(f"policy rejected pushed weights: {res.message if res else 'no answer'}")
             actor.pushed_version = None  # the next release carries the weights again
         self._send_go(actor)
-
-    def _scan_for_unknown_actors(self) -> None:
-        """Step outcomes published in a namespace not among the actors are counted, never learnt from."""
-        known = {a.outcome_topic for a in self.actors}
-        suffix = "/" + contract.OUTCOME_TOPIC
-        for topic, _types in self.get_topic_names_and_types():
-            if not topic.endswith(suffix) or topic in known or topic in self.unknown:
-                continue
-            ns = topic[: -len(suffix)] or "/"
-            self.get_logger().warning(
-                f"ignoring {topic}: namespace {ns} is not among the actors {[a.ns or '(this namespace)' for a in self.actors]} "
-                "(its messages are counted on /diagnostics as unknown_actor_messages)"
-            )
-            self.unknown[topic] = self.create_subscription(Range, topic, self._on_unknown_outcome, contract.DEEP_QOS)
-
-    def _on_unknown_outcome(self, _msg: Range) -> None:
-        self.counts["unknown_actor_messages"] += 1
 
     # -- reporting ----------------------------------------------------------------------
     def _report(self) -> None:

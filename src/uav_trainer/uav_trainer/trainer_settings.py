@@ -49,13 +49,7 @@ class TrainerNodeSettings:
     torch_threads: int = setting(1, "Torch intra-op threads for the learner (2 cores are shared)", 1, 256)
 
     def actor_namespaces(self) -> list[str]:
-        """The actor namespaces as given (one unnamed actor, this node's namespace, when none), or ParameterError (also
-        for a teacher, which trains in process only so far)."""
-        if self.trainer.teacher != "none":
-            raise ParameterError(
-                f"parameter 'teacher'={self.trainer.teacher!r}: a teacher trains in process only so far "
-                f"(python -m uav_trainer.inprocess --teacher {self.trainer.teacher}); over ROS use 'none'"
-            )
+        """The actor namespaces as given (one unnamed actor, this node's namespace, when none), or ParameterError."""
         for ns in self.actors:
             try:
                 validate_namespace(ns)

@@ -49,6 +49,7 @@ class Training:
         self.cfg = cfg
         self.actors = actors
         self.log = log
+        self._who_flies = np.random.default_rng([cfg.seed, 7])  # teacher_flies
         self.dir = Path(run_dir)
         try:  # refused at once, in one line, rather than as a traceback at the first write
             self.dir.mkdir(parents=True, exist_ok=True)
@@ -69,6 +70,7 @@ class Training:
             height=cfg.input_size_px,
             width=cfg.input_size_px,
             frames=cfg.frames,
+            past_actions=cfg.past_actions,
             conv_channels=tuple(cfg.conv_channels),
             **{name: getattr(cfg, name) for name in SAM_SIZES},
         )
@@ -209,6 +211,14 @@ class Training:
         c = self.cfg
         base = linear_epsilon(self.env_steps, c.epsilon_start, c.epsilon_end, c.decay_steps)
         return base if self.actors == 1 else base ** (1.0 + 7.0 * actor / (self.actors - 1))
+
+    def teacher_flies(self, label: int) -> int | None:
+        """The teacher's action `label` (-1: none) when the teacher flies this step instead of the student, else None:
+        drawn (one draw a labelled decision, in process as over ROS) with a probability falling from teacher_act_start
+        to 0 over the budget."""
+        if label < 0:
+            return None
+        return label if self._who_flies.random() < self.cfg.teacher_act_probability(self.env_steps) else None
 
     def _memory(self, actor: int) -> ReplayMemory:
         return self.replay if self.actors == 1 else self.replay.lanes[actor]
@@ -489,8 +499,8 @@ class ActorSink:
     def add_first(self, frame: np.ndarray) -> None:
         self.training.add_first(frame, self.actor)
 
-    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray) -> float:
-        return self.training.add_step(action, beta_m, collided, next_frame, self.actor)
+    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1) -> float:
+        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher)
 
     def add_truncated(self, first_frame: np.ndarray) -> None:
         self.training.add_truncated(first_frame, self.actor)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from uav_common import contract
 from uav_common.settings import setting
 from uav_policy.net_config import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig
 
@@ -35,7 +36,6 @@ def linear_epsilon(step: int, start: float, end: float, decay_steps: int) -> flo
 
 
 DEVICES = ("auto", "cpu", "cuda")
-TEACHERS = ("none", "stack", "all")  # none, or uav_sim.planner's knowledge
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,9 +80,10 @@ class TrainerConfig:
     )
     teacher: str = setting(
         "none",
-        "A teacher for every training frame (uav_sim.planner, in-process trainer only): stack, the planner knowing what "
-        "the last frame_stack frames showed (realizable from the state); all, knowing the whole world; none, pure RL",
-        choices=TEACHERS,
+        "A teacher for every training frame (uav_sim.planner; over ROS sim_node's teacher_action, which train turns on): "
+        "stack, the planner knowing what the last frame_stack frames showed (realizable from the state); all, knowing the "
+        "whole world; none, pure RL",
+        choices=contract.TEACHERS,
     )
     teacher_act_start: float = setting(
         1.0,
@@ -108,6 +109,11 @@ class TrainerConfig:
     input_size_px: int = setting(64, "Square network input and camera image (px); policy_node's input_height/width", 8, 512)
     frames: int = setting(
         NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
+    )
+    past_actions: bool = setting(
+        NetConfig.past_actions,
+        "Memory of the motion: the network also reads the actions flown since each older frame of the stack "
+        "(docs/ALGORITHM.md); policy_node takes it from the weights",
     )
     conv_channels: tuple[int, ...] = setting(
         NetConfig.conv_channels,
@@ -164,6 +170,8 @@ class TrainerConfig:
         changed = [k for k in SAM_SIZES if getattr(self, k) != getattr(TrainerConfig, k)]
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
+        if self.past_actions and self.frames < 2:
+            raise ValueError("'past_actions' needs 'frame_stack' >= 2 (the actions between its frames)")
         snapshot_steps(self.snapshots, self.total_steps)
 
 
