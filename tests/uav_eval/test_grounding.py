@@ -62,6 +62,13 @@ def test_a_network_that_looks_at_the_obstacle_scores_high_and_a_constant_map_sco
     flat = grounding.summarise(grounding.measure(Uniform(), frames, empty))
     assert looks["scenes"] == 26 and looks["ratio"] > 3.0 and looks["hits"] > 0.9
     assert flat["ratio"] == pytest.approx(1.0) and flat["hits"] == 0.0
+    # The planner's reason: the obstacle that bounds the decision from the hovering pose, in the near scenes.
+    near = [f for scene, f in frames if scene.kind == "pillar" and "1.5 m" in scene.name]
+    assert all(
+        f.reason is not None and (f.reason & grounding.obstacle_mask(f, empty)).sum() > 0.95 * f.reason.sum() for f in near
+    )
+    assert looks["reason_scenes"] >= len(near) and looks["reason_mass"] > 2.0 and looks["reason_top"] > 0.8
+    assert flat["reason_mass"] == pytest.approx(1.0) and flat["reason_scenes"] == looks["reason_scenes"]
 
 
 def test_the_pair_scenes_are_measured_on_the_nearer_obstacle(rendered):

@@ -225,3 +225,41 @@ def test_grounded_readouts_reach_the_q_values_only_through_their_attended_cells(
     q, _ = net(x)
     q2, _ = net(depth_batch(2, seed=5))
     torch.testing.assert_close(q, q2)
+
+
+@pytest.mark.parametrize("model", ["sam", "cnn"])
+def test_a_network_with_past_actions_reads_them_and_loads_them_from_its_file(model, tmp_path):
+    """past_actions: the actions between the stacked frames enter the network (-1 or None: none, as at an episode's
+    start); a weights file says so, and whoever loads it builds that network (policy_node takes it from the file);
+    bound to one state's past (with_past) it answers states alone, as the insight measures call it."""
+    from uav_policy import weights as wio
+    from uav_policy.networks import with_past
+
+    cfg = NetConfig(model=model, sam_readout="query", past_actions=True)
+    net = build_network(cfg, seed=3)
+    x = torch.rand(4, 5, 64, 64) * 8
+    past = torch.tensor([[0, 1, 2, 3], [3, 2, 1, 0], [-1, -1, -1, -1], [-1, -1, 0, 0]])
+    q, _ = net(x, past)
+    q_none, _ = net(x)
+    assert torch.equal(q[2], q_none[2]), "no past actions: as at an episode's start"
+    assert not torch.allclose(q[0], q_none[0]) and not torch.allclose(q[0], net(x, past[[1, 1, 1, 1]])[0][0])
+    bound = with_past(net, past[3].numpy())
+    torch.testing.assert_close(bound(x[3:4])[0][0], q[3])
+    assert with_past(build_network(NetConfig(model=model), seed=3), past[3].numpy()).cfg.past_actions is False
+    path = tmp_path / "w.safetensors"
+    wio.save_file(net, cfg, path)
+    made = wio.config_for(model, path)
+    assert made.past_actions and torch.equal(wio.load_file(path, made)(x, past)[0], q)
+    state, fs = x[0].numpy(), FrameStack(5)
+    fs.reset(state[0])
+    for k, a in enumerate((1, 0, 3, 2)):
+        fs.push(state[k + 1], a)
+    agent = Agent(net, cfg)
+    np.testing.assert_allclose(
+        agent.q_values(fs.state(), fs.past())[0],
+        net(x[:1], torch.tensor([[1, 0, 3, 2]]))[0][0].detach().numpy(),
+        rtol=1e-5,
+        atol=1e-6,
+    )
+    with pytest.raises(ValueError, match="past_actions needs a stack of at least 2 frames"):
+        NetConfig(frames=1, past_actions=True).validate()

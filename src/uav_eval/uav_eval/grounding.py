@@ -8,7 +8,10 @@ vehicle). Per scene:
 
 - `ratio`: the explanation's mass on the obstacle's pixels over their share of the image (1 = no preference); with
   two obstacles, on the nearer one;
-- `hit`: the node whose mass grew most against the empty room's map sees the obstacle.
+- `hit`: the node whose mass grew most against the empty room's map sees the obstacle;
+- `reason_ratio`, `reason_top`: the same mass ratio on what the privileged planner's decision from the hovering pose is
+  about (its reason, docs/INSIGHT.md: an obstacle the camera shows that bounds the clearance of the plan kept or rules
+  out an action), and whether the map's top node sees it; only in scenes where the decision has a reason in view.
 
 The obstacle's pixels are those the obstacle makes nearer in the exact depth (no sensor noise), so no labelling
 is needed. SAM is explained by the attention its decision uses, the CNN by Grad-CAM (uav_policy.insight).
@@ -35,6 +38,7 @@ import numpy as np
 import torch
 
 from uav_policy.insight import explanation, increase_on, mass_ratio, received
+from uav_policy.map_checks import reason_measures
 
 ROOM_M = 26.0  # the empty room's side: its walls stand beyond the 10 m range from its centre
 START = (0.0, 0.0, 1.0)
@@ -95,6 +99,7 @@ class Frame:
     state: np.ndarray  # (frames, H, W) on the network's input, as measured
     exact: np.ndarray  # (H, W) the exact depth on the network's input
     only_first: np.ndarray | None = None  # with several obstacles: the exact depth with the measured one alone
+    reason: np.ndarray | None = None  # the pixels of the planner's reason on the input (None: nothing bounds it)
 
 
 def _world(obstacles):
@@ -105,21 +110,25 @@ def _world(obstacles):
 
 def render(obstacles, sim_cfg, frames: int, input_hw: tuple[int, int], hfov_deg: float) -> Frame:
     """The hovering vehicle's state in the empty room with `obstacles`, and the exact depth on the input."""
+    from uav_sim.planner import SimPlanner
     from uav_sim.simulator import Simulator
     from uav_sim.stacked_sim import StackedSim
+
+    from .flights import reason_pixels
 
     def exact(obs):
         sim = Simulator(_world(obs), sim_cfg)
         try:
             env = StackedSim(sim, frames, input_hw=input_hw, trained_hfov_deg=hfov_deg)
             mapped = env.to_input(sim.render()) if env.to_input is not None else sim.render()
-            return env.state.copy(), np.asarray(mapped, np.float32)
+            reason = reason_pixels(SimPlanner(sim), env)  # the planner knowing what the frames show: the scene
+            return env.state.copy(), np.asarray(mapped, np.float32), reason
         finally:
             sim.close()
 
-    state, depth = exact(obstacles)
+    state, depth, reason = exact(obstacles)
     alone = exact(obstacles[:1])[1] if len(obstacles) > 1 else None
-    return Frame(state, depth, alone)
+    return Frame(state, depth, alone, reason)
 
 
 def obstacle_mask(frame: Frame, empty: Frame) -> np.ndarray:
@@ -150,6 +159,8 @@ class SceneResult:
     ratio: float  # the explanation's mass on it over that share
     hit: bool  # the largest increase over the empty room lies on it
     action: int
+    reason_ratio: float = math.nan  # the mass on the planner's reason over its share (nan: no reason in view)
+    reason_top: float = math.nan  # 1 when the map's top node sees the reason, 0 when not, nan: no reason in view
 
 
 def measure(net, scene_frames: list[tuple[Scene, Frame]], empty: Frame) -> list[SceneResult]:
@@ -160,6 +171,7 @@ def measure(net, scene_frames: list[tuple[Scene, Frame]], empty: Frame) -> list[
         mask = obstacle_mask(frame, empty)
         action, dist = explain(net, frame.state)
         ratio = mass_ratio(dist, mask, grid)
+        on_reason = reason_measures(dist, frame.reason, grid) if frame.reason is not None else None
         out.append(
             SceneResult(
                 scene.name,
@@ -168,20 +180,24 @@ def measure(net, scene_frames: list[tuple[Scene, Frame]], empty: Frame) -> list[
                 math.nan if ratio is None else ratio,
                 increase_on(dist, base, mask, grid),
                 action,
+                *((math.nan, math.nan) if on_reason is None else (on_reason[0], float(on_reason[1]))),
             )
         )
     return out
 
 
 def summarise(results: list[SceneResult]) -> dict[str, float]:
-    """The mean ratio and the share of hits over the scenes whose obstacle is in view."""
+    """The mean ratio and the share of hits over the scenes whose obstacle is in view; the mean mass on the planner's
+    reason and the share of top nodes on it over the scenes with a reason in view."""
     seen = [r for r in results if r.obstacle_share > 0]
-    if not seen:
-        return {"scenes": 0, "ratio": math.nan, "hits": math.nan}
+    why = [r for r in results if not math.isnan(r.reason_ratio)]
     return {
         "scenes": len(seen),
-        "ratio": float(np.mean([r.ratio for r in seen])),
-        "hits": float(np.mean([r.hit for r in seen])),
+        "ratio": float(np.mean([r.ratio for r in seen])) if seen else math.nan,
+        "hits": float(np.mean([r.hit for r in seen])) if seen else math.nan,
+        "reason_scenes": len(why),
+        "reason_mass": float(np.mean([r.reason_ratio for r in why])) if why else math.nan,
+        "reason_top": float(np.mean([r.reason_top for r in why])) if why else math.nan,
     }
 
 
@@ -309,7 +325,11 @@ def main(argv=None) -> int:
         ap.error("--weights names one policy's files: give one --model with it")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    lines = ["| policy | scenes | mass on the obstacle / its share | largest increase on the obstacle |", "|---|---|---|---|"]
+    lines = [
+        "| policy | scenes | mass on the obstacle / its share | largest increase on the obstacle "
+        "| scenes with a reason | mass on the reason | top node on the reason |",
+        "|---|---|---|---|---|---|---|",
+    ]
     rows, sanity_rows = [], []
     for model in models:
         files = list(a.weights) if a.weights else weights_or_packaged(model, "")
@@ -326,13 +346,18 @@ def main(argv=None) -> int:
         _, frames, empty = run(net, hfov, sensor, a.sensor_scale)
         results = measure(net, frames, empty)
         s = summarise(results)
-        lines.append(f"| {label} | {s['scenes']} | {s['ratio']:.2f}x | {100 * s['hits']:.0f} % |")
+        row = lambda s: (  # noqa: E731
+            f"| {s['scenes']} | {s['ratio']:.2f}x | {100 * s['hits']:.0f} % "
+            f"| {s['reason_scenes']} | {s['reason_mass']:.2f}x | {100 * s['reason_top']:.0f} % |"
+        )
+        lines.append(f"| {label} " + row(s))
         for kind in ("pillar", "box", "wall", "pair"):
-            k = summarise([r for r in results if r.kind == kind])
-            lines.append(f"| &nbsp; {kind} | {k['scenes']} | {k['ratio']:.2f}x | {100 * k['hits']:.0f} % |")
+            lines.append(f"| &nbsp; {kind} " + row(summarise([r for r in results if r.kind == kind])))
         rows += [dict(policy=model, **dataclasses.asdict(r)) for r in results]
         print(
-            f"{label}: {s['ratio']:.2f}x its share on the obstacle, largest increase on it in {100 * s['hits']:.0f} % of scenes"
+            f"{label}: {s['ratio']:.2f}x its share on the obstacle, largest increase on it in {100 * s['hits']:.0f} % of scenes; "
+            f"{s['reason_mass']:.2f}x on the planner's reason, top node on it in {100 * s['reason_top']:.0f} % "
+            f"of the {s['reason_scenes']} scenes with one"
         )
         if a.sanity:
             for r in sanity(net, frames, empty):

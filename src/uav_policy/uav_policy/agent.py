@@ -51,7 +51,8 @@ class Agent:
         with self._lock:
             net = self._net
         x = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)).unsqueeze(0).to(self.device)
-        q, w = net(x, None if past is None else torch.as_tensor(past).reshape(1, -1))
+        reads_past = past is not None and getattr(getattr(net, "cfg", None), "past_actions", False)
+        q, w = net(x, torch.as_tensor(past).reshape(1, -1).to(self.device)) if reads_past else net(x)
         return q[0].float().cpu().numpy(), None if w is None else w[0].float().cpu().numpy()
 
     def act(
