@@ -306,30 +306,32 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
 
 
-@pytest.mark.parametrize("teacher", ["none", "stack"])
-def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, teacher):
+@pytest.mark.parametrize("recipe", ["shipped", "teacher"])
+def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, recipe):
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
-    trainer train one recipe, read from one file. With a teacher (sim_node's planner labelling every frame, and flying
-    the steps the trainer's releases say) and a network reading the past actions (policy_node's own), too."""
+    trainer train one recipe, read from one file. The teacher recipe too (sim_node's planner labelling every frame, and
+    flying the steps the trainer's releases say), here with a network reading the past actions (policy_node's own)."""
     import torch
 
     from uav_trainer import inprocess
 
     steps, seed, learn = (
         (420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300})
-        if teacher == "none"
-        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200, "teacher": teacher, "past_actions": True})
+        if recipe == "shipped"
+        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200, "past_actions": True})
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={str(v).lower()}")] + ["--validation-steps", "0"]
+    extra += ["--recipe", recipe]
     r, logs = run_train(
-        ros_dir, "80" if teacher == "none" else "81", "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240
+        ros_dir, str(80 + (recipe != "shipped")), "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240
     )
-    assert "recipes/shipped.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
+    assert f"recipes/{recipe}.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
     args = ["--steps", str(steps), "--seed", str(seed), "--run-dir", str(ip_dir), "--params-dir", str(ROOT / "params")]
+    args += [] if recipe == "shipped" else ["--recipe", recipe]
     flag = lambda k: f"--{k.replace('_', '-')}"  # noqa: E731
     args += [x for k, v in learn.items() for x in ((flag(k),) if v is True else (flag(k), str(v)))]  # True: a switch
     snaps = snapshot_steps(9, steps)
@@ -339,7 +341,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     finally:
         torch.set_num_threads(threads)
     ros_rows = (ros_dir / "episodes.csv").read_text().splitlines()
-    assert len(ros_rows) > (20 if teacher == "none" else 5) and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
+    assert len(ros_rows) > (20 if recipe == "shipped" else 5) and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
     names = [f"policy_sam_step{n}.safetensors" for n in snaps] + ["policy_sam.safetensors"]
     for name in names:
         made = wio.config_for("sam", ros_dir / name)  # the recipe's readout
@@ -349,9 +351,9 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     # replay_ratio 0.5 after learning_starts, the last step's updates included; no step after the budget.
     starts = learn["learning_starts"]
     assert f"({steps} env steps, {(steps - starts) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
-    if teacher != "none":  # both runs learnt from the planner's labels, flying its actions at first
-        assert f"teacher: the planner ({teacher})" in capsys.readouterr().out
-        assert f"teacher_action: the planner ({teacher})" in logs["sim"]
+    if recipe == "teacher":  # both runs learnt from the planner's labels, flying its actions at first
+        assert "teacher: the planner (stack)" in capsys.readouterr().out
+        assert "teacher_action: the planner (stack)" in logs["sim"]
 
 
 def test_a_trainer_with_a_teacher_beside_a_simulator_without_one_stops_naming_why(ros, tmp_path):
@@ -551,7 +553,7 @@ def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
         (("--steps", "0"), "--steps must be positive"),
         (
             ("--recipe", "single"),
-            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, shipped, wide150)",
+            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, shipped, teacher, wide150)",
         ),
         (("--learning", "concurrent"), "--learning was removed: train always learns in lockstep"),
         (("--max-rate-hz=30",), "--max-rate-hz was removed"),
