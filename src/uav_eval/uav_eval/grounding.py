@@ -201,6 +201,18 @@ def summarise(results: list[SceneResult]) -> dict[str, float]:
     }
 
 
+def table_row(s: dict[str, float]) -> str:
+    """A summary's cells in grounding.md ('-' where no scene was measured)."""
+
+    def cell(v: float, unit: str) -> str:
+        return "-" if math.isnan(v) else f"{100 * v:.0f} %" if unit == "%" else f"{v:.2f}x"
+
+    return (
+        f"| {s['scenes']} | {cell(s['ratio'], 'x')} | {cell(s['hits'], '%')} "
+        f"| {s['reason_scenes']} | {cell(s['reason_mass'], 'x')} | {cell(s['reason_top'], '%')} |"
+    )
+
+
 def layer_groups(net) -> list[tuple[str, list[torch.nn.Module]]]:
     """The network's layers from the output down to the input (an ensemble: the same layer of every member at once),
     for cascading randomisation."""
@@ -346,13 +358,9 @@ def main(argv=None) -> int:
         _, frames, empty = run(net, hfov, sensor, a.sensor_scale)
         results = measure(net, frames, empty)
         s = summarise(results)
-        row = lambda s: (  # noqa: E731
-            f"| {s['scenes']} | {s['ratio']:.2f}x | {100 * s['hits']:.0f} % "
-            f"| {s['reason_scenes']} | {s['reason_mass']:.2f}x | {100 * s['reason_top']:.0f} % |"
-        )
-        lines.append(f"| {label} " + row(s))
+        lines.append(f"| {label} " + table_row(s))
         for kind in ("pillar", "box", "wall", "pair"):
-            lines.append(f"| &nbsp; {kind} " + row(summarise([r for r in results if r.kind == kind])))
+            lines.append(f"| &nbsp; {kind} " + table_row(summarise([r for r in results if r.kind == kind])))
         rows += [dict(policy=model, **dataclasses.asdict(r)) for r in results]
         print(
             f"{label}: {s['ratio']:.2f}x its share on the obstacle, largest increase on it in {100 * s['hits']:.0f} % of scenes; "
