@@ -37,6 +37,7 @@ class ActorState:
         self.unanswered_since: float | None = None  # its policy was sent a release not answered since
         self.silent: str | None = None  # reported missing or lost: "sim" (said nothing) or "policy" (answered nothing)
         self.frames_heard = self.teachers_heard = 0  # depth frames and teacher actions from its simulator
+        self.fly_for: tuple[int, int | None] | None = None  # (stamp, the teacher's action flown or None) of the release
 
     def no_teacher(self, teacher: str) -> str | None:
         """With a teacher, the error that stops the run when its simulator sends frames but no teacher_action: a camera

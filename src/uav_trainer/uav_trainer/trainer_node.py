@@ -199,7 +199,9 @@ class TrainerNode(Node):
         blob = blob if actor.weights_due(version) else None
         # Larger than any number sent before, also by this run before a restart: the policy refuses replays.
         self.push_seq = max(self.push_seq + 1, time.time_ns())
-        fly = self.training.teacher_flies(actor.pairing.teacher_of(actor.go_stamp))  # a teacher's action, or None
+        if actor.fly_for is None or actor.fly_for[0] != actor.go_stamp:  # drawn once a frame (a release sent again keeps it)
+            actor.fly_for = (actor.go_stamp, self.training.teacher_flies(actor.pairing.teacher_of(actor.go_stamp)))
+        fly = actor.fly_for[1]  # the teacher's action when it flies this step, else None
         eps = self.training.epsilon(actor.index)
         request = push_request(blob, eps, actor.go_stamp, key=self.push_key, seq=self.push_seq, fly_action=fly)
         fut = actor.push_client.call_async(request)
