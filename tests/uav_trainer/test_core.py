@@ -18,29 +18,24 @@ def frame(v):
 def test_replay_stacks_match_the_policy_stack_across_episode_boundaries():
     mem = ReplayMemory(capacity=100, frame_shape=(4, 4), frames=5, seed=0)
     fs = FrameStack(5)
-    states, pasts = {}, {}
+    states = {}
     mem.add_first(frame(1))
-    states[0], pasts[0] = fs.reset(frame(1)), fs.past()
+    states[0] = fs.reset(frame(1))
     v, slot = 2, 0
     for step in range(12):
         done = step == 6  # a collision: frame 8 starts a new episode
         mem.add_transition(action=step % 4, reward=float(step), done=done, next_depth=frame(v))
         slot += 1
-        states[slot] = fs.reset(frame(v)) if done else fs.push(frame(v), step % 4)
-        pasts[slot] = fs.past()  # the actions between the stacked frames (past_actions networks read them)
+        states[slot] = fs.reset(frame(v)) if done else fs.push(frame(v))
         v += 1
     for i, expected in states.items():
         np.testing.assert_array_equal(mem.stack(i), expected, err_msg=f"slot {i}")
-        np.testing.assert_array_equal(mem.pasts(np.array([i]))[0], pasts[i], err_msg=f"slot {i}'s past actions")
-    assert pasts[9].tolist() == [-1, -1, 3, 0] and pasts[5].tolist() == [1, 2, 3, 0]
     assert mem.stack(7)[:, 0, 0].tolist() == [8, 8, 8, 8, 8]  # first frame of episode 2, repeated
     assert mem.stack(9)[:, 0, 0].tolist() == [8, 8, 8, 9, 10]
     batch = mem.sample(64)
     for k, i in enumerate(batch["index"]):
         np.testing.assert_array_equal(batch["state"][k], states[i])
         np.testing.assert_array_equal(batch["next_state"][k], states[i + 1])
-        np.testing.assert_array_equal(batch["past"][k], pasts[i])
-        np.testing.assert_array_equal(batch["next_past"][k], pasts[i + 1])
         assert batch["reward"][k] == float(i) and batch["done"][k] == (i == 6)
     assert 12 not in set(batch["index"]), "the newest frame has no transition yet"
 

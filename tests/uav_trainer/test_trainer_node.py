@@ -311,7 +311,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
     trainer train one recipe, read from one file. The teacher recipe too (sim_node's planner labelling every frame, and
-    flying the steps the trainer's releases say), here with a network reading the past actions (policy_node's own)."""
+    flying the steps the trainer's releases say)."""
     import torch
 
     from uav_trainer import inprocess
@@ -319,10 +319,10 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     steps, seed, learn = (
         (420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300})
         if recipe == "shipped"
-        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200, "past_actions": True})
+        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200})
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
-    extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={str(v).lower()}")] + ["--validation-steps", "0"]
+    extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
     extra += ["--recipe", recipe]
     r, logs = run_train(
         ros_dir, str(80 + (recipe != "shipped")), "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240
@@ -332,8 +332,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
     args = ["--steps", str(steps), "--seed", str(seed), "--run-dir", str(ip_dir), "--params-dir", str(ROOT / "params")]
     args += [] if recipe == "shipped" else ["--recipe", recipe]
-    flag = lambda k: f"--{k.replace('_', '-')}"  # noqa: E731
-    args += [x for k, v in learn.items() for x in ((flag(k),) if v is True else (flag(k), str(v)))]  # True: a switch
+    args += [x for k, v in learn.items() for x in (f"--{k.replace('_', '-')}", str(v))]
     snaps = snapshot_steps(9, steps)
     threads = torch.get_num_threads()
     try:

@@ -117,37 +117,26 @@ class NetworkInput:
 
 
 class FrameStack:
-    """The last N frames and the actions flown between them (`past`: a network with past_actions reads them)."""
-
     def __init__(self, frames: int = 5):
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
         self.frames = frames
         self._buf: deque[np.ndarray] = deque(maxlen=frames)
-        self._actions: deque[int] = deque([-1] * (frames - 1), maxlen=frames - 1)
 
     def reset(self, first: np.ndarray) -> np.ndarray:
-        """Start an episode: the stack is the first frame repeated (as DQN does at reset), with no actions between."""
+        """Start an episode: the stack is the first frame repeated (as DQN does at reset)."""
         self._buf.clear()
         for _ in range(self.frames):
             self._buf.append(first)
-        self._actions.extend([-1] * (self.frames - 1))
         return self.state()
 
-    def push(self, frame: np.ndarray, action: int = -1) -> np.ndarray:
-        """The next frame, `action` the one flown from the newest to it (-1: not one of the table's)."""
+    def push(self, frame: np.ndarray) -> np.ndarray:
         if not self._buf:
             return self.reset(frame)
         if frame.shape != self._buf[-1].shape:
             raise ValueError(f"frame shape {frame.shape} differs from the stack's {self._buf[-1].shape}")
         self._buf.append(frame)
-        self._actions.append(int(action))
         return self.state()
-
-    def past(self) -> np.ndarray:
-        """(frames - 1,) int64: the action flown from each older frame to the next, oldest first (-1: none, before the
-        episode's first frame), as the replay memory rebuilds them (ReplayMemory.pasts)."""
-        return np.array(self._actions, dtype=np.int64)
 
     def state(self) -> np.ndarray:
         """(frames, H, W) float32, oldest first."""
@@ -159,7 +148,6 @@ class FrameStack:
             raise ValueError(f"a state of {len(state)} frames for a stack of {self.frames}")
         self._buf.clear()
         self._buf.extend(state)
-        self._actions.extend([-1] * (self.frames - 1))  # how the camera moved between them is not known
 
     @property
     def empty(self) -> bool:

@@ -11,7 +11,6 @@ import math
 import numpy as np
 
 from uav_policy.insight import Insight, InsightSummary, explanation
-from uav_policy.networks import with_past
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 
 from . import ENSEMBLE_SEP, PLANNER_WEIGHTS, PLANNERS
@@ -255,13 +254,11 @@ def evaluate_inprocess(
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
             state = flight.env.state  # a new array every step: the step below leaves it as it is
-            past = flight.env.stack.past()  # and the actions between its frames (networks with past_actions)
             measured = insight is not None and step % insight_every == 0
             reason = reason_pixels(reasons, env) if measured else None
             s = flight.step(0.0)
             if measured:
-                bound = with_past(net, past)
-                insight.observe(bound, state, s.action, explanation(bound, state, s.action, s.attention), reason)
+                insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention), reason)
             before, r = s.before.pose, s.after
             reward += r.reward
             if r.collided:

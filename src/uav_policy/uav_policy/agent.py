@@ -45,21 +45,17 @@ class Agent:
             self._net = net
 
     @torch.no_grad()
-    def q_values(self, state: np.ndarray, past: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Q (actions,) and attention weights (heads, nodes, nodes) or None, for one state (and its past actions, read
-        by a network with past_actions)."""
+    def q_values(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Q (actions,) and attention weights (heads, nodes, nodes) or None, for one state."""
         with self._lock:
             net = self._net
         x = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)).unsqueeze(0).to(self.device)
-        reads_past = past is not None and getattr(getattr(net, "cfg", None), "past_actions", False)
-        q, w = net(x, torch.as_tensor(past).reshape(1, -1).to(self.device)) if reads_past else net(x)
+        q, w = net(x)
         return q[0].float().cpu().numpy(), None if w is None else w[0].float().cpu().numpy()
 
-    def act(
-        self, state: np.ndarray, epsilon: float, past: np.ndarray | None = None
-    ) -> tuple[int, np.ndarray, np.ndarray | None, bool]:
+    def act(self, state: np.ndarray, epsilon: float) -> tuple[int, np.ndarray, np.ndarray | None, bool]:
         """(action, q, attention, explored): random with probability epsilon, else argmax Q."""
-        q, w = self.q_values(state, past)
+        q, w = self.q_values(state)
         if self.rng.random() < epsilon:
             return int(self.rng.integers(len(q))), q, w, True
         return int(np.argmax(q)), q, w, False

@@ -15,7 +15,6 @@ from collections.abc import Callable
 import numpy as np
 
 from .insight import Insight, explanation
-from .networks import with_past
 
 
 class Explainer:
@@ -35,15 +34,12 @@ class Explainer:
         decision: int,
         saliency: Callable[[np.ndarray], None] | None,
         inline: bool,
-        past: np.ndarray | None = None,
     ) -> None:
-        """After the `decision`-th decision (on `state` and its `past` actions, with `q` and SAM's `attention`):
-        `saliency(rows)`, when given, publishes the CNN's map; the decision is measured when due. `inline`: now, else
-        on the worker."""
+        """After the `decision`-th decision (on `state`, with `q` and SAM's `attention`): `saliency(rows)`, when
+        given, publishes the CNN's map; the decision is measured when due. `inline`: now, else on the worker."""
         measure = self.every > 0 and decision % self.every == 0
         if not (measure or saliency):
             return
-        net = with_past(net, past)
 
         def job():
             try:

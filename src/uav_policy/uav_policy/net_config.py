@@ -49,9 +49,6 @@ class NetConfig:
     feature_norm: bool = (
         False  # LayerNorm before the dueling heads: files that record it load; no recipe trains it (it did not help)
     )
-    # Memory of the motion: the actions flown since each older frame of the stack (frames - 1 of them, one-hot, none
-    # before the episode's start) enter beside the image features (SAM: added to every node; CNN: to the hidden layer).
-    past_actions: bool = False
 
     def __post_init__(self):
         # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)
@@ -62,8 +59,6 @@ class NetConfig:
     def validate(self) -> None:
         if type(self.feature_norm) is not bool:
             raise ValueError(f"feature_norm must be true or false, got {self.feature_norm!r}")
-        if type(self.past_actions) is not bool:
-            raise ValueError(f"past_actions must be true or false, got {self.past_actions!r}")
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         if self.sam_readout not in SAM_READOUTS:
@@ -77,8 +72,6 @@ class NetConfig:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by heads ({self.heads})")
         if type(self.frames) is not int or not 1 <= self.frames <= MAX_FRAMES or self.actions < 2:
             raise ValueError(f"need frames in [1, {MAX_FRAMES}] and actions >= 2, got {self.frames!r} and {self.actions!r}")
-        if self.past_actions and self.frames < 2:
-            raise ValueError("past_actions needs a stack of at least 2 frames (the actions between them)")
         if self.height < 8 or self.width < 8:
             raise ValueError(f"input {self.width}x{self.height} is too small (>= 8x8)")
         # Each trunk layer (4x4, stride 2, padding 1) halves the input, rounding down.

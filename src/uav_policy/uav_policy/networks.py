@@ -25,10 +25,6 @@ nodes/TOPK_SHARE of each head, unmixed, reach the dueling head, weighted by thei
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
-With `past_actions` both also take the actions flown since each older frame of the stack, (B, frames - 1) indices
-oldest first, -1 where none (before the episode's start; None: none at all), one-hot: SAM adds their embedding to
-every node before any attention, the CNN feeds them to its hidden layer beside the image features.
-
 Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10). With `feature_norm`
 the features the heads read (the CNN's hidden layer, SAM's pooled vector or, with `query`, each attended vector)
 pass a LayerNorm first (Bjorck et al. 2022 trace seed variance to features that saturate early in training).
@@ -44,7 +40,6 @@ import dataclasses
 import functools
 import math
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -57,16 +52,6 @@ def normalise_depth(depth_m: torch.Tensor, max_range_m: float) -> torch.Tensor:
     """REP 117 depth in metres -> [0, 1]; far/invalid = 1, too close = 0."""
     x = torch.nan_to_num(depth_m.float(), nan=max_range_m, posinf=max_range_m, neginf=0.0)
     return x.clamp_(0.0, max_range_m) / max_range_m
-
-
-def past_one_hot(past: torch.Tensor | None, batch: int, cfg: NetConfig, device) -> torch.Tensor:
-    """(batch, (frames - 1) * actions) one-hot of the past actions (-1 or None: all zero)."""
-    n = cfg.frames - 1
-    if past is None:
-        return torch.zeros(batch, n * cfg.actions, device=device)
-    past = past.to(device=device, dtype=torch.long).reshape(batch, n)
-    hot = torch.nn.functional.one_hot(past.clamp(min=0), cfg.actions).float() * (past >= 0).unsqueeze(-1).float()
-    return hot.reshape(batch, n * cfg.actions)
 
 
 class ConvTrunk(nn.Module):
@@ -219,7 +204,6 @@ class D3QNSam(nn.Module):
         self.trunk = ConvTrunk(cfg)
         self.register_buffer("coords", grid_coordinates(self.trunk.grid_h, self.trunk.grid_w), persistent=False)
         self.node_projection = nn.Linear(self.trunk.out_channels + 2, cfg.d_model)
-        self.past_embedding = nn.Linear((cfg.frames - 1) * cfg.actions, cfg.d_model) if cfg.past_actions else None
         self.relational_blocks = nn.ModuleList(
             RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
         )
@@ -245,25 +229,21 @@ class D3QNSam(nn.Module):
     def grid_hw(self) -> tuple[int, int]:
         return self.trunk.grid_h, self.trunk.grid_w
 
-    def forward(self, depth_m: torch.Tensor, past: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Q-values (B, actions) and the attention the decision uses: the last block's weights (B, heads, nodes,
         nodes), or the readout's weights with `attend` / `topk` (B, heads, 1, nodes) and `query` (B, heads,
-        actions + 1, nodes). `past`: the past actions (module doc), read only with past_actions."""
-        return self.from_features(self.trunk(depth_m), past)
+        actions + 1, nodes)."""
+        return self.from_features(self.trunk(depth_m))
 
-    def unmixed_nodes(self, fmap: torch.Tensor, past: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, h*w, d_model): one node per cell of the feature map (row-major), its coordinates appended, projected
-        (with past_actions, their embedding added)."""
+    def unmixed_nodes(self, fmap: torch.Tensor) -> torch.Tensor:
+        """(B, h*w, d_model): one node per cell of the feature map (row-major), its coordinates appended, projected."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
         coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
-        nodes = self.node_projection(torch.cat([nodes, coords], dim=-1))
-        if self.past_embedding is None:
-            return nodes
-        return nodes + self.past_embedding(past_one_hot(past, nodes.shape[0], self.cfg, nodes.device)).unsqueeze(1)
+        return self.node_projection(torch.cat([nodes, coords], dim=-1))
 
-    def from_features(self, fmap: torch.Tensor, past: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """forward() from the trunk's feature map (B, C, h, w) on."""
-        nodes = unmixed = self.unmixed_nodes(fmap, past)
+        nodes = unmixed = self.unmixed_nodes(fmap)
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)
@@ -287,7 +267,6 @@ class D3QNCnn(nn.Module):
         self.cfg = cfg
         self.trunk = ConvTrunk(cfg)
         flat = self.trunk.out_channels * self.trunk.grid_h * self.trunk.grid_w
-        flat += (cfg.frames - 1) * cfg.actions if cfg.past_actions else 0
         self.hidden = nn.Sequential(nn.Linear(flat, cfg.cnn_hidden), nn.ReLU(inplace=True))
         self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions, cfg.feature_norm)
 
@@ -296,15 +275,12 @@ class D3QNCnn(nn.Module):
         """The trunk's feature grid (Grad-CAM's cells)."""
         return self.trunk.grid_h, self.trunk.grid_w
 
-    def forward(self, depth_m: torch.Tensor, past: torch.Tensor | None = None) -> tuple[torch.Tensor, None]:
-        return self.from_features(self.trunk(depth_m), past)
+    def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return self.from_features(self.trunk(depth_m))
 
-    def from_features(self, fmap: torch.Tensor, past: torch.Tensor | None = None) -> tuple[torch.Tensor, None]:
+    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, None]:
         """forward() from the trunk's feature map (B, C, h, w) on."""
-        x = fmap.flatten(1)
-        if self.cfg.past_actions:
-            x = torch.cat([x, past_one_hot(past, x.shape[0], self.cfg, x.device)], dim=1)
-        return self.dueling_head(self.hidden(x)), None
+        return self.dueling_head(self.hidden(fmap.flatten(1))), None
 
 
 class QEnsemble(nn.Module):
@@ -327,48 +303,10 @@ class QEnsemble(nn.Module):
     def grid_hw(self) -> tuple[int, int]:
         return self.members[0].grid_hw
 
-    def forward(self, depth_m: torch.Tensor, past: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        qs, ws = zip(*(m(depth_m, past) for m in self.members), strict=True)
+    def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        qs, ws = zip(*(m(depth_m) for m in self.members), strict=True)
         q = torch.stack(qs).mean(dim=0)
         return q, None if ws[0] is None else torch.cat(ws, dim=1)
-
-
-class PastBound(nn.Module):
-    """A network with past_actions and one state's past actions bound: called on states alone (any batch of them,
-    e.g. the insight measures' masked copies of one state), as a network without past actions is."""
-
-    def __init__(self, net: nn.Module, past: torch.Tensor):
-        super().__init__()
-        self.net, self.cfg, self.past = net, net.cfg, past.reshape(1, -1)
-        if isinstance(net, QEnsemble):  # the insight measures take an ensemble's members one by one
-            self.members = [PastBound(m, past) for m in net.members]
-        else:
-            self.trunk, self.query_readout = net.trunk, getattr(net, "query_readout", None)
-
-    @property
-    def grid_hw(self) -> tuple[int, int]:
-        return self.net.grid_hw
-
-    def _past(self, batch: int) -> torch.Tensor:
-        return self.past.expand(batch, -1)
-
-    def forward(self, depth_m: torch.Tensor):
-        return self.net(depth_m, self._past(depth_m.shape[0]))
-
-    def from_features(self, fmap: torch.Tensor):
-        return self.net.from_features(fmap, self._past(fmap.shape[0]))
-
-    def unmixed_nodes(self, fmap: torch.Tensor) -> torch.Tensor:
-        return self.net.unmixed_nodes(fmap, self._past(fmap.shape[0]))
-
-
-def with_past(net: nn.Module, past) -> nn.Module:
-    """`net` answering states alone with `past` (one state's past actions) bound; `net` itself when it reads no past
-    actions or none is given."""
-    if past is None or not getattr(net.cfg, "past_actions", False):
-        return net
-    device = next(net.parameters()).device
-    return PastBound(net, torch.as_tensor(np.asarray(past), dtype=torch.long, device=device))
 
 
 def build_network(cfg: NetConfig, seed: int | None = None) -> nn.Module:

@@ -41,19 +41,11 @@ class Pilot:
         a = self.actions[action]
         return a.linear_x_mps, a.yaw_rate_radps(self.step_duration_s)
 
-    def decide(
-        self,
-        state: np.ndarray,
-        newest_input: np.ndarray,
-        epsilon: float = 0.0,
-        instead: int | None = None,
-        past: np.ndarray | None = None,
-    ) -> Decision:
-        """The decision on `state` (frames, H, W) and `past` (the actions since its older frames, FrameStack.past);
-        `newest_input` (its last frame on the network's input) is what the safety layer checks the corridor in.
-        `instead`: the action flown in place of the network's (a teacher's, in training), after the network has decided
-        as ever (its Q-values, attention and exploration draw)."""
-        action, q, w, explored = self.agent.act(state, epsilon, past)
+    def decide(self, state: np.ndarray, newest_input: np.ndarray, epsilon: float = 0.0, instead: int | None = None) -> Decision:
+        """The decision on `state` (frames, H, W); `newest_input` (its last frame on the network's input) is what the
+        safety layer checks the corridor in. `instead`: the action flown in place of the network's (a teacher's, in
+        training), after the network has decided as ever (its Q-values, attention and exploration draw)."""
+        action, q, w, explored = self.agent.act(state, epsilon)
         if instead is not None:
             action, explored = instead, False
         vx, wz = self.command_of(action)

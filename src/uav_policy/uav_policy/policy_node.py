@@ -198,21 +198,21 @@ class PolicyNode(Node):
         if depth is not None:
             net_in = self.camera(depth)
             state = self.link.state(net_in, contract.outcome_new_episode(outcome))
-            self._decide(img, depth, net_in, state, t_in, self.link.stack.past())
+            self._decide(img, depth, net_in, state, t_in)
 
-    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float, past=None) -> None:
+    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float) -> None:
         t0 = time.perf_counter()
         fly = self.link.gate.fly_action_for(contract.stamp_ns(img.header.stamp))  # a teacher's, in training
-        d = self.pilot.decide(state, net_in, self.epsilon, instead=fly, past=past)
-        self.link.flown = d.action
+        d = self.pilot.decide(state, net_in, self.epsilon, instead=fly)
         if d.safety:
             self.get_logger().info(f"safety: {d.safety}", throttle_duration_sec=2.0)
         self.out.decision(img, d, self.pilot.command_of)
         t_out = time.perf_counter()
         self.link.last_stamp = contract.stamp_ns(img.header.stamp)
-        saliency = self.out.explained(img, depth, d, (net := self.agent.net).grid_hw, self.camera.view)
+        net = self.agent.net
+        saliency = self.out.explained(img, depth, d, net.grid_hw, self.camera.view)
         inline = not self.control.active  # a simulator waits for our answer: measure now
-        self.explainer.explain(net, state, d.q, d.attention, self.stats.answered, saliency, inline, past)
+        self.explainer.explain(net, state, d.q, d.attention, self.stats.answered, saliency, inline)
         self.stats.answer(t_in, t0, t_out)
 
     async def _on_push(self, request, response):

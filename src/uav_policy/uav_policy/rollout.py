@@ -52,10 +52,10 @@ class Flight:
 
     def decide(self, epsilon: float = 0.0, instead: int | None = None) -> Decision:
         """The decision on the frames so far (the simulator does not move); `instead`: Pilot.decide's."""
-        return self.pilot.decide(self.env.state, self.env.last_input, epsilon, instead, self.env.stack.past())
+        return self.pilot.decide(self.env.state, self.env.last_input, epsilon, instead)
 
     def execute(self, d: Decision) -> Step:
         """Fly decision `d` (made by `decide` on the current frames) one step."""
         before = self.env.last
-        after = self.env.step_command(d.linear_x_mps, d.yaw_rate_radps, d.action) if d.safety else self.env.step(d.action)
+        after = self.env.step_command(d.linear_x_mps, d.yaw_rate_radps) if d.safety else self.env.step(d.action)
         return Step(d.action, d.q, d.attention, before, after, d.safety)

@@ -22,7 +22,6 @@ class SimulatorLink:
         self.stack = FrameStack(frames)
         self.gate = ReleaseGate(wait_timeout_s)
         self.last_stamp = None  # the last frame answered (the caller sets it, a camera's frames included)
-        self.flown = -1  # the action the last frame was answered with (the caller sets it): the next frame's past
 
     def add(self, stream: str, stamp: int, msg, now: float) -> tuple[dict | None, bool]:
         """A frame or outcome -> ({"frame", "outcome"} to answer now or None, whether the stamps went back: the
@@ -49,9 +48,8 @@ class SimulatorLink:
         self.stack = FrameStack(self.stack.frames)
 
     def state(self, net_in: np.ndarray, new_episode: bool) -> np.ndarray:
-        """The stack with a frame's network input on top: the state it is answered on (`stack.past()`: the actions
-        between its frames)."""
-        return self.stack.reset(net_in) if new_episode or self.stack.empty else self.stack.push(net_in, self.flown)
+        """The stack with a frame's network input on top: the state it is answered on."""
+        return self.stack.reset(net_in) if new_episode or self.stack.empty else self.stack.push(net_in)
 
     def expired(self, now: float) -> list:
         """wait_for_trainer: frames the trainer has not released in time, to answer anyway (so the vehicle never

@@ -326,13 +326,12 @@ def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
 
 
 def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
-    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout, feature norm and past-action input: the
-    architecture a file made as `made` is loaded with."""
+    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout and feature norm: the architecture a file made
+    as `made` is loaded with."""
     return dataclasses.replace(
         cfg,
         sam_readout=made.sam_readout,
         feature_norm=made.feature_norm,
-        past_actions=made.past_actions,
         **{name: getattr(made, name) for name in SIZE_FIELDS},
     )
 

@@ -286,7 +286,7 @@ class PlannerAgent:
     def __init__(self, planner: SimPlanner):
         self.planner = planner
 
-    def act(self, state: np.ndarray, epsilon: float = 0.0, past=None) -> tuple[int, np.ndarray, None, bool]:
+    def act(self, state: np.ndarray, epsilon: float = 0.0) -> tuple[int, np.ndarray, None, bool]:
         """(action, the plan scores per first action as its 'Q-values', no attention, never explored)."""
         plan = self.planner.label()
         return plan.action, plan.scores, None, False

@@ -54,14 +54,13 @@ class StackedSim:
 
     def step(self, action: int) -> StepResult:
         a = self.actions[action]
-        return self.step_command(a.linear_x_mps, a.yaw_rate_radps(self.sim.config.step_duration_s), action)
+        return self.step_command(a.linear_x_mps, a.yaw_rate_radps(self.sim.config.step_duration_s))
 
-    def step_command(self, linear_x_mps: float, yaw_rate_radps: float, action: int = -1) -> StepResult:
-        """One step of a body command, `action` the one of the table it flies (-1: none; what a safety layer made
-        of one is recorded as the action decided, as policy_node records it)."""
+    def step_command(self, linear_x_mps: float, yaw_rate_radps: float) -> StepResult:
+        """One step of a body command that is not an action's (what a safety layer made of one)."""
         r = self.sim.step(BodyTwist(linear_x_mps, yaw_rate_radps=yaw_rate_radps))
         self.last_input = x = self._input(r)
-        self.state = self.stack.reset(x) if r.collided or r.truncated else self.stack.push(x, action)
+        self.state = self.stack.reset(x) if r.collided or r.truncated else self.stack.push(x)
         self.last = r
         return r
 

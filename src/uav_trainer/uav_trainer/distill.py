@@ -59,8 +59,6 @@ def load_teachers(files: list[str], model: str | None):
     cfg = configs.pop()
     if model is not None and cfg.model != model:
         raise ValueError(f"the teachers are {cfg.model} networks, not {model}")
-    if cfg.past_actions:
-        raise ValueError("the teachers read past actions (past_actions), which distill does not record: not supported")
     cameras = {wio.read_file_camera(f) for f in files}
     if len(cameras) != 1:
         raise ValueError(f"teachers trained behind different cameras ({sorted(map(str, cameras))}): give one camera's files")

@@ -58,17 +58,15 @@ class Learner:
             torch.from_numpy(batch["done"]).to(d),
             torch.from_numpy(batch["next_state"]).to(d),
             torch.from_numpy(batch["teacher"]).to(d) if "teacher" in batch else None,
-            torch.from_numpy(batch["past"]).to(d) if "past" in batch else None,
-            torch.from_numpy(batch["next_past"]).to(d) if "next_past" in batch else None,
         )
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         """One gradient step on a sampled batch; returns loss, mean Q and gradient norm. With teacher_weight > 0 the
         large-margin loss on the batch's teacher actions is added to the TD loss."""
-        s, a, r, done, s2, teacher, past, past2 = self._tensors(batch)
+        s, a, r, done, s2, teacher = self._tensors(batch)
         with torch.no_grad():
-            y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2, past2)[0], self.target(s2, past2)[0])
-        q, _ = self.online(s, past)
+            y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
+        q, _ = self.online(s)
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
         if self.cfg.teacher_weight > 0.0 and teacher is not None and bool((teacher >= 0).any()):  # a run without one: TD alone

@@ -197,17 +197,6 @@ class ReplayMemory:
         idx = np.where(older, idx[np.arange(len(slots)), latest][:, None], idx)
         return self.frame[idx].astype(np.float32)
 
-    def pasts(self, slots: np.ndarray) -> np.ndarray:
-        """(len(slots), frames - 1) int64: the actions flown between the frames of each slot's state, oldest first; -1
-        before the window's latest episode start (FrameStack.past at acting time)."""
-        slots = np.asarray(slots, dtype=np.int64)
-        idx = (slots[:, None] - np.arange(self.frames - 1, 0, -1)) % self.capacity  # the older frames, oldest first
-        starts = self.start[(slots[:, None] - np.arange(self.frames - 1, -1, -1)) % self.capacity]
-        starts[:, 0] = False
-        latest = self.frames - 1 - np.argmax(starts[:, ::-1], axis=1)  # as in stacks: the latest start in the window
-        before = starts.any(axis=1)[:, None] & (np.arange(self.frames - 1)[None, :] < latest[:, None])
-        return np.where(before, -1, self.action[idx])
-
     def sample(self, batch: int, valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """A batch of transitions drawn uniformly (the paper's one-step Q-learning); `valid`: the sampleable
         slots when the caller has them already."""
@@ -223,8 +212,6 @@ class ReplayMemory:
             "reward": self.reward[picks],
             "done": self.done[picks].astype(np.float32),
             "next_state": self.stacks((picks + 1) % self.capacity),
-            "past": self.pasts(picks),
-            "next_past": self.pasts((picks + 1) % self.capacity),
         }
 
 

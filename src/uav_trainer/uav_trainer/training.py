@@ -70,7 +70,6 @@ class Training:
             height=cfg.input_size_px,
             width=cfg.input_size_px,
             frames=cfg.frames,
-            past_actions=cfg.past_actions,
             conv_channels=tuple(cfg.conv_channels),
             **{name: getattr(cfg, name) for name in SAM_SIZES},
         )

@@ -110,11 +110,6 @@ class TrainerConfig:
     frames: int = setting(
         NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
     )
-    past_actions: bool = setting(
-        NetConfig.past_actions,
-        "Memory of the motion: the network also reads the actions flown since each older frame of the stack "
-        "(docs/ALGORITHM.md); policy_node takes it from the weights",
-    )
     conv_channels: tuple[int, ...] = setting(
         NetConfig.conv_channels,
         "Conv trunk output channels, one stride-2 layer each (both models; [16, 32] gives SAM 16 x 16 nodes from 64 px)",
@@ -170,8 +165,6 @@ class TrainerConfig:
         changed = [k for k in SAM_SIZES if getattr(self, k) != getattr(TrainerConfig, k)]
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
-        if self.past_actions and self.frames < 2:
-            raise ValueError("'past_actions' needs 'frame_stack' >= 2 (the actions between its frames)")
         snapshot_steps(self.snapshots, self.total_steps)
 
 
