@@ -355,16 +355,21 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
         assert "teacher_action: the planner (stack)" in logs["sim"]
 
 
+def stopped(ros, trainer, what: str) -> tuple[int, str]:
+    """The exit code and log of a trainer that must stop by itself within 90 s; the test fails saying what it kept doing."""
+    try:
+        code = trainer.wait(90)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the trainer kept {what}:\n" + ros.log_of(trainer)[-2000:])
+    return code, ros.log_of(trainer)
+
+
 def test_a_trainer_with_a_teacher_beside_a_simulator_without_one_stops_naming_why(ros, tmp_path):
     """A teacher is sim_node's planner: frames without its teacher_action (a sim_node without teacher:=..., or a camera)
     would never be learnt from, so the trainer stops at once (exit code 2), naming the parameter and the fix."""
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.1")  # no policy: the first frame, said again
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path / 'run'}", "-p", "teacher:=stack")
-    try:
-        code = trainer.wait(90)
-    except subprocess.TimeoutExpired:
-        pytest.fail("the trainer kept waiting for teacher actions:\n" + ros.log_of(trainer)[-2000:])
-    log = ros.log_of(trainer)
+    code, log = stopped(ros, trainer, "waiting for teacher actions")
     assert code == 2, log[-2000:]
     assert "parameter 'teacher'='stack'" in log and "no teacher_action" in log and "sim_node teacher:=stack" in log
 
@@ -396,11 +401,7 @@ def test_a_lockstep_trainer_whose_weights_the_policy_refuses_stops_naming_why_an
     wait = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=300.0")
     policy = ros.start("uav_policy", "policy_node", *wait, "-p", "frame_stack:=3", *pushes_signed_in(run_dir))
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={run_dir}", "-p", "learning_starts:=1000")
-    try:
-        code = trainer.wait(90)
-    except subprocess.TimeoutExpired:
-        pytest.fail("the trainer kept running beside a policy that refuses its weights:\n" + ros.log_of(trainer)[-2000:])
-    log = ros.log_of(trainer)
+    code, log = stopped(ros, trainer, "running beside a policy that refuses its weights")
     assert code == 3, log[-2000:]
     assert "policy_node rejected the weights of a release" in log and '"frames": 5' in log, log[-2000:]
     assert "same model, frame_stack, input size" in log
