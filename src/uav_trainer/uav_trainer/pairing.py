@@ -109,7 +109,7 @@ class TransitionAssembler:
         else:
             collided = contract.outcome_collided(out)
             beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
-            if len(self.observation) > 2 and self.prev.teacher < 0:
+            if "teacher" in self.observation and self.prev.teacher < 0:
                 self.counts["unmatched_teacher_actions"] += 1
             self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher)
 

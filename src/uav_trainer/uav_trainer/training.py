@@ -24,6 +24,7 @@ from uav_policy.networks import NetConfig
 from uav_sim.reward import step_reward
 
 from . import checkpoint
+from .actors import ActorSink
 from .episodes import EpisodeStats
 from .learner import Learner, NonFiniteLoss
 from .replay import LanedReplay, ReplayMemory
@@ -486,20 +487,3 @@ class Training:
             f.close()
         if self.tb:
             self.tb.close()
-
-
-@dataclasses.dataclass(frozen=True)
-class ActorSink:
-    """One actor's side of a Training: the steps a TransitionAssembler completes, tagged with the actor."""
-
-    training: Training
-    actor: int
-
-    def add_first(self, frame: np.ndarray) -> None:
-        self.training.add_first(frame, self.actor)
-
-    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1) -> float:
-        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher)
-
-    def add_truncated(self, first_frame: np.ndarray) -> None:
-        self.training.add_truncated(first_frame, self.actor)
