@@ -306,32 +306,30 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
 
 
-@pytest.mark.parametrize("recipe", ["shipped", "teacher"])
+@pytest.mark.parametrize("recipe", ["rl", "shipped"])
 def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, recipe):
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
-    trainer train one recipe, read from one file. The teacher recipe too (sim_node's planner labelling every frame, and
-    flying the steps the trainer's releases say)."""
+    trainer train one recipe, read from one file. The default recipe with its teacher (sim_node's planner labelling every
+    frame, and flying the steps the trainer's releases say), and the pure-RL one."""
     import torch
 
     from uav_trainer import inprocess
 
     steps, seed, learn = (
         (420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300})
-        if recipe == "shipped"
+        if recipe == "rl"
         else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200})
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
     extra += ["--recipe", recipe]
-    r, logs = run_train(
-        ros_dir, str(80 + (recipe != "shipped")), "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240
-    )
+    r, logs = run_train(ros_dir, str(80 + (recipe != "rl")), "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert f"recipes/{recipe}.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
     args = ["--steps", str(steps), "--seed", str(seed), "--run-dir", str(ip_dir), "--params-dir", str(ROOT / "params")]
-    args += [] if recipe == "shipped" else ["--recipe", recipe]
+    args += [] if recipe == "shipped" else ["--recipe", recipe]  # the default
     args += [x for k, v in learn.items() for x in (f"--{k.replace('_', '-')}", str(v))]
     snaps = snapshot_steps(9, steps)
     threads = torch.get_num_threads()
@@ -340,7 +338,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     finally:
         torch.set_num_threads(threads)
     ros_rows = (ros_dir / "episodes.csv").read_text().splitlines()
-    assert len(ros_rows) > (20 if recipe == "shipped" else 5) and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
+    assert len(ros_rows) > (20 if recipe == "rl" else 5) and ros_rows == (ip_dir / "episodes.csv").read_text().splitlines()
     names = [f"policy_sam_step{n}.safetensors" for n in snaps] + ["policy_sam.safetensors"]
     for name in names:
         made = wio.config_for("sam", ros_dir / name)  # the recipe's readout
@@ -350,7 +348,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     # replay_ratio 0.5 after learning_starts, the last step's updates included; no step after the budget.
     starts = learn["learning_starts"]
     assert f"({steps} env steps, {(steps - starts) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
-    if recipe == "teacher":  # both runs learnt from the planner's labels, flying its actions at first
+    if recipe == "shipped":  # both runs learnt from the planner's labels, flying its actions at first
         assert "teacher: the planner (stack)" in capsys.readouterr().out
         assert "teacher_action: the planner (stack)" in logs["sim"]
 
@@ -414,16 +412,17 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_it_name
     tmp_path, monkeypatch
 ):
     """Without --recipe, train sets up what the packaged weights were trained with (params/recipes/shipped.yaml, behind
-    the realsense_d435 sensor): nine snapshots besides the final weights, of which it names one, chosen on the
-    validation worlds, and prints the command that flies that one file."""
+    the realsense_d435 sensor, with the planner as a teacher): nine snapshots besides the final weights, of which it
+    names one, chosen on the validation worlds, and prints the command that flies that one file."""
     run_dir = tmp_path / "run"
     # With a short time limit (the recipe's is 300): the trainer must count cut episodes, never as crashes.
     args = ("--steps", "60", "--sim-arg", "max_episode_steps:=4", "--validation-steps", "5")
     r, logs = run_train(run_dir, "74", *args, timeout_s=240)
     assert (
-        "recipes/shipped.yaml (sim_node: world:=random_each_episode mix_world:=basic mix_world_every:=4 "
-        "max_episode_steps:=300 start_yaw_jitter_deg:=180.0 sensor:=realsense_d435 sensor_scale:=0.1 "
-        "reward_window_fraction:=0.2; trainer_node: sam_readout:=query turn_penalty:=1.0 replay_ratio:=0.5 snapshots:=9)"
+        "recipes/shipped.yaml (sim_node: world:=random_each_episode layout_families:=mixed mix_world:=basic "
+        "mix_world_every:=4 max_episode_steps:=300 start_yaw_jitter_deg:=180.0 sensor:=realsense_d435 sensor_scale:=0.1 "
+        "reward_window_fraction:=0.2; trainer_node: sam_readout:=query teacher:=stack turn_penalty:=0.0 replay_ratio:=0.5 "
+        "snapshots:=9)"
     ) in r.stdout
     assert "a new layout every episode ('basic' every 4 episodes)" in logs["sim"]
     files = [run_dir / f"policy_sam_step{n}.safetensors" for n in range(42, 60, 2)] + [run_dir / "policy_sam.safetensors"]
@@ -457,6 +456,7 @@ def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_nam
         (("-p", "snapshots:=9"), "'snapshots'=9 needs a step budget of at least 30 (total_steps=0)"),
         (("-p", "save_weights_every_steps:=100"), "'save_weights_every_steps' was removed: use 'snapshots'"),
         (("-p", "lockstep_learning:=false"), "'lockstep_learning' was removed: trainer_node always learns in lockstep"),
+        (("-p", "teacher:=stack", "-p", "attention_weight:=0.5"), "reaches only the in-process trainer"),
     ):
         err = start_up_error(TrainerNode, *args)
         assert what in err, (args, err[-500:])
@@ -553,7 +553,7 @@ def test_launcher_rejects_a_bad_budget_an_unknown_recipe_and_retired_flags():
         (("--steps", "0"), "--steps must be positive"),
         (
             ("--recipe", "single"),
-            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, shipped, teacher, wide150)",
+            "recipe 'single': no file params/recipes/single.yaml (recipes in params/recipes: paper, rl, shipped, wide150)",
         ),
         (("--learning", "concurrent"), "--learning was removed: train always learns in lockstep"),
         (("--max-rate-hz=30",), "--max-rate-hz was removed"),

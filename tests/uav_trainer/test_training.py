@@ -766,3 +766,53 @@ def test_a_run_with_a_teacher_whose_frames_come_without_one_is_stopped_naming_wh
     assert "'teacher'='stack'" in why and "no teacher_action" in why and "a camera has no world" in why
     actor.teachers_heard = 1
     assert actor.no_teacher("stack") is None
+
+
+def test_the_attention_loss_is_zero_on_the_reason_positive_off_it_and_needs_a_reason():
+    """-log of the map's mass on the reason's cells (their shares over the largest): 0 when every head and query attend
+    only to cells the reason fills, log 2 with half the map there, nothing from a state without a reason in view."""
+    import math
+
+    from uav_trainer.learner import reason_attention_loss
+
+    reason = torch.tensor([[0.0, 1.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    on = torch.tensor([0.0, 0.5, 0.5, 0.0]).expand(2, 3, 5, 4)  # (batch, heads, queries, cells)
+    half = torch.tensor([0.5, 0.25, 0.25, 0.0]).expand(2, 3, 5, 4)
+    assert reason_attention_loss(on, reason) == pytest.approx(0.0, abs=1e-6)
+    assert reason_attention_loss(half, reason) == pytest.approx(math.log(2.0))
+    assert reason_attention_loss(half, torch.zeros(2, 4)) == 0.0, "no reason in view, no loss"
+    partial = torch.tensor([[0.0, 0.5, 1.0, 0.0]])  # a cell half covered counts half
+    assert reason_attention_loss(on[:1], partial) == pytest.approx(-math.log(0.75))
+
+
+def test_reasons_travel_with_their_frames_through_the_replay_memory_and_its_journal():
+    from uav_trainer.replay import ReplayMemory
+
+    mem = ReplayMemory(16, (4, 4), frames=2, seed=0, reason_nodes=3)
+    mem.add_first(np.ones((4, 4)))
+    shares = [np.array([0.0, 0.5, 1.0], np.float32), None, np.array([1.0, 0.0, 0.0], np.float32)]
+    for k, share in enumerate(shares):
+        mem.add_transition(k % 4, 1.0, False, np.full((4, 4), 2.0 + k), teacher=k, reason=share)
+    batch = mem.sample(64)
+    for slot, teacher, reason in zip(batch["index"], batch["teacher"], batch["reason"], strict=True):
+        assert teacher == slot and reason.tolist() == (np.zeros(3) if shares[slot] is None else shares[slot]).tolist()
+    again = ReplayMemory(16, (4, 4), frames=2, seed=0, reason_nodes=3)
+    again.load_segments([mem.segment(0)], mem.writes, 4)
+    assert np.array_equal(again.reason, mem.reason)
+    bad = {**mem.segment(0), "reason": np.full((mem.writes, 3), 2.0, np.float16)}
+    with pytest.raises(ValueError, match="reason shares outside"):
+        again.load_segments([bad], mem.writes, 4)
+    plain = ReplayMemory(16, (4, 4), frames=2)
+    plain.add_first(np.ones((4, 4)))
+    plain.add_transition(0, 1.0, False, np.ones((4, 4)))
+    assert "reason" not in plain.sample(4), "a memory without reasons gives batches as before"
+
+
+def test_the_attention_loss_needs_a_teacher_and_sams_query_readout():
+    for cfg, what in (
+        (TrainerConfig(learner=LearnerConfig(attention_weight=0.5)), "needs a teacher"),
+        (TrainerConfig(teacher="stack", model="cnn", learner=LearnerConfig(attention_weight=0.5)), "model 'cnn'"),
+    ):
+        with pytest.raises(ValueError, match=what):
+            cfg.validate()
+    TrainerConfig(teacher="stack", sam_readout="query", learner=LearnerConfig(attention_weight=0.5)).validate()

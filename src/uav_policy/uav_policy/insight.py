@@ -96,6 +96,12 @@ def node_slices(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> list[tup
     return [(slice(r * h // gh, (r + 1) * h // gh), slice(c * w // gw, (c + 1) * w // gw)) for r in range(gh) for c in range(gw)]
 
 
+def node_shares(mask: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
+    """(nodes,) float32: the share of each node's image region (node_slices) that the bool image `mask` covers."""
+    m = np.asarray(mask, dtype=bool)
+    return np.array([m[rs, cs].mean() for rs, cs in node_slices(grid_hw, m.shape)], dtype=np.float32)
+
+
 def mass_ratio(dist: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> float | None:
     """The explanation's mass on the pixels of `mask` (an image-sized bool array) over their share of the image
     (1 = no preference, 2 = twice their share); None when the mask is empty."""
@@ -104,8 +110,7 @@ def mass_ratio(dist: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> 
     share = float(m.mean())
     if share == 0.0:
         return None
-    per_node = np.array([m[rs, cs].mean() for rs, cs in node_slices(grid_hw, m.shape)])
-    return float((d * per_node).sum() / share)
+    return float((d * node_shares(m, grid_hw)).sum() / share)
 
 
 def increase_on(dist: np.ndarray, reference: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> bool:

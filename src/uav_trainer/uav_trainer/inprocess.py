@@ -21,6 +21,7 @@ from uav_common.actions import PAPER_ACTIONS, turning_indices
 from uav_common.settings import SettingError, add_flags, build, given_flags, refuse_retired_flags, specs
 from uav_policy import weights as wio
 from uav_policy.agent import Agent
+from uav_policy.insight import node_shares
 from uav_policy.networks import build_network
 from uav_policy.rollout import Flight
 from uav_sim.planner import PlannerConfig, SimPlanner
@@ -108,14 +109,18 @@ def run(
         SimPlanner(sim, PlannerConfig(knowledge=cfg.teacher, memory_frames=net_cfg.frames)) if cfg.teacher != "none" else None
     )
     label, agreed = -1, []  # the teacher's action for the frame decided on; whether the student's greedy choice was it
+    reason = None  # with attention_weight: the share of each attention cell the teacher's reason covers in that frame
 
     def decide():
-        nonlocal loaded, label
+        nonlocal loaded, label, reason
         version, blob = training.released_weights()
         if version != loaded:
             wio.load_bytes(blob, training.net_cfg, into=acting.net)
             loaded = version
-        label = teacher.label().action if teacher is not None else -1
+        plan = teacher.label() if teacher is not None else None
+        label = plan.action if plan is not None else -1
+        if training.reason_grid is not None:
+            reason = node_shares(flight.env.input_mask(np.isin(sim.body_ids, plan.reason)), training.reason_grid)
         decision = flight.decide(training.epsilon(), instead=training.teacher_flies(label))
         training.after_release()
         if teacher is not None:
@@ -132,7 +137,7 @@ def run(
             if r.truncated:
                 training.add_truncated(frame)
             else:
-                training.add_step(step.action, r.beta_m, r.collided, frame, teacher=label)
+                training.add_step(step.action, r.beta_m, r.collided, frame, teacher=label, reason=reason)
             if not training.budget_done:
                 # The policy acts on the new frame before this step's updates, as over ROS, where trainer_node
                 # releases the frame first and learns while the policy acts and the simulator steps.

@@ -33,6 +33,19 @@ def large_margin_loss(q: torch.Tensor, teacher: torch.Tensor, margin: float) -> 
     return ((q + lift).max(dim=1).values - q.gather(1, a_e).squeeze(1)).mean()
 
 
+def reason_attention_loss(weights: torch.Tensor, reason: torch.Tensor) -> torch.Tensor:
+    """-log of the attention's mass on the teacher's reason, averaged over the states with one in view: `weights` the
+    query readout's (B, heads, queries, cells), `reason` (B, cells) the share of each cell the reason covers. The map
+    is what insight shows (every head's and query's weights averaged), the mass is weighed by each cell's share over
+    the largest, so it is 0 once the map lies on the cells the reason fills; 0 when no state has a reason."""
+    shown = reason.amax(dim=1) > 0
+    if not bool(shown.any()):
+        return weights.sum() * 0.0
+    cells = reason[shown] / reason[shown].amax(dim=1, keepdim=True)
+    mass = (weights[shown].mean(dim=(1, 2)) * cells).sum(dim=1)
+    return -torch.log(mass.clamp_min(1e-6)).mean()
+
+
 class NonFiniteLoss(RuntimeError):
     """The loss became NaN or Inf: learning must stop; the last good checkpoint stays."""
 
@@ -58,19 +71,23 @@ class Learner:
             torch.from_numpy(batch["done"]).to(d),
             torch.from_numpy(batch["next_state"]).to(d),
             torch.from_numpy(batch["teacher"]).to(d) if "teacher" in batch else None,
+            torch.from_numpy(batch["reason"]).to(d) if "reason" in batch else None,
         )
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         """One gradient step on a sampled batch; returns loss, mean Q and gradient norm. With teacher_weight > 0 the
-        large-margin loss on the batch's teacher actions is added to the TD loss."""
-        s, a, r, done, s2, teacher = self._tensors(batch)
+        large-margin loss on the batch's teacher actions is added to the TD loss; with attention_weight > 0 the loss
+        pulling the attention onto the batch's reasons too."""
+        s, a, r, done, s2, teacher, reason = self._tensors(batch)
         with torch.no_grad():
             y = double_dqn_target(r, done, self.cfg.gamma, self.online(s2)[0], self.target(s2)[0])
-        q, _ = self.online(s)
+        q, attention = self.online(s)
         q_taken = q.gather(1, a.unsqueeze(1)).squeeze(1)
         loss = F.huber_loss(q_taken, y, delta=self.cfg.huber_delta)
         if self.cfg.teacher_weight > 0.0 and teacher is not None and bool((teacher >= 0).any()):  # a run without one: TD alone
             loss = loss + self.cfg.teacher_weight * large_margin_loss(q, teacher, self.cfg.teacher_margin)
+        if self.cfg.attention_weight > 0.0 and reason is not None:
+            loss = loss + self.cfg.attention_weight * reason_attention_loss(attention, reason)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"loss is {loss.item()} at update {self.updates}")
         self.optimizer.zero_grad(set_to_none=True)

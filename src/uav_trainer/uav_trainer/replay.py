@@ -20,7 +20,7 @@ import numpy as np
 
 
 class ReplayMemory:
-    def __init__(self, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0):
+    def __init__(self, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0, reason_nodes: int = 0):
         if capacity < frames + 2:
             raise ValueError(f"capacity must be at least frames + 2 = {frames + 2}, got {capacity}")
         self.capacity, self.frames = capacity, frames
@@ -31,6 +31,8 @@ class ReplayMemory:
         self.done = np.zeros(capacity, dtype=bool)
         self.has_transition = np.zeros(capacity, dtype=bool)
         self.teacher = np.full(capacity, -1, dtype=np.int64)  # the teacher's action for the frame (-1: none)
+        # With `reason_nodes`: the share of each attention cell the teacher's reason covers in the frame (0: none).
+        self.reason = np.zeros((capacity, reason_nodes), dtype=np.float16)
         self.writes = 0  # frames written since the memory began (slot = write % capacity)
         self.rng = np.random.default_rng(seed)
 
@@ -53,6 +55,7 @@ class ReplayMemory:
         "done": np.bool_,
         "has_transition": np.bool_,
         "teacher": np.int64,
+        "reason": np.float16,
     }
 
     def _geometry(self) -> tuple[int, int, int, int]:
@@ -74,9 +77,15 @@ class ReplayMemory:
         unchanged, for a segment that does not fit this memory (another capacity, frame size or stack
         depth), holds values no run could have written (actions outside [0, n_actions), NaN or negative
         depths, ...), or a journal with a gap."""
-        # A journal written before teacher labels has none (the caller's segments are left as they are).
+        # A journal written before teacher labels or reasons has none (the caller's segments are left as they are).
         segments = [
             seg if "teacher" in seg or "action" not in seg else {**seg, "teacher": np.full(seg["action"].shape, -1, np.int64)}
+            for seg in segments
+        ]
+        segments = [
+            seg
+            if "reason" in seg or "action" not in seg
+            else {**seg, "reason": np.zeros((len(seg["action"]), self.reason.shape[1]), np.float16)}
             for seg in segments
         ]
         spans = []
@@ -113,7 +122,7 @@ class ReplayMemory:
             newest = (end - 1) % self.capacity
             fresh["has_transition"][newest] = False
             fresh["action"][newest], fresh["reward"][newest], fresh["done"][newest] = 0, 0.0, False
-            fresh["teacher"][newest] = -1
+            fresh["teacher"][newest], fresh["reason"][newest] = -1, 0.0
         for name, a in fresh.items():
             setattr(self, name, a)
         self.writes = end
@@ -121,7 +130,7 @@ class ReplayMemory:
     def _check(self, arrays: dict[str, np.ndarray], n: int, n_actions: int) -> None:
         for name, dtype in self.SLOT_ARRAYS.items():
             a = arrays.get(name)
-            want = (n, *self.frame.shape[1:]) if name == "frame" else (n,)
+            want = (n, *getattr(self, name).shape[1:])
             if a is None or a.dtype != dtype or a.shape != want:
                 raise ValueError(f"replay segment array {name!r} missing or not {np.dtype(dtype).name} of shape {want}")
         if np.isnan(arrays["frame"]).any() or (arrays["frame"] < 0).any():
@@ -130,6 +139,8 @@ class ReplayMemory:
             raise ValueError(f"replay segment has actions outside [0, {n_actions})")
         if ((arrays["teacher"] < -1) | (arrays["teacher"] >= n_actions)).any():
             raise ValueError(f"replay segment has teacher actions outside [-1, {n_actions})")
+        if not np.isfinite(arrays["reason"]).all() or ((arrays["reason"] < 0) | (arrays["reason"] > 1)).any():
+            raise ValueError("replay segment has reason shares outside [0, 1]")
         if not np.isfinite(arrays["reward"]).all():
             raise ValueError("replay segment has non-finite rewards")
 
@@ -144,15 +155,18 @@ class ReplayMemory:
         self.start[i] = start
         self.has_transition[i] = False
         self.teacher[i] = -1
+        self.reason[i] = 0.0
         self.writes += 1
 
     def add_first(self, depth: np.ndarray) -> None:
         """A frame that starts an episode or a new chain (no transition leads into it)."""
         self._write_frame(depth, start=True)
 
-    def add_transition(self, action: int, reward: float, done: bool, next_depth: np.ndarray, teacher: int = -1) -> None:
+    def add_transition(
+        self, action: int, reward: float, done: bool, next_depth: np.ndarray, teacher: int = -1, reason=None
+    ) -> None:
         """Complete the transition from the newest frame; `next_depth` is the frame it led to, `teacher` the teacher's
-        action for the newest frame (-1: none).
+        action for the newest frame (-1: none), `reason` the share of each cell its reason covers (None: none).
 
         After a collision (done=True) the next frame is the first of a new episode.
         """
@@ -160,6 +174,8 @@ class ReplayMemory:
             raise RuntimeError("add_first must come before add_transition")
         i = (self.cursor - 1) % self.capacity
         self.action[i], self.reward[i], self.done[i], self.teacher[i] = action, reward, done, teacher
+        if reason is not None:
+            self.reason[i] = reason
         self.has_transition[i] = True
         self._write_frame(next_depth, start=done)
 
@@ -204,7 +220,8 @@ class ReplayMemory:
         if valid.size == 0:
             raise RuntimeError("the replay memory holds no complete transition yet")
         picks = self.rng.choice(valid, size=batch, replace=valid.size < batch)
-        return {
+        out = {"reason": self.reason[picks].astype(np.float32)} if self.reason.shape[1] else {}
+        return out | {
             "state": self.stacks(picks),
             "action": self.action[picks],
             "teacher": self.teacher[picks],
@@ -220,11 +237,15 @@ class LanedReplay:
     i's chain, and a batch is drawn uniformly over the transitions of all lanes. Not journaled: a run with
     several actors that resumes refills its memory."""
 
-    def __init__(self, lanes: int, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0):
+    def __init__(
+        self, lanes: int, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0, reason_nodes: int = 0
+    ):
         if lanes < 2:
             raise ValueError(f"a laned memory needs at least 2 lanes, got {lanes} (one actor: ReplayMemory)")
         share = capacity // lanes
-        self.lanes = [ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i) for i in range(lanes)]
+        self.lanes = [
+            ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i, reason_nodes=reason_nodes) for i in range(lanes)
+        ]
         self.capacity = share * lanes
         self.rng = np.random.default_rng(seed)  # which lane each sample comes from
 

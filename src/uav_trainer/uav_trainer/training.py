@@ -85,10 +85,13 @@ class Training:
         torch.manual_seed(cfg.seed)
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device))
         shape = (self.net_cfg.height, self.net_cfg.width)
+        # With attention_weight, the cells of the attention shown, on which the teacher's reason is kept per frame.
+        self.reason_grid = self.learner.online.grid_hw if cfg.learner.attention_weight > 0.0 else None
+        cells = math.prod(self.reason_grid) if self.reason_grid else 0
         if actors == 1:
-            self.replay = ReplayMemory(cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed)
+            self.replay = ReplayMemory(cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells)
         else:
-            self.replay = LanedReplay(actors, cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed)
+            self.replay = LanedReplay(actors, cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells)
         # The journal keeps one actor's chain; with several, a resume refills the memory.
         self.journal = cfg.save_replay and actors == 1
         if cfg.save_replay and actors > 1:
@@ -231,9 +234,10 @@ class Training:
         self._memory(actor).add_first(frame)
 
     def add_step(
-        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, actor: int = 0, teacher: int = -1
+        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, actor: int = 0, teacher: int = -1, reason=None
     ) -> float:
-        """One transition of `actor` (`teacher`: the teacher's action for the frame it left, -1 for none); the reward
+        """One transition of `actor` (`teacher`: the teacher's action for the frame it left, -1 for none; `reason`: the
+        share of each cell of `reason_grid` its reason covers in that frame, None for none); the reward
         comes from the simulator package's reward function. Steps after the budget is spent are not recorded (not
         learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
@@ -241,7 +245,7 @@ class Training:
             reward -= self.cfg.turn_penalty
         if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
             return reward
-        self._memory(actor).add_transition(action, reward, collided, next_frame, teacher)
+        self._memory(actor).add_transition(action, reward, collided, next_frame, teacher, reason)
         self.env_steps += 1
         self.actor_steps[actor] += 1
         self.reward_sum += reward

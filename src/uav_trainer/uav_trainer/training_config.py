@@ -24,6 +24,13 @@ class LearnerConfig:
         1.0, "With a teacher: weight of the large-margin loss on its actions (DQfD's lambda_2) beside the TD loss", 0.0, 100.0
     )
     teacher_margin: float = setting(0.8, "With a teacher: the margin the teacher's action must lead by (DQfD's 0.8)", 0.0, 100.0)
+    attention_weight: float = setting(
+        0.0,
+        "With a teacher, SAM's query readout: weight of the loss pulling the attention shown onto the cells of the "
+        "teacher's reason in the newest frame (-log of the map's mass there); 0 = none. In process only for now",
+        0.0,
+        100.0,
+    )
     seed: int = 0  # TrainerConfig's seed (not a setting of its own)
 
 
@@ -166,6 +173,11 @@ class TrainerConfig:
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
         snapshot_steps(self.snapshots, self.total_steps)
+        if self.learner.attention_weight > 0.0 and (self.teacher == "none" or self.model != "sam" or self.sam_readout != "query"):
+            raise ValueError(
+                f"'attention_weight'={self.learner.attention_weight:g} needs a teacher (its reason) and model 'sam' with "
+                f"sam_readout 'query' (got teacher {self.teacher!r}, model {self.model!r}, sam_readout {self.sam_readout!r})"
+            )
 
 
 # Without a step budget the schedules are those of a run of this many steps (the shipped recipe's).
