@@ -126,6 +126,44 @@ def test_teacher_labels_pair_exactly_and_each_release_knows_its_frames_label():
     assert sink.events == [] and released == []
 
 
+def test_teacher_reasons_pair_with_their_frames_as_cell_shares():
+    """With a reason grid, sim_node's teacher_reason (the pixels the planner's decision is about, mono8, stamped as its
+    frame) completes an observation too: each stored transition carries the shares of the grid's cells that the mask
+    of the frame it left covers, in any interleaving; a malformed mask is counted and gives no share."""
+    from uav_policy.insight import node_shares
+
+    msgs, _ = simulate(120, seed=8)
+    rng = np.random.default_rng(9)
+    shares, full = [], []
+    for stream, m in msgs:
+        full.append((stream, m))
+        if stream == "outcome":
+            ts = TwistStamped()
+            ts.header.stamp = m.header.stamp
+            mask = np.zeros((64, 64), bool)
+            r, c = rng.integers(0, 48, 2)
+            mask[r : r + 16, c : c + int(rng.integers(1, 16))] = True
+            shares.append(node_shares(mask, (8, 8)))
+            image = contract.mask_to_image(mask, m.header.stamp, "cam")
+            if len(shares) == 60:
+                image.encoding = "rgb8"  # malformed
+                shares[-1] = np.zeros(64, np.float32)
+            full += [("teacher", ts), ("reason", image)]
+
+    class ReasonSink(Sink):
+        def add_step(self, action, beta, collided, frame, teacher=-1, reason=None):
+            super().add_step(action, beta, collided, frame)
+            self.events[-1] += (reason,)
+
+    sink = ReasonSink()
+    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), teacher=True, reason_grid=(8, 8))
+    for stream, m in shuffled_across_streams(full, np.random.default_rng(10)):
+        asm.add(stream, m)
+    steps = [e for e in sink.events if e[0] == "step"]
+    assert len(steps) == 120 and all(np.array_equal(e[-1], want) for e, want in zip(steps, shares, strict=False))
+    assert asm.report()["bad_reasons"] == 1 and asm.report()["frames_without_teacher_reason"] == 0
+
+
 def test_faults_are_counted_and_never_paired_wrongly():
     msgs, truth = simulate(200, seed=2)
     # Drop the action that answered frame 50, make frame 120's action unknown, corrupt frame 160.

@@ -319,7 +319,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     steps, seed, learn = (
         (420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300})
         if recipe == "rl"
-        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200})
+        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200, "attention_weight": 0.5})
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
@@ -456,7 +456,6 @@ def test_trainer_snapshots_need_a_budget_and_the_retired_snapshot_parameters_nam
         (("-p", "snapshots:=9"), "'snapshots'=9 needs a step budget of at least 30 (total_steps=0)"),
         (("-p", "save_weights_every_steps:=100"), "'save_weights_every_steps' was removed: use 'snapshots'"),
         (("-p", "lockstep_learning:=false"), "'lockstep_learning' was removed: trainer_node always learns in lockstep"),
-        (("-p", "teacher:=stack", "-p", "attention_weight:=0.5"), "reaches only the in-process trainer"),
     ):
         err = start_up_error(TrainerNode, *args)
         assert what in err, (args, err[-500:])

@@ -808,11 +808,13 @@ def test_reasons_travel_with_their_frames_through_the_replay_memory_and_its_jour
     assert "reason" not in plain.sample(4), "a memory without reasons gives batches as before"
 
 
-def test_the_attention_loss_needs_a_teacher_and_sams_query_readout():
+def test_the_attention_loss_needs_a_teacher_and_sams_query_readout_and_the_cnn_ignores_it():
+    pull = LearnerConfig(attention_weight=0.5)
     for cfg, what in (
-        (TrainerConfig(learner=LearnerConfig(attention_weight=0.5)), "needs a teacher"),
-        (TrainerConfig(teacher="stack", model="cnn", learner=LearnerConfig(attention_weight=0.5)), "model 'cnn'"),
+        (TrainerConfig(sam_readout="query", learner=pull), "needs a teacher"),
+        (TrainerConfig(teacher="stack", sam_readout="attend", learner=pull), "sam_readout 'query'"),
     ):
         with pytest.raises(ValueError, match=what):
             cfg.validate()
-    TrainerConfig(teacher="stack", sam_readout="query", learner=LearnerConfig(attention_weight=0.5)).validate()
+    TrainerConfig(teacher="stack", sam_readout="query", learner=pull).validate()
+    TrainerConfig(model="cnn", learner=pull).validate()  # a recipe for both models: the CNN has no attention

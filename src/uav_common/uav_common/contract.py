@@ -31,6 +31,9 @@ ACTION_TOPIC = "action"
 # Training with a teacher: sim_node's planner's action for a frame (TwistStamped, the frame's stamp), paired by
 # trainer_node like the policy's `action`. Its knowledge: none (no teacher), or uav_sim.planner's stack or all.
 TEACHER_TOPIC = "teacher_action"
+# With it, what the planner's decision on the frame is about (uav_sim.planner: its reason) as the frame's pixels that
+# show it: a mono8 Image at the frame's size and stamp, 255 on the reason; for a trainer whose loss pulls attention there.
+TEACHER_REASON_TOPIC = "teacher_reason"
 TEACHERS = ("none", "stack", "all")
 Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
@@ -127,6 +130,23 @@ def image_to_depth(msg: Image) -> np.ndarray:
         depth[values == 0] = np.inf
         return depth
     return values.astype(np.float32)
+
+
+def mask_to_image(mask: np.ndarray, stamp: Time, frame_id: str) -> Image:
+    """A bool (H, W) mask as a mono8 Image: 255 where set."""
+    h, w = mask.shape
+    msg = Image(height=h, width=w, encoding="mono8", is_bigendian=0, step=w)
+    msg.header.stamp, msg.header.frame_id = stamp, frame_id
+    msg.data = np.where(np.asarray(mask, dtype=bool), np.uint8(255), np.uint8(0)).tobytes()
+    return msg
+
+
+def image_to_mask(msg: Image) -> np.ndarray:
+    """The bool (H, W) mask of a mono8 Image (set where not 0); ValueError says what is malformed."""
+    h, w = int(msg.height), int(msg.width)
+    if msg.encoding != "mono8" or h <= 0 or w <= 0 or msg.step < w or len(msg.data) != msg.step * h:
+        raise ValueError(f"a mask must be a mono8 image with step * height bytes, got {msg.encoding} {w}x{h}")
+    return np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(h, msg.step)[:, :w] != 0
 
 
 def diagnostics(node, name: str, level: str, message: str, values: dict) -> DiagnosticArray:

@@ -258,9 +258,13 @@ class SimPlanner:
         cfg = sim.config
         self.planner = Planner(sim.world, cfg.step_duration_s, cfg.physics_rate_hz, actions, config, sim.pose.z_m)
         self._world, self._episode, self._frame, self._plan = sim.world, None, None, None
-        if config.knowledge == "stack" and not sim.see_bodies:
+        if not sim.see_bodies:  # what the frames show ('stack' plans around it) and the pixels of a plan's reason
             sim.see_bodies = True
             sim.render()  # the current frame's mask (rendering draws no random numbers)
+
+    def reason_mask(self) -> np.ndarray:
+        """The current frame's pixels that show what label()'s decision is about (its reason): a bool image."""
+        return np.isin(self.sim.body_ids, self.label().reason)
 
     def label(self) -> Plan:
         """The plan for the simulator's current frame (the same plan when asked again before the next step)."""

@@ -3,7 +3,7 @@
 Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, world/markers (the
 room and obstacles, latched), trajectory (this episode's path), /clock (unless publish_clock:=false:
 several simulators in one graph would each say their own time), /diagnostics and, with a teacher
-(teacher:=stack|all, for training), teacher_action: the planner's action for each frame; consumes cmd_vel.
+(teacher:=stack|all), teacher_action and teacher_reason: the planner's action and reason per frame; consumes cmd_vel.
 Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
 `lockstep` mode one cmd_vel advances one step; in `realtime` mode the simulator steps at a fixed
 rate with the latest command and a watchdog.
@@ -81,6 +81,7 @@ class SimNode(Node):
         self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, q)
         self.pub_outcome = self.create_publisher(Range, contract.OUTCOME_TOPIC, q)
         self.pub_teacher = self.create_publisher(TwistStamped, contract.TEACHER_TOPIC, q) if self.teacher else None
+        self.pub_reason = self.create_publisher(Image, contract.TEACHER_REASON_TOPIC, q) if self.teacher else None
         self.pub_clock = self.create_publisher(Clock, "/clock", q) if st.publish_clock else None
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.pub_markers = self.create_publisher(MarkerArray, contract.WORLD_MARKERS_TOPIC, contract.LATCHED_QOS)
@@ -221,8 +222,9 @@ class SimNode(Node):
         if self.pub_clock is not None:
             self.pub_clock.publish(Clock(clock=stamp))
         cfg = self.cfg
-        if self.teacher is not None and not self.budget_flown():  # the teacher's answer goes out before the frame
+        if self.teacher is not None and not self.budget_flown():  # the teacher's answer and reason before the frame
             self.pub_teacher.publish(teacher_msg(self.teacher.label().action, stamp, self.base_frame, cfg.step_duration_s))
+            self.pub_reason.publish(contract.mask_to_image(self.teacher.reason_mask(), stamp, self.frame_id))
         self.pub_outcome.publish(
             contract.make_outcome(
                 r.beta_m,

@@ -139,8 +139,10 @@ class ActorSink:
     def add_first(self, frame: np.ndarray) -> None:
         self.training.add_first(frame, self.actor)
 
-    def add_step(self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1) -> float:
-        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher)
+    def add_step(
+        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1, reason=None
+    ) -> float:
+        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher, reason)
 
     def add_truncated(self, first_frame: np.ndarray) -> None:
         self.training.add_truncated(first_frame, self.actor)

@@ -120,7 +120,7 @@ def run(
         plan = teacher.label() if teacher is not None else None
         label = plan.action if plan is not None else -1
         if training.reason_grid is not None:
-            reason = node_shares(flight.env.input_mask(np.isin(sim.body_ids, plan.reason)), training.reason_grid)
+            reason = node_shares(flight.env.input_mask(teacher.reason_mask()), training.reason_grid)
         decision = flight.decide(training.epsilon(), instead=training.teacher_flies(label))
         training.after_release()
         if teacher is not None:

@@ -18,16 +18,21 @@ An observation whose predecessor's answer has not arrived yet waits for it.
 
 With `teacher`, an observation is also sim_node's `teacher_action` for the frame (the planner's action, stamped as
 it): each stored transition carries the teacher's action for the frame it left (-1 when it matches no action, counted),
-and `teacher_of(stamp)` gives it for a frame about to be released.
+and `teacher_of(stamp)` gives it for a frame about to be released. With `reason_grid` too, sim_node's `teacher_reason`
+(the pixels the planner's decision is about): mapped onto the network's input as the frames are, each transition
+carries the share of each cell of that grid it covers in the frame it left (as the in-process loop computes it).
 """
 
 from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from uav_common import contract
 from uav_common.actions import match_action
 from uav_common.frame_stack import NetworkInput
+from uav_policy.insight import node_shares
 
 
 @dataclasses.dataclass
@@ -36,6 +41,7 @@ class _Prev:
     action: int | None
     answered: bool = True  # False: the frame is stored, the policy's answer to it is not joined yet
     teacher: int = -1  # the teacher's action for the frame (-1: none)
+    reason: np.ndarray | None = None  # with a reason grid: the share of each cell the teacher's reason covers
 
 
 class TransitionAssembler:
@@ -44,16 +50,26 @@ class TransitionAssembler:
     STREAMS = ("frame", "outcome", "action")
 
     def __init__(
-        self, sink, actions, step_ns: int, net_hw: tuple[int, int], max_pending: int = 500, on_ready=None, teacher=False
+        self,
+        sink,
+        actions,
+        step_ns: int,
+        net_hw: tuple[int, int],
+        max_pending: int = 500,
+        on_ready=None,
+        teacher=False,
+        reason_grid: tuple[int, int] | None = None,
     ):
         self.sink, self.actions, self.step_ns, self.net_hw = sink, actions, step_ns, net_hw
-        self.on_ready = on_ready
-        self.observation = ("frame", "outcome") + (("teacher",) if teacher else ())  # what a step's simulator says
+        self.on_ready, self.reason_grid = on_ready, reason_grid
+        # What a step's simulator says.
+        self.observation = ("frame", "outcome") + (("teacher",) if teacher else ()) + (("reason",) if reason_grid else ())
         self.joiner = contract.StampJoiner(self.STREAMS + self.observation[2:], max_pending=max_pending)
         self.prev: _Prev | None = None
         self.early: tuple[int, bool] | None = None  # (stamp, frame usable) stored before its record completed
         self.released = -1  # the newest stamp handed to on_ready
         self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0, "unmatched_teacher_actions": 0}
+        self.counts |= {"bad_reasons": 0} if reason_grid else {}
         self.to_input = NetworkInput(*net_hw)
 
     def set_camera(self, intrinsics, hfov_deg: float) -> None:
@@ -95,6 +111,21 @@ class TransitionAssembler:
         action = match_action(self.actions, tw.linear.x, tw.angular.z, self.step_ns / 1e9)
         return -1 if action is None else action
 
+    def _reason(self, slot: dict) -> np.ndarray | None:
+        """The share of each reason_grid cell that the teacher's reason covers on the network's input (None without a
+        reason grid; no share for a mask that is malformed or not the frame's size, counted)."""
+        if self.reason_grid is None:
+            return None
+        try:
+            mask = contract.image_to_mask(slot["reason"])
+            if mask.shape != (slot["frame"].height, slot["frame"].width):
+                raise ValueError("not the frame's size")
+        except ValueError:
+            self.counts["bad_reasons"] += 1
+            return np.zeros(self.reason_grid[0] * self.reason_grid[1], np.float32)
+        on_input = np.isfinite(self.to_input(np.where(mask, np.float32(1.0), np.float32(np.inf))))
+        return node_shares(on_input, self.reason_grid)
+
     def teacher_of(self, stamp: int) -> int:
         """The teacher's action for the observation at `stamp` (-1: none): for its release."""
         slot = self.joiner.pending.get(stamp)
@@ -111,13 +142,14 @@ class TransitionAssembler:
             beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
             if "teacher" in self.observation and self.prev.teacher < 0:
                 self.counts["unmatched_teacher_actions"] += 1
-            self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher)
+            reason = {"reason": self.prev.reason} if self.reason_grid else {}
+            self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher, **reason)
 
     def _record(self, rec: dict) -> None:
         stamp = contract.stamp_ns(rec["frame"].header.stamp)
         if self.early is not None and self.early[0] == stamp:  # the frame went in before its answer came
             usable, self.early = self.early[1], None
-            self.prev = _Prev(stamp, self._action(rec), teacher=self._teacher(rec)) if usable else None
+            self.prev = _Prev(stamp, self._action(rec), teacher=self._teacher(rec), reason=self._reason(rec)) if usable else None
             return
         frame = self._frame(rec["frame"])
         if frame is None:
@@ -131,7 +163,7 @@ class TransitionAssembler:
             if prev is not None and not contract.outcome_truncated(out):  # ~/reset republishes at the same stamp
                 self.counts["chain_breaks"] += 1
             self.sink.add_first(frame)
-        self.prev = _Prev(stamp, action, teacher=self._teacher(rec))
+        self.prev = _Prev(stamp, action, teacher=self._teacher(rec), reason=self._reason(rec))
 
     def _store_next(self) -> None:
         """Store the observation one step after a complete record without waiting for its own answer."""
@@ -148,7 +180,7 @@ class TransitionAssembler:
             self.prev = None
             return
         self._store(frame, slot["outcome"])
-        self.prev = _Prev(stamp, None, answered=False, teacher=self._teacher(slot))
+        self.prev = _Prev(stamp, None, answered=False, teacher=self._teacher(slot), reason=self._reason(slot))
 
     def _release(self) -> None:
         if self.on_ready is None:
@@ -174,6 +206,7 @@ class TransitionAssembler:
             "frames_without_action": j.dropped["action"],
             "frames_without_outcome": j.dropped["outcome"],
             **({"frames_without_teacher_action": j.dropped["teacher"]} if "teacher" in j.dropped else {}),
+            **({"frames_without_teacher_reason": j.dropped["reason"]} if "reason" in j.dropped else {}),
             "outcomes_or_actions_without_frame": j.dropped["frame"],
             "duplicates": j.duplicates,
             "said_again": j.late,

@@ -59,11 +59,16 @@ class Actor(ActorState):
         teacher = node.cfg.teacher != "none"  # sim_node's teacher_action completes each observation
         on_ready = lambda stamp: node._on_ready(self, stamp)  # noqa: E731
         sink = node.training.sink(index)
-        self.pairing = TransitionAssembler(sink, node.actions, node.step_ns, hw, on_ready=on_ready, teacher=teacher)
+        grid = node.training.reason_grid  # with attention_weight: sim_node's teacher_reason completes it too
+        self.pairing = TransitionAssembler(
+            sink, node.actions, node.step_ns, hw, on_ready=on_ready, teacher=teacher, reason_grid=grid
+        )
         self.node = node
         q = contract.DEEP_QOS
         if teacher:
             node.create_subscription(TwistStamped, topic(contract.TEACHER_TOPIC), self.on_teacher, q)
+        if grid:
+            node.create_subscription(Image, topic(contract.TEACHER_REASON_TOPIC), lambda m: self.pairing.add("reason", m), q)
         node.create_subscription(Image, topic(contract.DEPTH_TOPIC), self.on_frame, q)
         node.create_subscription(Range, topic(contract.OUTCOME_TOPIC), self.on_outcome, q)
         node.create_subscription(TwistStamped, topic(contract.ACTION_TOPIC), lambda m: node._on_action(self, m), q)

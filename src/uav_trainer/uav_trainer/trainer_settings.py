@@ -58,11 +58,6 @@ class TrainerNodeSettings:
         repeated = [ns for ns, n in Counter(self.actors).items() if n > 1]
         if repeated:
             raise ParameterError(f"parameter 'actors': {repeated[0]} is named twice")
-        if self.trainer.learner.attention_weight > 0.0:
-            raise ParameterError(
-                f"parameter 'attention_weight'={self.trainer.learner.attention_weight:g}: the teacher's reason per frame "
-                "reaches only the in-process trainer (python -m uav_trainer.inprocess); over ROS it must be 0"
-            )
         return list(self.actors) or [""]
 
 

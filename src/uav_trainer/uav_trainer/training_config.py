@@ -27,7 +27,8 @@ class LearnerConfig:
     attention_weight: float = setting(
         0.0,
         "With a teacher, SAM's query readout: weight of the loss pulling the attention shown onto the cells of the "
-        "teacher's reason in the newest frame (-log of the map's mass there); 0 = none. In process only for now",
+        "teacher's reason in the newest frame (-log of the map's mass there; over ROS sim_node's teacher_reason); "
+        "0 = none; the CNN has no attention and ignores it",
         0.0,
         100.0,
     )
@@ -173,10 +174,11 @@ class TrainerConfig:
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
         snapshot_steps(self.snapshots, self.total_steps)
-        if self.learner.attention_weight > 0.0 and (self.teacher == "none" or self.model != "sam" or self.sam_readout != "query"):
+        pulled = self.learner.attention_weight > 0.0 and self.model == "sam"
+        if pulled and (self.teacher == "none" or self.sam_readout != "query"):
             raise ValueError(
-                f"'attention_weight'={self.learner.attention_weight:g} needs a teacher (its reason) and model 'sam' with "
-                f"sam_readout 'query' (got teacher {self.teacher!r}, model {self.model!r}, sam_readout {self.sam_readout!r})"
+                f"'attention_weight'={self.learner.attention_weight:g} needs a teacher (its reason) and sam_readout "
+                f"'query' (got teacher {self.teacher!r}, sam_readout {self.sam_readout!r})"
             )
 
 
