@@ -484,7 +484,8 @@ def test_inprocess_reads_the_recipe_train_reads_and_takes_trainer_flags(tmp_path
     finally:
         inprocess.run = real
     (cfg, sim, worlds), (paper_cfg, paper_sim, paper_worlds) = made
-    assert (cfg.turn_penalty, cfg.replay_ratio, cfg.snapshots, cfg.learner.learning_rate) == (1.0, 0.5, 9, 0.001)
+    assert (cfg.turn_penalty, cfg.replay_ratio, cfg.snapshots, cfg.learner.learning_rate) == (0.0, 0.5, 9, 0.001)
+    assert (cfg.teacher, worlds.layout_families) == ("stack", "mixed")  # the default recipe learns from the planner
     assert (sim.sensor, sim.sensor_scale, sim.reward_window_fraction, sim.max_episode_steps) == ("realsense_d435", 0.1, 0.2, 300)
     assert cfg.sam_readout == "query"
     assert sim.start_yaw_jitter_deg == 180.0
@@ -766,6 +767,10 @@ def test_a_run_with_a_teacher_whose_frames_come_without_one_is_stopped_naming_wh
     assert "'teacher'='stack'" in why and "no teacher_action" in why and "a camera has no world" in why
     actor.teachers_heard = 1
     assert actor.no_teacher("stack") is None
+    why = actor.no_teacher("stack", reasons=True)  # attention_weight, and a sim_node that sends no teacher_reason
+    assert "'attention_weight'" in why and "no teacher_reason" in why
+    actor.reasons_heard = 1
+    assert actor.no_teacher("stack", reasons=True) is None
 
 
 def test_the_attention_loss_is_zero_on_the_reason_positive_off_it_and_needs_a_reason():

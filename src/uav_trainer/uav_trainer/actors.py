@@ -33,6 +33,8 @@ TEACHERLESS_FRAMES = 10
 
 
 class ActorState:
+    pairing = None  # its TransitionAssembler (trainer_node's Actor makes it)
+
     def __init__(self, index: int, namespace: str, outcome_topic: str):
         self.index, self.ns, self.outcome_topic = index, namespace, outcome_topic
         self.label = namespace or "the actor"
@@ -44,13 +46,29 @@ class ActorState:
         self.last_heard: float | None = None  # its sim's latest message
         self.unanswered_since: float | None = None  # its policy was sent a release not answered since
         self.silent: str | None = None  # reported missing or lost: "sim" (said nothing) or "policy" (answered nothing)
-        self.frames_heard = self.teachers_heard = 0  # depth frames and teacher actions from its simulator
+        self.frames_heard = self.teachers_heard = self.reasons_heard = 0  # frames, teacher actions and reasons heard
         self.fly_for: tuple[int, int | None] | None = None  # (stamp, the teacher's action flown or None) of the release
 
-    def no_teacher(self, teacher: str) -> str | None:
-        """With a teacher, the error that stops the run when its simulator sends frames but no teacher_action: a camera
-        has no world to plan in; else None."""
-        if teacher == "none" or self.teachers_heard or self.frames_heard < TEACHERLESS_FRAMES:
+    def on_teacher(self, msg) -> None:
+        self.teachers_heard += 1
+        self.pairing.add("teacher", msg)
+
+    def on_reason(self, msg) -> None:
+        self.reasons_heard += 1
+        self.pairing.add("reason", msg)
+
+    def no_teacher(self, teacher: str, reasons: bool = False) -> str | None:
+        """With a teacher, the error that stops the run when its simulator sends frames but no teacher_action (a camera
+        has no world to plan in), or with `reasons` (attention_weight) teacher actions but no teacher_reason; else None."""
+        if teacher == "none" or self.frames_heard < TEACHERLESS_FRAMES:
+            return None
+        if reasons and self.teachers_heard and not self.reasons_heard:
+            return (
+                f"parameter 'attention_weight': {self.frames_heard} depth frames and teacher actions came from {self.label} "
+                "but no teacher_reason, which this trainer pairs with them (a sim_node older than it?); attention_weight:=0.0 "
+                "trains without"
+            )
+        if self.teachers_heard:
             return None
         return (
             f"parameter 'teacher'={teacher!r}: {self.frames_heard} depth frames came from {self.label} but no "

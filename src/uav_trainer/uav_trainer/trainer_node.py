@@ -68,7 +68,7 @@ class Actor(ActorState):
         if teacher:
             node.create_subscription(TwistStamped, topic(contract.TEACHER_TOPIC), self.on_teacher, q)
         if grid:
-            node.create_subscription(Image, topic(contract.TEACHER_REASON_TOPIC), lambda m: self.pairing.add("reason", m), q)
+            node.create_subscription(Image, topic(contract.TEACHER_REASON_TOPIC), self.on_reason, q)
         node.create_subscription(Image, topic(contract.DEPTH_TOPIC), self.on_frame, q)
         node.create_subscription(Range, topic(contract.OUTCOME_TOPIC), self.on_outcome, q)
         node.create_subscription(TwistStamped, topic(contract.ACTION_TOPIC), lambda m: node._on_action(self, m), q)
@@ -82,10 +82,6 @@ class Actor(ActorState):
         self._heard()
         self.frames_heard += 1
         self.pairing.add("frame", msg)
-
-    def on_teacher(self, msg: TwistStamped) -> None:
-        self.teachers_heard += 1
-        self.pairing.add("teacher", msg)
 
     def on_outcome(self, msg: Range) -> None:
         self._heard()
@@ -218,7 +214,9 @@ class TrainerNode(Node):
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
-        why = self.training.failed or next(filter(None, (a.no_teacher(self.cfg.teacher) for a in self.actors)), None)
+        why = self.training.failed or next(
+            filter(None, (a.no_teacher(self.cfg.teacher, self.training.reason_grid is not None) for a in self.actors)), None
+        )
         if why and self.exit_code == 0:  # a failed run (3), or one whose simulator has no teacher (2)
             self.get_logger().error(why)
             self.exit_code = 3 if self.training.failed else 2
