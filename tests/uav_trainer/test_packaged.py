@@ -12,7 +12,7 @@ WEIGHTS = Path(__file__).resolve().parents[2] / "src" / "uav_policy" / "weights"
 # folder: (model, crashes, mean reward per step, turning steps) over 150 steps of Complex, random start headings,
 # simulator seed 3, each set behind the camera it was trained behind (sam/, cnn/: the realsense_d435 sensor).
 PINNED = {
-    "sam": ("sam", 0, 2.027138088307281, 63),
+    "sam": ("sam", 0, 1.5552721636507951, 58),
     "cnn": ("cnn", 0, 1.7648285925957639, 56),
     "wide150/sam": ("sam", 2, 2.3991461638615923, 64),
     "wide150/cnn": ("cnn", 0, 3.089693096952854, 53),

@@ -319,7 +319,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     steps, seed, learn = (
         (420, 4, {"learning_starts": 150, "epsilon_decay_steps": 300})
         if recipe == "rl"
-        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200, "attention_weight": 0.5})
+        else (240, 5, {"learning_starts": 80, "epsilon_decay_steps": 200})
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
@@ -421,8 +421,8 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_it_name
     assert (
         "recipes/shipped.yaml (sim_node: world:=random_each_episode layout_families:=mixed mix_world:=basic "
         "mix_world_every:=4 max_episode_steps:=300 start_yaw_jitter_deg:=180.0 sensor:=realsense_d435 sensor_scale:=0.1 "
-        "reward_window_fraction:=0.2; trainer_node: sam_readout:=query teacher:=stack turn_penalty:=0.0 replay_ratio:=0.5 "
-        "snapshots:=9)"
+        "reward_window_fraction:=0.2; trainer_node: sam_readout:=query teacher:=stack attention_weight:=0.5 "
+        "turn_penalty:=0.0 replay_ratio:=0.5 snapshots:=9)"
     ) in r.stdout
     assert "a new layout every episode ('basic' every 4 episodes)" in logs["sim"]
     files = [run_dir / f"policy_sam_step{n}.safetensors" for n in range(42, 60, 2)] + [run_dir / "policy_sam.safetensors"]
