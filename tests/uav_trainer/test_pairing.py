@@ -155,13 +155,14 @@ def test_teacher_reasons_pair_with_their_frames_as_cell_shares():
             super().add_step(action, beta, collided, frame)
             self.events[-1] += (reason,)
 
-    sink = ReasonSink()
-    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), teacher=True, reason_grid=(8, 8))
-    for stream, m in shuffled_across_streams(full, np.random.default_rng(10)):
-        asm.add(stream, m)
-    steps = [e for e in sink.events if e[0] == "step"]
-    assert len(steps) == 120 and all(np.array_equal(e[-1], want) for e, want in zip(steps, shares, strict=False))
-    assert asm.report()["bad_reasons"] == 1 and asm.report()["frames_without_teacher_reason"] == 0
+    for order in range(3):  # the malformed mask counted once, however the streams interleave
+        sink = ReasonSink()
+        asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), teacher=True, reason_grid=(8, 8))
+        for stream, m in shuffled_across_streams(full, np.random.default_rng(10 + order)):
+            asm.add(stream, m)
+        steps = [e for e in sink.events if e[0] == "step"]
+        assert len(steps) == 120 and all(np.array_equal(e[-1], want) for e, want in zip(steps, shares, strict=False))
+        assert asm.report()["bad_reasons"] == 1 and asm.report()["frames_without_teacher_reason"] == 0
 
 
 def test_faults_are_counted_and_never_paired_wrongly():

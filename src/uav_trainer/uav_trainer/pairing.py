@@ -149,7 +149,9 @@ class TransitionAssembler:
         stamp = contract.stamp_ns(rec["frame"].header.stamp)
         if self.early is not None and self.early[0] == stamp:  # the frame went in before its answer came
             usable, self.early = self.early[1], None
-            self.prev = _Prev(stamp, self._action(rec), teacher=self._teacher(rec), reason=self._reason(rec)) if usable else None
+            kept = self.prev.reason if self.prev is not None and self.prev.stamp == stamp else None  # mapped once
+            reason = kept if kept is not None or self.reason_grid is None else self._reason(rec)
+            self.prev = _Prev(stamp, self._action(rec), teacher=self._teacher(rec), reason=reason) if usable else None
             return
         frame = self._frame(rec["frame"])
         if frame is None:
