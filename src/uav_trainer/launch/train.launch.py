@@ -4,6 +4,9 @@ lockstep. `train` is what this repository tests (`launch` is not on PyPI).
 
     ros2 launch uav_trainer train.launch.py params_dir:=$PWD/params recipe:=shipped total_steps:=30000
 
+sim_node's planner answers every frame as a teacher (`teacher`, default stack: what the shipped recipe's trainer learns
+from; a trainer without a teacher, `recipe:=rl`, does not listen, and `teacher:=none` spares the planner's time).
+
 Pushes are signed with the key in push_key_file (default runs/train/push.key): trainer_node creates it
 (mode 0600) when it is missing, policy_node reads it at the first push.
 """
@@ -25,7 +28,12 @@ def generate_launch_description():
             DeclareLaunchArgument("recipe", default_value="shipped"),
             DeclareLaunchArgument("total_steps", default_value="30000"),
             DeclareLaunchArgument("push_key_file", default_value="runs/train/push.key"),
-            Node(package="uav_sim", executable="sim_node", parameters=[*files("sim"), {"wait_for_subscribers": 2}]),
+            DeclareLaunchArgument("teacher", default_value="stack"),
+            Node(
+                package="uav_sim",
+                executable="sim_node",
+                parameters=[*files("sim"), {"wait_for_subscribers": 2, "teacher": LaunchConfiguration("teacher")}],
+            ),
             Node(
                 package="uav_policy",
                 executable="policy_node",
