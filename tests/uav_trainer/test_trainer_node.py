@@ -2,6 +2,7 @@
 
 import csv
 import os
+import re
 import subprocess
 from pathlib import Path
 
@@ -75,18 +76,24 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert ok, ros.log_of(trainer)[-2000:]
     ros.stop(policy)  # the lockstep loop halts; the trainer drains what is in flight (reported at 2 Hz)
     ros.spin_until(lambda: diag["uav_trainer"]["env_steps"] == diag["uav_sim"]["steps"], 30)
-    sim_steps = int(diag["uav_sim"]["steps"])
-    t = diag["uav_trainer"]
-    # Transition k-1 -> k is stored once frame and outcome k are in (action k-1 came before them): every
-    # step the sim made, and so every action but one the policy sent as it stopped (never executed).
-    assert int(t["env_steps"]) == sim_steps, (t, sim_steps)
-    assert len(actions) - 1 <= sim_steps <= len(actions), (sim_steps, len(actions))
+    assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
+    t = diag["uav_trainer"]  # its last report: the pairing counts only grow
     for key in PAIRING_COUNTS:
         assert t[key] == "0", f"{key}={t[key]}"
-    collisions = int(diag["uav_sim"]["collisions"])
-    assert collisions > 20 and int(t["episodes"]) == collisions, (t, collisions, sim_steps)
-    assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]
-    assert "final checkpoint" in ros.log_of(trainer)
+    # What it stored, from its own last line: the reports above may predate the policy's last command, in flight as
+    # it stopped, which the sim may still fly (and the trainer store) after both reported equal counts.
+    stored = re.search(r"final checkpoint .*\((\d+) env steps", ros.log_of(trainer))
+    assert stored, ros.log_of(trainer)[-2000:]
+    stored = int(stored.group(1))
+    # The sim's count settles at what the trainer stored (reports queued while the trainer stopped come first).
+    ros.spin_until(lambda: int(diag["uav_sim"]["steps"]) == stored, 10)
+    sim_steps, collisions = int(diag["uav_sim"]["steps"]), int(diag["uav_sim"]["collisions"])
+    # Transition k-1 -> k is stored once frame and outcome k are in (action k-1 came before them): every
+    # step the sim made, and so every action but one the policy sent as it stopped (never executed).
+    assert stored == sim_steps, (stored, sim_steps)
+    assert len(actions) - 1 <= sim_steps <= len(actions), (sim_steps, len(actions))
+    episodes = len((run_dir / "episodes.csv").read_text().splitlines()) - 1  # one row per episode, ended by a crash
+    assert collisions > 20 and episodes == collisions, (episodes, collisions, sim_steps)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
     # The weights record the camera the trainer saw on depth/camera_info.
     assert wio.read_file_camera(run_dir / "policy_sam.safetensors") == 100.0
@@ -95,10 +102,10 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     assert "reward window: 0.296875 of each side, recorded in the weights files" in ros.log_of(trainer)
     again = ros.start("uav_trainer", "trainer_node", *trainer_args, name="trainer2")
     assert ros.spin_until(lambda: "resumed from" in ros.log_of(again), 30), ros.log_of(again)
-    assert f"{t['env_steps']} env steps" in ros.log_of(again)
+    assert f"{stored} env steps" in ros.log_of(again)
     # The stop (no step budget) wrote the replay memory and the resume restored all of it.
     assert "replay memory saved with the checkpoint" in ros.log_of(trainer)
-    assert f"replay memory restored: {t['env_steps']} transitions" in ros.log_of(again), ros.log_of(again)
+    assert f"replay memory restored: {stored} transitions" in ros.log_of(again), ros.log_of(again)
 
 
 @pytest.mark.slow  # recovery from a kill (about 21 s)
