@@ -115,6 +115,11 @@ class NetworkInput:
             self._key = key
         return fit_to_network(depth_m, *self.hw, self.view)
 
+    def mask(self, mask: np.ndarray) -> np.ndarray:
+        """A camera-sized bool mask on the network's input, mapped as the frames are: an input pixel is in it when one
+        of the camera pixels it min-pools is (drawn as a near depth among no returns)."""
+        return np.isfinite(self(np.where(mask, np.float32(1.0), np.float32(np.inf))))
+
 
 class FrameStack:
     def __init__(self, frames: int = 5):

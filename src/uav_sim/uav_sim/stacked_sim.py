@@ -46,11 +46,8 @@ class StackedSim:
         return r.depth_m if self.to_input is None else self.to_input(r.depth_m)
 
     def input_mask(self, mask: np.ndarray) -> np.ndarray:
-        """A camera-sized bool mask on the network's input, as the frames are mapped: an input pixel is in it when
-        one of the camera pixels it min-pools is (drawn as a near depth among no returns)."""
-        if self.to_input is None:
-            return np.asarray(mask, dtype=bool)
-        return np.isfinite(self.to_input(np.where(mask, np.float32(1.0), np.float32(np.inf))))
+        """A camera-sized bool mask on the network's input, as the frames are mapped (NetworkInput.mask)."""
+        return np.asarray(mask, dtype=bool) if self.to_input is None else self.to_input.mask(mask)
 
     def step(self, action: int) -> StepResult:
         a = self.actions[action]

@@ -123,8 +123,7 @@ class TransitionAssembler:
         except ValueError:
             self.counts["bad_reasons"] += 1
             return np.zeros(self.reason_grid[0] * self.reason_grid[1], np.float32)
-        on_input = np.isfinite(self.to_input(np.where(mask, np.float32(1.0), np.float32(np.inf))))
-        return node_shares(on_input, self.reason_grid)
+        return node_shares(self.to_input.mask(mask), self.reason_grid)
 
     def teacher_of(self, stamp: int) -> int:
         """The teacher's action for the observation at `stamp` (-1: none): for its release."""

@@ -86,8 +86,7 @@ class Training:
         self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device))
         shape = (self.net_cfg.height, self.net_cfg.width)
         # With attention_weight, the cells of the attention shown, on which the teacher's reason is kept per frame.
-        pulled = cfg.learner.attention_weight > 0.0 and cfg.model == "sam"
-        self.reason_grid = self.learner.online.grid_hw if pulled else None
+        self.reason_grid = self.learner.online.grid_hw if cfg.pulls_attention else None
         cells = math.prod(self.reason_grid) if self.reason_grid else 0
         if actors == 1:
             self.replay = ReplayMemory(cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells)

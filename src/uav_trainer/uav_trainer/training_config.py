@@ -134,6 +134,11 @@ class TrainerConfig:
         """Transitions before the first update: learning_starts, or a thirtieth of the budget."""
         return self.learning_starts or max(1, (self.total_steps or NOMINAL_BUDGET) // 30)
 
+    @property
+    def pulls_attention(self) -> bool:
+        """attention_weight acts: SAM's attention is pulled onto the teacher's reason (the CNN has none)."""
+        return self.learner.attention_weight > 0.0 and self.model == "sam"
+
     def teacher_act_probability(self, step: int) -> float:
         """The chance that the teacher flies step `step`: teacher_act_start falling to 0 over the budget."""
         if self.teacher == "none":
@@ -174,8 +179,7 @@ class TrainerConfig:
         if self.model == "cnn" and changed:
             raise ValueError(f"{changed} size SAM's relational module; model 'cnn' has none")
         snapshot_steps(self.snapshots, self.total_steps)
-        pulled = self.learner.attention_weight > 0.0 and self.model == "sam"
-        if pulled and (self.teacher == "none" or self.sam_readout != "query"):
+        if self.pulls_attention and (self.teacher == "none" or self.sam_readout != "query"):
             raise ValueError(
                 f"'attention_weight'={self.learner.attention_weight:g} needs a teacher (its reason) and sam_readout "
                 f"'query' (got teacher {self.teacher!r}, sam_readout {self.sam_readout!r})"
