@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def in_process(world: str, steps: int) -> float:
     """The same simulator sim_node runs by default (its camera and sensor model), without ROS."""
+    from uav_common.kinematics import BodyTwist
     from uav_sim.sim_settings import SimNodeSettings
     from uav_sim.simulator import Simulator
-    from uav_sim.vehicle import BodyTwist
     from uav_sim.world import load_world
 
     sim = Simulator(load_world(world), SimNodeSettings().sim)

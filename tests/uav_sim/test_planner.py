@@ -6,12 +6,13 @@ import math
 import numpy as np
 import pytest
 
+from uav_common.kinematics import BodyTwist
+from uav_common.plan_search import Planner
 from uav_policy.rollout import Flight
-from uav_sim.planner import Planner, PlannerAgent, PlannerConfig, SimPlanner
+from uav_sim.planner import Geometry, KnownGeometry, PlannerAgent, PlannerConfig, SimPlanner
 from uav_sim.sensor import TRAINING_SCALE
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.stacked_sim import StackedSim
-from uav_sim.vehicle import BodyTwist
 from uav_sim.world import Obstacle, Weather, World, load_world, wall_code
 
 D435 = dict(sensor="realsense_d435", sensor_scale=TRAINING_SCALE)
@@ -21,6 +22,12 @@ def pillar_world(x_m: float = 2.0, y_m: float = 0.0) -> World:
     """A large room (its far wall 8 m ahead, in range), the vehicle at the origin facing +x, one pillar."""
     pillar = Obstacle("cylinder", x_m, y_m, 3.0, radius_m=0.4)
     return World("pillar", 16.0, 20.0, 3.0, (0.0, 0.0, 1.0), 0.0, (pillar,), Weather())
+
+
+def everything(world: World) -> KnownGeometry:
+    """All of a world's footprints and walls, as the planner's knowledge."""
+    geometry = Geometry(world)
+    return KnownGeometry(geometry, np.ones(len(geometry.codes), dtype=bool))
 
 
 def fly_planner(world: str, knowledge: str, steps: int, seed: int) -> tuple[int, float, list[int]]:
@@ -55,6 +62,21 @@ def test_the_planner_flies_2000_random_start_steps_of_complex_without_a_crash():
         assert m_per_step > 0.6, knowledge
 
 
+def test_the_planner_on_the_local_map_flies_through_weather_and_is_deterministic():
+    """Knowing only the measured depth of the last five frames and odometry (the local map, weather filtered)."""
+    crashes, m_per_step, actions = fly_planner("turbulent", "map", 300, seed=5)
+    assert crashes == 0 and m_per_step > 0.6
+    assert fly_planner("turbulent", "map", 60, seed=5)[2] == actions[:60], "deterministic for a seed"
+
+
+@pytest.mark.slow
+def test_the_planner_on_the_local_map_flies_2000_random_start_steps_of_complex_and_turbulent_without_a_crash():
+    for world in ("complex", "turbulent"):
+        crashes, m_per_step, _ = fly_planner(world, "map", 2000, seed=12)
+        assert crashes == 0, world
+        assert m_per_step > 0.6, world
+
+
 def test_its_labels_are_what_it_flies():
     """The teacher's label for a frame (SimPlanner.label) is the action the planner flies from that frame."""
     flown = Simulator(load_world("complex"), SimConfig(seed=3, start_yaw_jitter_deg=180.0, **D435))
@@ -81,9 +103,9 @@ def test_knowing_the_last_frames_means_not_knowing_what_is_behind():
         stack, everything = SimPlanner(sim), SimPlanner(sim, PlannerConfig(knowledge="all"))
         stack.label(), everything.label()
         assert 0 not in sim.visible, "the camera looks away from the pillar"
-        codes = list(stack.planner.geometry.codes)
-        assert not stack.planner.known()[codes.index(0)]
-        assert everything.planner.known()[codes.index(0)]
+        codes = list(stack.geometry.codes)
+        assert not stack.known()[codes.index(0)]
+        assert everything.known()[codes.index(0)]
     finally:
         sim.close()
 
@@ -108,20 +130,17 @@ def test_a_plan_ends_where_it_could_circle_for_ever():
     """In a corridor too narrow to turn round in, flying on towards its end wall is worse than turning in time: a plan
     whose horizon ends without room to circle ranks below one that keeps that room."""
     corridor = World("corridor", 12.0, 1.6, 3.0, (0.0, 0.0, 1.0), 0.0, (), Weather())
-    planner = Planner(corridor, 0.5, 40.0, config=PlannerConfig(knowledge="all"))
-    plan = planner.plan(3.0, 0.0, 0.0)
-    assert plan.scores.max() < 1e7, "no plan can end on a free turning circle in a 1.6 m corridor"
+    plan = Planner(0.5, 40.0).plan(3.0, 0.0, 0.0, everything(corridor))
+    assert plan.scores.max() < 1e7 and not plan.safe.any(), "no plan can end on a free turning circle in a 1.6 m corridor"
     room = World("room", 30.0, 30.0, 3.0, (0.0, 0.0, 1.0), 0.0, (), Weather())
-    assert Planner(room, 0.5, 40.0, config=PlannerConfig(knowledge="all")).plan(0.0, 0.0, 0.0).action == 3, (
-        "in an empty room it flies the fast action"
-    )
+    assert Planner(0.5, 40.0).plan(0.0, 0.0, 0.0, everything(room)).action == 3, "in an empty room it flies the fast action"
 
 
 def test_bad_planner_settings_are_refused_by_name():
     for bad, field in ((dict(knowledge="psychic"), "knowledge"), (dict(horizon=0), "horizon")):
         with pytest.raises(ValueError, match=field):
             PlannerConfig(**bad).validate()
-    assert np.isfinite(Planner(pillar_world(), 0.5, 40.0).plan(0.0, 0.0, 0.0).scores).all()
+    assert np.isfinite(Planner(0.5, 40.0).plan(0.0, 0.0, 0.0, everything(pillar_world())).scores).all()
 
 
 def test_the_reason_maps_onto_the_network_input_where_its_depth_shows():

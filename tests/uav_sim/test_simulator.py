@@ -3,10 +3,10 @@ import math
 import numpy as np
 import pytest
 
+from uav_common.kinematics import BodyTwist, Pose, TwistLimits, integrate, twist_error
 from uav_sim.camera import CameraIntrinsics
 from uav_sim.reward import DELTA_M, center_window_min_depth, floor_beta_m
 from uav_sim.simulator import SimConfig, Simulator, obstacle_distance_m, reward_floor_problem
-from uav_sim.vehicle import BodyTwist, Pose, TwistLimits, integrate, twist_error
 from uav_sim.world import Obstacle, Weather, World, load_world
 
 

@@ -5,9 +5,9 @@ from geometry_msgs.msg import TwistStamped
 
 from uav_common import contract
 from uav_common.actions import PAPER_ACTIONS
+from uav_common.kinematics import BodyTwist
 from uav_sim.reward import step_reward
 from uav_sim.simulator import SimConfig, Simulator
-from uav_sim.vehicle import BodyTwist
 from uav_sim.world import load_world
 from uav_trainer.pairing import TransitionAssembler
 

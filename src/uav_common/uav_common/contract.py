@@ -29,12 +29,12 @@ CMD_VEL_TOPIC = "cmd_vel"
 CMD_VEL_STAMPED_TOPIC = "cmd_vel_stamped"
 ACTION_TOPIC = "action"
 # Training with a teacher: sim_node's planner's action for a frame (TwistStamped, the frame's stamp), paired by
-# trainer_node like the policy's `action`. Its knowledge: none (no teacher), or uav_sim.planner's stack or all.
+# trainer_node like the policy's `action`. Its knowledge: none (no teacher), or uav_sim.planner's stack, all or map.
 TEACHER_TOPIC = "teacher_action"
 # With it, what the planner's decision on the frame is about (uav_sim.planner: its reason) as the frame's pixels that
 # show it: a mono8 Image at the frame's size and stamp, 255 on the reason; for a trainer whose loss pulls attention there.
 TEACHER_REASON_TOPIC = "teacher_reason"
-TEACHERS = ("none", "stack", "all")
+TEACHERS = ("none", "stack", "all", "map")
 Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
 ATTENTION_OVERLAY_TOPIC = "attention/overlay"
@@ -231,6 +231,17 @@ def camera_info_intrinsics(msg) -> tuple[float, float, float, float, int, int] |
     if not all(math.isfinite(v) for v in values) or fx <= 0 or fy <= 0 or width <= 0 or height <= 0:
         return None
     return fx, fy, cx, cy, width, height
+
+
+def odometry_pose(msg) -> tuple[float, float, float, float] | None:
+    """(x, y, z, yaw) of a nav_msgs/Odometry's pose (REP 105: base_link in odom); None when not finite."""
+    try:
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+        pose = (float(p.x), float(p.y), float(p.z), yaw)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return pose if all(math.isfinite(v) for v in pose) else None
 
 
 def camera_info_hfov_deg(msg) -> float | None:

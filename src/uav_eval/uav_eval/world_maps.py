@@ -65,11 +65,16 @@ def main(argv=None) -> int:
         ax.axis("off")
     for ax, world in zip(axes.flat, worlds, strict=False):
         draw(ax, world)
-    fig.tight_layout()
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(a.out, dpi=110)
-    print(f"written: {a.out}")
+    save(fig, a.out)
     return 0
+
+
+def save(fig, out: str) -> None:
+    """Lay out a figure and write it to `out` (its folder made), saying where."""
+    fig.tight_layout()
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    print(f"written: {out}")
 
 
 if __name__ == "__main__":

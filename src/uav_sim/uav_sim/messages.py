@@ -10,8 +10,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo
 
 from uav_common.actions import PAPER_ACTIONS
-
-from .vehicle import BodyTwist
+from uav_common.kinematics import BodyTwist
 
 
 def teacher_msg(action: int, stamp, base_frame: str, step_duration_s: float) -> TwistStamped:

@@ -25,6 +25,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from uav_common import contract
+from uav_common.kinematics import HOVER, BodyTwist, twist_error
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
@@ -35,7 +36,6 @@ from .planner import PlannerConfig, SimPlanner
 from .reward import window_fov_rad
 from .sim_settings import REMOVED, SimNodeSettings, describe
 from .simulator import Simulator, StepResult, reward_floor_problem
-from .vehicle import HOVER, BodyTwist, twist_error
 from .world import WorldError
 
 TRAJECTORY_POSES = 2000  # the longest path kept for the trajectory topic

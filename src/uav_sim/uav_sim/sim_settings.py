@@ -69,7 +69,8 @@ class SimNodeSettings:
         "none",
         "training with a teacher: publish on teacher_action, stamped as each frame, the action uav_sim.planner flies from "
         "it, and on teacher_reason the pixels its decision is about (stack: knowing what the last teacher_frames frames "
-        "showed; all: the whole world); train sets it from the trainer's teacher. none: no planning",
+        "showed; all: the whole world; map: the local map of the last teacher_frames measured frames and odometry); "
+        "train sets it from the trainer's teacher. none: no planning",
         choices=contract.TEACHERS,
     )
     teacher_frames: int = setting(5, "the frames the stack teacher remembers (the trainer's frame_stack; train sets it)", 1, 16)

@@ -20,12 +20,12 @@ from collections.abc import Iterator
 import numpy as np
 import pybullet as p
 
+from uav_common.kinematics import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from uav_common.settings import setting
 
 from .camera import CameraIntrinsics, DepthCamera
 from .reward import DELTA_M, center_window_min_depth, floor_beta_m, step_reward
 from .sensor import SENSORS, SensorModel, preset, scaled_size
-from .vehicle import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
 from .weather import Particles
 from .world import Obstacle, World, wall_code
 
@@ -177,6 +177,7 @@ class Simulator:
         self.next_worlds = next_worlds
         self.see_bodies = False  # render the segmentation mask too (the planner and the decision's reason need it)
         self.body_ids: np.ndarray | None = None
+        self.measured: np.ndarray | None = None
         self.visible: frozenset[int] = frozenset()
         self.rng = np.random.default_rng(config.seed)
         self.client = p.connect(p.DIRECT)
@@ -276,8 +277,10 @@ class Simulator:
         return depth
 
     def measure(self, depth_m: np.ndarray) -> np.ndarray:
-        """What the sensor reports for the exact depth (the reward's beta comes from the exact one)."""
-        return depth_m if self.sensor is None else self.sensor.measure(depth_m)
+        """What the sensor reports for the exact depth (the reward's beta comes from the exact one); kept as
+        `measured`, the newest frame a camera would have given (the local map's input)."""
+        self.measured = depth_m if self.sensor is None else self.sensor.measure(depth_m)
+        return self.measured
 
     def observe(self) -> StepResult:
         """The current frame as a StepResult without moving (the first frame of a run)."""

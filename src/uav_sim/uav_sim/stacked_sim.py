@@ -8,9 +8,9 @@ import numpy as np
 
 from uav_common.actions import PAPER_ACTIONS, Action
 from uav_common.frame_stack import FrameStack, NetworkInput
+from uav_common.kinematics import BodyTwist
 
 from .simulator import Simulator, StepResult
-from .vehicle import BodyTwist
 
 
 class StackedSim:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from uav_common.settings import setting
+from .settings import setting
 
 
 @dataclasses.dataclass(frozen=True)
