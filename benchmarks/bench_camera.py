@@ -1,6 +1,7 @@
 """Camera-to-command latency of policy_node flying from a depth camera alone (no simulator): a RealSense-like
 stream (848x480 16UC1 millimetres, 15 Hz, sensor-data QoS, an 87 deg CameraInfo) against, in the same run,
-a simulator-sized stream (64x64 32FC1) as the baseline.
+a simulator-sized stream (64x64 32FC1) as the baseline; each without the shield and with it (odometry published
+with every frame: the vehicle flying on at 1 m/s).
 
 Figures, per stream: frames answered; in policy_node, frame arrival to cmd_vel published (p50/p99, its
 /diagnostics: decode, mapping onto the trained field of view, stack, network, safety layer, publishing);
@@ -39,7 +40,17 @@ def scene(width: int, height: int, t_s: float) -> np.ndarray:
     return depth
 
 
-def measure(model: str, weights: str, width: int, height: int, encoding: str, frames: int, rate_hz: float, domain: int) -> dict:
+def odometry(stamp, t_s: float):
+    """The vehicle 1 m/s along x, level (what the MAVLink bridge or any nav_msgs/Odometry gives)."""
+    from nav_msgs.msg import Odometry
+
+    odom = Odometry()
+    odom.header.stamp, odom.header.frame_id, odom.child_frame_id = stamp, "odom", "base_link"
+    odom.pose.pose.position.x, odom.pose.pose.position.z, odom.pose.pose.orientation.w = t_s, 1.0, 1.0
+    return odom
+
+
+def measure(model, weights, width, height, encoding, frames, rate_hz, domain, shield: bool) -> dict:
     import rclpy
     import rclpy.executors
     from diagnostic_msgs.msg import DiagnosticArray
@@ -54,6 +65,9 @@ def measure(model: str, weights: str, width: int, height: int, encoding: str, fr
     ex.add_node(node)
     pub = node.create_publisher(Image, contract.DEPTH_TOPIC, contract.SENSOR_QOS)
     pub_info = node.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, contract.SENSOR_QOS)
+    from nav_msgs.msg import Odometry
+
+    pub_odom = node.create_publisher(Odometry, contract.ODOM_TOPIC, contract.SENSOR_QOS)
     sent, e2e, diag = {}, [], {}
     on_cmd = lambda m: e2e.append(time.perf_counter() - sent.pop(contract.stamp_ns(m.header.stamp), math.nan))  # noqa: E731
     node.create_subscription(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, on_cmd, 100)
@@ -65,7 +79,8 @@ def measure(model: str, weights: str, width: int, height: int, encoding: str, fr
 
     node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, on_diag, 10)
     try:
-        args = ["-p", f"model:={model}", "-p", "publish_stamped:=true"] + (["-p", f"weights:={weights}"] if weights else [])
+        args = ["-p", f"model:={model}", "-p", "publish_stamped:=true", "-p", f"shield:={'auto' if shield else 'never'}"]
+        args += ["-p", f"weights:={weights}"] if weights else []
         procs.start("policy", "uav_policy", "policy_node", args)
         deadline = time.monotonic() + 60
         while pub.get_subscription_count() == 0 or not diag:
@@ -78,6 +93,7 @@ def measure(model: str, weights: str, width: int, height: int, encoding: str, fr
             stamp = node.get_clock().now().to_msg()
             frame_id = "camera_depth_optical_frame"
             pub_info.publish(camera_info(width, height, 87.0, stamp, frame_id))
+            pub_odom.publish(odometry(stamp, i / rate_hz))
             msg = contract.depth_to_image(depth_frames[i % len(depth_frames)], stamp, frame_id, encoding)
             sent[contract.stamp_ns(stamp)] = time.perf_counter()
             pub.publish(msg)
@@ -101,6 +117,8 @@ def measure(model: str, weights: str, width: int, height: int, encoding: str, fr
         "node_p99": diag.get("latency_ms_p99"),
         "e2e_p50": float(np.percentile(e2e_ms, 50)) if len(e2e_ms) else math.nan,
         "e2e_p99": float(np.percentile(e2e_ms, 99)) if len(e2e_ms) else math.nan,
+        "overridden": diag.get("shield_overridden", "-"),
+        "no_odometry": diag.get("shield_frames_without_odometry", "-"),
     }
 
 
@@ -112,18 +130,25 @@ def main() -> int:
     ap.add_argument("--domain", type=int, default=173)
     a = ap.parse_args()
     rows = [
-        ("848x480 16UC1 (camera)", measure(a.model, a.weights, 848, 480, "16UC1", a.frames, 15.0, a.domain)),
-        ("64x64 32FC1 (baseline)", measure(a.model, a.weights, 64, 64, "32FC1", a.frames, 15.0, a.domain)),
+        (
+            f"{w}x{h} {enc}{' + shield' if shield else ''}",
+            measure(a.model, a.weights, w, h, enc, a.frames, 15.0, a.domain, shield),
+        )
+        for w, h, enc in ((848, 480, "16UC1"), (64, 64, "32FC1"))
+        for shield in (False, True)
     ]
     print(f"policy_node model {a.model}, weights {a.weights or 'packaged'}, no simulator, 15 Hz, safety layer on")
-    print(f"{'stream':26s} {'received':>9s} {'answered':>9s} {'in node p50/p99 ms':>20s} {'end to end p50/p99 ms':>23s}")
+    head = f"{'stream':26s} {'received':>9s} {'answered':>9s} {'in node p50/p99 ms':>20s} {'end to end p50/p99 ms':>23s}"
+    print(head + "  shield overrides / frames without odometry")
     for name, r in rows:
         print(
             f"{name:26s} {r['received']:>9s} {r['answered']:4d}/{r['frames']:<4d} {r['node_p50']:>9s} / {r['node_p99']:<8s} "
-            f"{r['e2e_p50']:10.2f} / {r['e2e_p99']:<8.2f}"
+            f"{r['e2e_p50']:10.2f} / {r['e2e_p99']:<8.2f}  {r['overridden']} / {r['no_odometry']}"
         )
-    cam, base = rows[0][1], rows[1][1]
-    print(f"ratio camera / baseline, in node p99: {float(cam['node_p99']) / float(base['node_p99']):.2f}")
+    p99 = [float(r["node_p99"]) for _, r in rows]
+    print(
+        f"ratio camera / baseline, in node p99: {p99[0] / p99[2]:.2f}; with the shield / without: {p99[1] / p99[0]:.2f} (848x480)"
+    )
     return 0
 
 

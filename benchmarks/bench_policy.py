@@ -97,7 +97,16 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
     try:
         read = sim_steps_reader(node)
         nodes.start("sim", "uav_sim", "sim_node", [])
-        pushes_args = ["-p", "accept_pushes:=true", "-p", f"push_key_file:={key_file}", "-p", "safety:=false"]
+        pushes_args = [
+            "-p",
+            "accept_pushes:=true",
+            "-p",
+            f"push_key_file:={key_file}",
+            "-p",
+            "safety:=false",
+            "-p",
+            "shield:=never",
+        ]
         nodes.start("policy", "uav_policy", "policy_node", ["-p", f"model:={model}", *pushes_args])
         end = time.perf_counter() + 60
         while read()[1] is None or read()[1] < 50:

@@ -574,17 +574,18 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
 
 
 @pytest.mark.parametrize(
-    ("jitter", "hfov", "trained_hfov", "readout", "size", "sam_sizes", "safety"),
-    [  # each readout, jitter or not, a camera given or the weights', other sizes, the safety layer: three flights
-        (180.0, 120.0, None, "attend", 64, {}, True),
-        (180.0, None, 90.0, "max", 64, {}, False),
-        (0.0, 90.0, None, "flatten", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}, False),
+    ("jitter", "hfov", "trained_hfov", "readout", "size", "sam_sizes", "safety", "shield"),
+    [  # each readout, jitter or not, a camera given or the weights', other sizes, the safety layer, the shield
+        (180.0, 120.0, None, "attend", 64, {}, True, False),
+        (180.0, None, 90.0, "max", 64, {}, False, False),
+        (0.0, 90.0, None, "flatten", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}, False, False),
+        (180.0, 120.0, None, "query", 64, {}, False, True),
     ],
 )
 def test_ros_evaluation_equals_the_in_process_measurement(
-    tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes, safety, monkeypatch
+    tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes, safety, shield, monkeypatch
 ):
-    """Same simulator, stack, network and decision path (uav_policy.pilot, the safety layer included): flying through
+    """Same simulator, stack, network and decision path (uav_policy.pilot, the shield and safety layer included): flying through
     the ROS nodes changes nothing (and the random start heading, extra sim parameters, the weights' SAM readout, input
     size, layer sizes and frame stack and, without an hfov_deg argument, the camera recorded in the weights and the
     reward window it records reach the nodes)."""
@@ -597,12 +598,16 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov, reward_window_fraction=window)
     monkeypatch.setenv("ROS_DOMAIN_ID", "79")
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
-    over_ros = evaluate_once("sam", str(w), "basic", 100, seed=3, start_yaw_jitter_deg=jitter, sim_args=sim_args, safety=safety)
+    kw = dict(seed=3, start_yaw_jitter_deg=jitter, safety=safety, shield=shield)
+    world = "complex" if shield else "basic"  # the shield overrides this network there (34-50 times in 100 steps)
+    over_ros = evaluate_once("sam", str(w), world, 100, sim_args=sim_args, **kw)
     flown = hfov if hfov is not None else trained_hfov
-    local = evaluate_inprocess("sam", str(w), "basic", 100, seed=3, start_yaw_jitter_deg=jitter, hfov_deg=flown, safety=safety)
+    local = evaluate_inprocess("sam", str(w), world, 100, hfov_deg=flown, **kw)
     assert (over_ros.crashes, over_ros.steps, over_ros.crash_sites) == (local.crashes, local.steps, local.crash_sites)
     assert (over_ros.turn_steps, over_ros.cells, over_ros.interventions) == (local.turn_steps, local.cells, local.interventions)
     assert local.interventions > 0 if safety else local.interventions == -1, local.interventions
+    assert over_ros.shield_overrides == local.shield_overrides, "the shield overrode the same decisions"
+    assert local.shield_overrides > 0 if shield else local.shield_overrides == -1, local.shield_overrides
     assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6
     if trained_hfov is not None:  # the recorded camera was used: the default camera flies otherwise
         assert trained_hfov != SimConfig.hfov_deg
@@ -625,6 +630,8 @@ def test_the_planner_is_a_row_of_the_tables_in_process_only(tmp_path, capsys):
     md = (out / "results.md").read_text()
     assert "| planner (5 frames) | no weights | 0 / 40: " in md and "flies behind the packaged networks' camera" in md
     assert main(["--from-csv", str(out / "results.csv"), "--out", str(tmp_path / "again")]) == 0, "its rows read back"
+    assert main([*args[:2], "planner_map", *args[3:], "--out", str(tmp_path / "m")]) == 0
+    assert "| planner (local map) | no weights | " in (tmp_path / "m" / "results.md").read_text()
     with pytest.raises(SystemExit) as e:
         main(["--model", "planner", "--worlds", "basic", "--out", str(tmp_path / "ros")])
     assert e.value.code == 2 and "--model planner needs --inprocess" in capsys.readouterr().err

@@ -50,7 +50,7 @@ def push_args(ros):
     key = ros.tmp / "push.key"
     if not key.exists():
         write_key(key)
-    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={key}", "-p", "safety:=false")
+    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={key}", "-p", "safety:=false", "-p", "shield:=never")
 
 
 IDEAL_87 = ("-p", "sensor:=ideal", "-p", "hfov_deg:=87.0")  # the packaged weights' field of view, exact depth
@@ -155,7 +155,9 @@ def test_a_stalled_policy_does_not_answer_a_repeated_frame_twice(ros):
         Odometry, contract.ODOM_TOPIC, lambda m: odoms.setdefault(contract.stamp_ns(m.header.stamp), m.twist.twist), qos
     )
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.05")
-    policy = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "safety:=false")  # the network's own commands
+    policy = ros.start(
+        "uav_policy", "policy_node", "-p", "model:=cnn", "-p", "safety:=false", "-p", "shield:=never"
+    )  # the network's own commands
     assert ros.spin_until(lambda: len(actions) >= 30, 60), ros.log_of(policy)
     policy.send_signal(signal.SIGSTOP)  # a busy machine: the sim says its frame again about 10 times
     ros.spin_for(0.5)
@@ -624,15 +626,17 @@ def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
     assert ros.spin_until(lambda: diag[-1].level != DiagnosticStatus.ERROR, 5), "the ERROR lasts while foreign frames come"
 
 
-def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
+def test_a_depth_camera_alone_is_flown_behind_the_shield_and_the_safety_layer(ros):
     """No simulator: a RealSense-like stream (848x480 16UC1 millimetres, sensor-data QoS, an 87 deg
-    CameraInfo) is answered on cmd_vel_stamped; a wall at 0.4 m gives no forward command; when frames stop,
+    CameraInfo) with odometry is answered on cmd_vel_stamped, shielded (shield auto); a wall at 0.4 m gives no
+    forward command; frames without odometry give none either (the shield vouches for nothing); when frames stop,
     stop commands (zero velocity) follow within the timeout, counted on /diagnostics; a CameraInfo with a
     zero focal length is counted and ignored."""
     import math
 
     import numpy as np
     from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
     from sensor_msgs.msg import CameraInfo
 
     cmds = []
@@ -643,8 +647,10 @@ def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
     )
     pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.SENSOR_QOS)
     pub_info = ros.node.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, contract.SENSOR_QOS)
+    pub_odom = ros.node.create_publisher(Odometry, contract.ODOM_TOPIC, contract.SENSOR_QOS)
     proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "publish_stamped:=true", "-p", "frame_timeout_s:=0.5")
-    assert ros.spin_until(lambda: pub_img.get_subscription_count() and pub_info.get_subscription_count() and diag, 30)
+    subscribed = lambda: all(p.get_subscription_count() for p in (pub_img, pub_info, pub_odom))  # noqa: E731
+    assert ros.spin_until(lambda: subscribed() and diag, 30)
     f = 424 / math.tan(math.radians(87 / 2))
     info = CameraInfo(width=848, height=480, k=[f, 0.0, 424.0, 0.0, f, 240.0, 0.0, 0.0, 1.0])
     clock = ros.node.get_clock()
@@ -652,15 +658,19 @@ def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
     def answering(stamps):
         return [c for c in cmds if contract.stamp_ns(c.header.stamp) in stamps]
 
-    def stream(depth_m: float, answers: int) -> set[int]:
-        """Frames of a wall at depth_m at 15 Hz until `answers` of them are answered (best effort loses
-        some, more on a loaded machine); their stamps."""
+    def stream(depth_m: float, answers: int, odometry: bool = True) -> set[int]:
+        """Frames of a wall at depth_m at 15 Hz (with the vehicle's odometry, hovering at the origin) until `answers`
+        of them are answered (best effort loses some, more on a loaded machine); their stamps."""
         frame = np.full((480, 848), depth_m, np.float32)
         stamps = set()
         deadline = time.monotonic() + 30
         while len(answering(stamps)) < answers and time.monotonic() < deadline:
             stamp = clock.now().to_msg()
             info.header.stamp = stamp
+            if odometry:
+                odom = Odometry()
+                odom.header.stamp, odom.pose.pose.position.z, odom.pose.pose.orientation.w = stamp, 1.0, 1.0
+                pub_odom.publish(odom)
             pub_info.publish(info)
             pub_img.publish(contract.depth_to_image(frame, stamp, "camera_depth_optical_frame", "16UC1"))
             stamps.add(contract.stamp_ns(stamp))
@@ -677,7 +687,12 @@ def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
     near = stream(0.4, 5)
     assert len(answering(near)) >= 5, ros.log_of(proc)[-3000:]
     assert all(c.twist.linear.x == 0.0 for c in answering(near)), [c.twist.linear.x for c in answering(near)]
-    last_frame_ns = max(contract.stamp_ns(c.header.stamp) for c in answering(near))  # the last one that arrived
+    ros.spin_for(0.6)  # the last odometry is older than odom_timeout_s (0.5 s) from now on
+    blind = stream(6.0, 5, odometry=False)
+    assert len(answering(blind)) >= 5, ros.log_of(proc)[-3000:]
+    assert all(c.twist.linear.x == 0.0 for c in answering(blind)), "no odometry: the shield vouches for nothing"
+    assert "shield: no odometry within odom_timeout_s of the frame" in ros.log_of(proc)
+    last_frame_ns = max(contract.stamp_ns(c.header.stamp) for c in answering(blind))  # the last one that arrived
     n = len(cmds)
     stops = lambda: [c for c in cmds[n:] if contract.stamp_ns(c.header.stamp) > last_frame_ns]  # noqa: E731
     assert ros.spin_until(lambda: len(stops()) >= 3, 10), ros.log_of(proc)[-3000:]
@@ -691,6 +706,7 @@ def test_a_depth_camera_alone_is_flown_behind_the_safety_layer(ros):
     assert ros.spin_until(stopping, 5), [(d.message, values(d)["safety_stops_no_frames"]) for d in diag[-3:]]
     last = values(diag[-1])
     assert last["source"] == "camera" and int(last["safety_forward_blocked"]) >= 5 and last["camera_coverage"] == "0.57"
+    assert last["shield"] == "on" and int(last["shield_no_odometry"]) >= 5 and int(last["shield_checked"]) >= 15, last
     assert int(last["malformed_camera_info"]) >= 1 and "malformed depth/camera_info" in ros.log_of(proc)
     # Every 5th answered camera frame is measured on a worker thread (or skipped while it is busy).
     assert int(last["insight_frames"]) + int(last["insight_skipped"]) >= 2 and int(last["insight_frames"]) >= 1
@@ -701,7 +717,7 @@ def test_the_packaged_default_explains_a_camera_stream_by_where_the_obstacle_is(
     """The packaged default policy (sam) flown from a RealSense-like stream alone (848x480 16UC1, an 87 deg
     CameraInfo): with a pillar on the left of the view the published attention lies more on the left than with the
     same pillar on the right, and the other way round. The state spans 2.5 s of frames, so each scene is streamed
-    for 3 s before its maps count."""
+    for 3 s before its maps count, then until 5 of them have come (on a loaded machine best effort loses frames)."""
     import math
 
     import numpy as np
@@ -729,9 +745,9 @@ def test_the_packaged_default_explains_a_camera_stream_by_where_the_obstacle_is(
         depth[:, column - 45 : column + 45] = 1.8  # a pillar 1.8 m away, 90 px wide
         return depth
 
-    def stream(depth: np.ndarray, seconds: float) -> list[int]:
+    def stream(depth: np.ndarray, maps_wanted: int) -> list[int]:
         stamps, start = [], time.monotonic()
-        while time.monotonic() - start < seconds:
+        while sum(s in maps for s in stamps) < maps_wanted and time.monotonic() - start < 60:
             stamp = clock.now().to_msg()
             info.header.stamp = stamp
             pub_info.publish(info)
@@ -743,9 +759,9 @@ def test_the_packaged_default_explains_a_camera_stream_by_where_the_obstacle_is(
         return [s for s in stamps if s in maps]
 
     left, right = scene(250), scene(598)
-    on_left = stream(left, 4.5)
-    on_right = stream(right, 4.5)
-    assert len(on_left) >= 3 and len(on_right) >= 3, (len(on_left), len(on_right), ros.log_of(proc)[-2000:])
+    on_left = stream(left, 5)
+    on_right = stream(right, 5)
+    assert len(on_left) >= 5 and len(on_right) >= 5, (len(on_left), len(on_right), ros.log_of(proc)[-2000:])
     mean = lambda stamps: np.mean([maps[s] for s in stamps], axis=0)  # noqa: E731
     a, b = mean(on_left), mean(on_right)
     left_half, right_half = (slice(None), slice(0, 424)), (slice(None), slice(424, 848))

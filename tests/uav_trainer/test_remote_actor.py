@@ -106,6 +106,7 @@ def test_a_remote_actor_on_another_host_feeds_the_trainer_over_static_peers(two_
                 "accept_pushes:=true",
                 f"push_key_file:={key}",
                 "safety:=false",
+                "shield:=never",
             ),
         ),
     ]

@@ -49,7 +49,16 @@ def diagnostics(ros):
 
 def pushes_signed_in(run_dir):
     """policy_node arguments to take the pushes of a trainer_node in `run_dir` (it creates run_dir/push.key)."""
-    return ("-p", "accept_pushes:=true", "-p", f"push_key_file:={run_dir / 'push.key'}", "-p", "safety:=false")
+    return (
+        "-p",
+        "accept_pushes:=true",
+        "-p",
+        f"push_key_file:={run_dir / 'push.key'}",
+        "-p",
+        "safety:=false",
+        "-p",
+        "shield:=never",
+    )
 
 
 @pytest.mark.slow  # recovery: Ctrl-C, checkpoint, resume (28 s); pairing alone: test_pairing, the main job's test

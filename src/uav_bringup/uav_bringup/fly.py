@@ -96,6 +96,12 @@ def main(argv=None) -> int:
     ap.add_argument("--sim-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra sim_node parameter")
     ap.add_argument("--policy-arg", action="append", default=[], metavar="NAME:=VALUE", help="extra policy_node parameter")
     ap.add_argument(
+        "--shield",
+        action="store_true",
+        help="fly the network behind the shield (policy_node's shield:=always: its best action of those the local map of "
+        "the simulator's frames and odometry says are safe); a camera's frames are shielded by default",
+    )
+    ap.add_argument(
         "--mavlink",
         default="",
         metavar="URL",
@@ -123,6 +129,7 @@ def main(argv=None) -> int:
         procs.start("live_view", "uav_bringup", "live_view", ns, args=["--port", str(a.port)])
     # The policy before the simulator: loading its networks takes longer than the real-time watchdog.
     policy_values = [f"model:={a.model}"] + ([f"weights:={a.weights}"] if a.weights else [])
+    policy_values += ["shield:=always"] if a.shield else []
     procs.start("policy", "uav_policy", "policy_node", node_args(params, "policy", policy_values + a.policy_arg, a.namespace))
     if a.mavlink:
         procs.start(

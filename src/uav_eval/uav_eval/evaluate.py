@@ -23,9 +23,11 @@ import argparse
 import csv
 import os
 import time
+from collections import Counter
 from pathlib import Path
 
 from . import ENSEMBLE_SEP, MODELS, PLANNERS
+from .autopsy import SEEN_WORDS
 from .flights import (
     CRASH_FIELDS,
     INPROCESS_SIM_ARGS,
@@ -63,7 +65,8 @@ def main(argv=None) -> int:
         action="append",
         choices=MODELS,
         help="repeatable; default: sam. planner / planner_all (with --inprocess) fly the privileged planner knowing what "
-        "the last five frames showed / the whole world (uav_sim.planner): the task's limit with the four actions",
+        "the last five frames showed / the whole world (uav_sim.planner): the task's limit with the four actions; "
+        "planner_map the planner on the local map of the measured depth and odometry only",
     )
     ap.add_argument(
         "--weights",
@@ -154,6 +157,12 @@ def main(argv=None) -> int:
         help="fly through policy_node's safety layer (with --inprocess: the same layer without the node); crashes then "
         "include what it prevented, and its interventions are counted: compare with a run without it, never mix the two",
     )
+    ap.add_argument(
+        "--shield",
+        action="store_true",
+        help="the network chooses among the actions the local map says are safe (policy_node's shield; with --inprocess "
+        "uav_policy.shield without the node); its overrides are counted. Without it: the network alone",
+    )
     a = ap.parse_args(argv)
     if a.record and a.inprocess:
         ap.error("--record needs the ROS nodes: it records their topics (leave out --inprocess)")
@@ -224,9 +233,14 @@ def main(argv=None) -> int:
             f" {UNRECORDED_HFOV_DEG:g}° when it has none)."
         )
     if any(m in PLANNERS for m in a.model or []):
-        protocol += " The planner (uav_sim.planner) flies behind the packaged networks' camera and plans on the true geometry."
+        protocol += (
+            " The planner (uav_sim.planner) flies behind the packaged networks' camera and plans on the true geometry"
+            " (planner_map: on the local map of the measured depth and odometry)."
+        )
     if a.safety:
         protocol += " Flown through policy_node's safety layer (--safety, its default settings)."
+    if a.shield:
+        protocol += " Shielded (--shield): the network's best action of those the local map says are safe flies."
     if a.inprocess:
         protocol += " Measured in-process (--inprocess: the same simulator and network without the ROS nodes)."
     if a.ensemble > 1:
@@ -320,6 +334,7 @@ def main(argv=None) -> int:
                     record_to=bag,
                     safety=a.safety,
                     insight_every=a.insight_every,
+                    shield=a.shield,
                 )
             net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
             r = evaluate_inprocess(
@@ -337,6 +352,7 @@ def main(argv=None) -> int:
                 insight_every=a.insight_every,
                 safety=a.safety,
                 max_crashes=max_crashes,
+                shield=a.shield,
                 **sensor,
             )
             bar.update(a.steps)
@@ -364,6 +380,7 @@ def main(argv=None) -> int:
                     f"{weights_label(files, model)}: "
                     f"{r.crashes} crashes at {r.crash_sites} sites, mean reward {r.mean_reward:.3f}, {r.distance_m:.0f} m flown"
                     + (f", {r.interventions} safety interventions" if r.interventions >= 0 else "")
+                    + (f", {r.shield_overrides} shield overrides" if r.shield_overrides >= 0 else "")
                     + (
                         f"; looks at: entropy {r.insight.entropy:.2f}, map correlation {r.insight.map_correlation:.2f}, "
                         f"faithfulness {r.insight.faithfulness:.2f} (vs the mean map {r.insight.faithfulness_vs_mean_map:.2f})"
@@ -379,7 +396,9 @@ def main(argv=None) -> int:
             w = csv.DictWriter(f, fieldnames=CRASH_FIELDS)
             w.writeheader()
             w.writerows(crash_rows)
-        print(f"written: {Path(a.out) / 'crashes.csv'} ({len(crash_rows)} crashes)")
+        seen = Counter(r["hit_seen"] for r in crash_rows if r.get("hit_seen"))
+        autopsy = ", ".join(f"{n} hit what {SEEN_WORDS[k]}" for k, n in seen.items())
+        print(f"written: {Path(a.out) / 'crashes.csv'} ({len(crash_rows)} crashes{'; ' + autopsy if autopsy else ''})")
     return 0
 
 

@@ -14,6 +14,8 @@ from uav_policy.insight import Insight, InsightSummary, explanation
 from uav_sim.reward import CENTER_WINDOW_FRACTION
 
 from . import ENSEMBLE_SEP, PLANNER_WEIGHTS, PLANNERS
+from .autopsy import FIELDS as AUTOPSY_FIELDS
+from .autopsy import Autopsy
 
 
 @dataclasses.dataclass
@@ -30,6 +32,7 @@ class EvalResult:
     cells: int = -1  # distinct 1 m x 1 m floor cells flown through, per run, summed (-1 unknown)
     interventions: int = -1  # commands policy_node's safety layer changed (-1: flown without it)
     insight: InsightSummary | None = None  # what the decisions looked at, measured on every step (None: not measured)
+    shield_overrides: int = -1  # decisions the shield changed (-1: flown without one)
 
     @property
     def distance_between_crashes_m(self) -> float:
@@ -50,6 +53,7 @@ CRASH_FIELDS = (
     "yaw_deg",
     "start_yaw_deg",
     "action",
+    *AUTOPSY_FIELDS,
 )
 
 
@@ -177,6 +181,7 @@ def evaluate_inprocess(
     insight_every: int = 1,
     safety: bool = False,
     max_crashes: int = 0,
+    shield: bool = False,
 ) -> EvalResult:
     """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks. A model of
     PLANNERS flies uav_sim.planner on the world and pose (no weights; the packaged networks' camera by default).
@@ -184,14 +189,17 @@ def evaluate_inprocess(
     `weights`: a file, or an ensemble's files joined by ENSEMBLE_SEP, or "" for the packaged files.
     hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
     `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
-    camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS).
+    camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS; for a network
+    with uav_eval.autopsy's: the map teacher's last disagreement, what was hit and whether it had been seen).
     `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default).
     A `sensor` preset renders its own camera (at `sensor_scale`), mapped onto the weights' field of view as
     policy_node maps a camera through CameraInfo; None: the preset of the weights' camera (uav_sim.sensor.
     preset_for_camera) at the recipes' scale, else the ideal camera. What the decisions look at is measured on every
     `insight_every`-th step (policy_node's parameter; 0 = never). With `safety` the commands pass policy_node's
     safety layer (its default settings), as `evaluate --safety` flies them through the node; its interventions
-    are counted. `max_crashes` N > 0 ends the flight at its N-th crash (the result's steps are those flown)."""
+    are counted. `max_crashes` N > 0 ends the flight at its N-th crash (the result's steps are those flown). With
+    `shield` the network chooses among the actions the local map says are safe (uav_policy.shield, on the measured
+    frames and the simulator's pose as odometry); its overrides are counted."""
     from uav_policy.rollout import Flight
 
     if model in PLANNERS:
@@ -239,7 +247,14 @@ def evaluate_inprocess(
         sim = Simulator(load_world(world), sim_cfg)
         layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
         env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
-    flight = Flight(env, agent, safety=layer)
+    if shield and model in PLANNERS:
+        raise ValueError(f"--shield: the {model} flies no network, so there is nothing to shield")
+    guard = None
+    if shield:
+        from uav_policy.shield import Shield
+
+        guard = Shield(env.actions, sim.config.step_duration_s)
+    flight = Flight(env, agent, safety=layer, shield=guard)
     r = flight.last
     crashes, reward, dist, sites = 0, 0.0, 0.0, set()
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
@@ -250,13 +265,18 @@ def evaluate_inprocess(
         from uav_sim.planner import SimPlanner
 
         reasons = SimPlanner(sim)  # what each measured decision is about
+    autopsy = Autopsy(sim) if crash_log is not None and model not in PLANNERS else None
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
             state = flight.env.state  # a new array every step: the step below leaves it as it is
             measured = insight is not None and step % insight_every == 0
             reason = reason_pixels(reasons, env) if measured else None
+            if autopsy is not None:
+                autopsy.before()
             s = flight.step(0.0)
+            if autopsy is not None:
+                autopsy.after(step, s.action)
             if measured:
                 insight.observe(net, state, s.action, explanation(net, state, s.action, s.attention), reason)
             before, r = s.before.pose, s.after
@@ -278,6 +298,7 @@ def evaluate_inprocess(
                             yaw_deg=round(math.degrees(before.yaw_rad), 1),
                             start_yaw_deg=round(math.degrees(start_yaw), 1),
                             action=flight.actions[s.action].name,
+                            **(autopsy.crash(step, before, flight.actions[s.action]) if autopsy else {}),
                         )
                     )
                 start_yaw = r.pose.yaw_rad
@@ -302,16 +323,16 @@ def evaluate_inprocess(
         len(behaviour.cells),
         layer.counts.total if layer is not None else -1,
         insight=insight.summary() if insight is not None else None,
+        shield_overrides=guard.counts.overridden if guard is not None else -1,
     )
 
 
 def reason_pixels(reasons, env) -> np.ndarray | None:
     """The pixels of the newest frame, on the network's input, of what the planner's decision on it is about (its
     reason: uav_sim.planner), or None when nothing bounds that decision."""
-    plan = reasons.label()
-    if not plan.reason:
+    if not reasons.label().reason:
         return None
-    return env.input_mask(np.isin(env.sim.body_ids, plan.reason))
+    return env.input_mask(reasons.reason_mask())
 
 
 def planner_flight(model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety):

@@ -100,10 +100,12 @@ def evaluate_once(
     record_to: Path | None = None,
     safety: bool = False,
     insight_every: int = 1,
+    shield: bool = False,
 ) -> EvalResult:
     """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps; with
     `record_to`, uav_bringup's `record` keeps the flight there as a bag, from its first frame. The policy
-    flies without its safety layer (its own crashes), or with `safety` through it (interventions counted).
+    flies without its safety layer (its own crashes), or with `safety` through it (interventions counted); with
+    `shield` it chooses among the actions its local map says are safe (overrides counted).
 
     Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
     reward_window_fraction the reward window they record (else the paper's), and without image_width/image_height
@@ -149,6 +151,7 @@ def evaluate_once(
                 f"seed:={seed}",
                 "publish_overlay:=false",
                 f"safety:={str(safety).lower()}",
+                f"shield:={'always' if shield else 'never'}",
                 f"insight_every:={insight_every}",  # every k-th decision measured, over the whole flight
                 f"insight_window:={2 * steps + 100}",
                 *wargs,
@@ -249,6 +252,7 @@ def evaluate_once(
         len(b.cells) if b else -1,
         int(said["safety_interventions"]) if safety else -1,
         InsightSummary.from_values(said),
+        int(said["shield_overridden"]) if shield else -1,
     )
 
 

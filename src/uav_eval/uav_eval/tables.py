@@ -48,6 +48,7 @@ def pool(runs: list[EvalResult]) -> EvalResult:
             for k in ("crash_sites", "turn_steps", "cells", "interventions")
         ),
         InsightSummary.pool([r.insight for r in runs]),
+        sum(r.shield_overrides for r in runs) if all(r.shield_overrides >= 0 for r in runs) else -1,
     )
 
 
@@ -187,6 +188,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                 "turn_steps",
                 "cells_visited",
                 "safety_interventions",
+                "shield_overrides",
                 *INSIGHT_COLUMNS,
                 "faithfulness",
                 "faithfulness_vs_mean_map",
@@ -214,6 +216,7 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     r.turn_steps,
                     r.cells,
                     r.interventions,
+                    r.shield_overrides,
                     *insight,
                 ]
             )
@@ -291,16 +294,21 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
             ),
             intro,
         )
-    if results and all(r.interventions >= 0 for r in results):
-        lines += pooled_table(
-            results,
-            models,
-            worlds,
+    for field, title, intro in (
+        (
+            "interventions",
             "Safety layer interventions per 1000 steps (commands it changed; the crashes above are with it on)",
-            "",
-            lambda runs: fmt(*mean_ci95([1000 * r.interventions / r.steps for r in runs]), 0),
             "Counted by policy_node (/diagnostics) over each flight. Mean ± 95% CI over the weight files.",
-        )
+        ),
+        (
+            "shield_overrides",
+            "Shield interventions per 1000 steps (decisions it changed; the crashes above are with it on)",
+            "Counted over each flight: the network flew the rest. Mean ± 95% CI over the weight files.",
+        ),
+    ):
+        if results and all(getattr(r, field) >= 0 for r in results):
+            per_1000 = lambda runs, f=field: fmt(*mean_ci95([1000 * getattr(r, f) / r.steps for r in runs]), 0)  # noqa: E731
+            lines += pooled_table(results, models, worlds, title, "", per_1000, intro)
     if results and all(r.insight is not None for r in results):
         lines += insight_table(results, models, worlds)
     md_path = out_dir / "results.md"
@@ -427,8 +435,8 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
     """The rows of earlier results.csv files (write_tables' format) as EvalResults, in order. ValueError,
     naming the file and line, for a missing or unreadable file, a missing column, a model other than sam
     or cnn, a count that is not a whole number or is impossible (crashes > steps), a number that is not
-    finite, or no rows at all. The optional columns (crash_sites, turn_steps, cells_visited, safety_interventions) default to
-    -1 (unknown), as for tables written before they existed."""
+    finite, or no rows at all. The optional columns (crash_sites, turn_steps, cells_visited, safety_interventions,
+    shield_overrides) default to -1 (unknown), as for tables written before they existed."""
     results = []
     for path in paths:
         try:
@@ -463,6 +471,7 @@ def read_results_csvs(paths: list[str]) -> list[EvalResult]:
                     _csv_whole(r, "cells_visited", where, -1),
                     _csv_whole(r, "safety_interventions", where, -1),
                     _csv_insight(r, where),
+                    _csv_whole(r, "shield_overrides", where, -1),
                 )
             )
     if not results:

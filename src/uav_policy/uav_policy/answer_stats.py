@@ -8,6 +8,8 @@ from collections import deque
 
 import numpy as np
 
+from uav_common import contract
+
 
 class AnswerStats:
     def __init__(self):
@@ -16,6 +18,15 @@ class AnswerStats:
         self.latency_ms = deque(maxlen=1000)  # frame arrival to cmd_vel published
         self.reported = (time.monotonic(), 0, 0, 0)  # (when, answered, malformed, received) at the last report
         self.recent = 0  # frames answered between the last two reports
+
+    def decode(self, img, log) -> np.ndarray | None:
+        """A depth Image in metres, or None: a malformed one is counted and logged (throttled)."""
+        try:
+            return contract.image_to_depth(img)
+        except ValueError as e:
+            self.malformed += 1
+            log.warning(f"ignoring malformed depth frame: {e}", throttle_duration_sec=2.0)
+            return None
 
     def answer(self, t_in: float, t0: float, t_out: float) -> None:
         """A frame that arrived at `t_in` was answered: its decision began at `t0`, its command went out at `t_out`,

@@ -11,6 +11,7 @@ from uav_common.settings import setting
 
 from .networks import MAX_FRAMES, NetConfig
 from .safety import SafetySettings
+from .shield import ShieldSettings
 
 # Parameters retired, and why: a node given one stops at start-up and says so.
 RETIRED = {
@@ -60,6 +61,7 @@ class PolicySettings:
         False, "Also publish cmd_vel_stamped (TwistStamped: the frame's stamp, the vehicle's base_link), for flight stacks"
     )
     safety: SafetySettings = SafetySettings()
+    shield: ShieldSettings = ShieldSettings()
     actions: ActionSettings = ActionSettings()
     frame_stack: int = setting(NetConfig.frames, "Depth frames in the state", 1, MAX_FRAMES)
     input_height: int = setting(
@@ -114,6 +116,11 @@ class PolicySettings:
             raise ParameterError("parameter 'wait_for_trainer': frames are released by pushes, so it needs accept_pushes:=true")
         if self.accept_pushes and not self.push_key_file:
             raise ParameterError("parameter 'accept_pushes': needs 'push_key_file', the key pushes are signed with")
+        if self.accept_pushes and self.shield.shield == "always":
+            raise ParameterError(
+                "parameter 'shield': a policy that takes pushes (training) flies the network's own actions; "
+                "set shield:=never (train does)"
+            )
         if self.accept_pushes and self.safety.safety:
             # The trainer learns from `action`, the network's choice: the vehicle must fly exactly that.
             raise ParameterError(

@@ -338,3 +338,14 @@ def forward_flops(cfg: NetConfig) -> int:
 
 def parameter_count(net: nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())
+
+
+def swap_notes(replaced: nn.Module, net: nn.Module, cfg: NetConfig) -> list[str]:
+    """What a user should hear when pushed weights replace `replaced` (of architecture `cfg`)."""
+    notes = []
+    if isinstance(replaced, QEnsemble):
+        notes.append(f"pushed weights replace the ensemble of {len(replaced.members)} networks")
+    if net.cfg != cfg:
+        sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
+        notes.append(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
+    return notes

@@ -91,7 +91,8 @@ class Outputs:
         return None
 
     def _map(self, img: Image, depth: np.ndarray, d: Decision, rows, grid_hw, view, kind: str, pubs) -> None:
-        """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the action and Q margin."""
+        """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the network's action and Q
+        margin (and, where the shield overrode it, the action flown)."""
         pub_map, pub_overlay = pubs
         to_overlay = self.overlays and pub_overlay.get_subscription_count() > 0
         if pub_map.get_subscription_count() == 0 and not to_overlay:
@@ -99,7 +100,9 @@ class Outputs:
         amap = attention_map(rows, grid_hw, depth.shape, view)
         pub_map.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
         if to_overlay:
-            q, action = d.q, d.action
+            q, action = d.q, d.unshielded if d.unshielded >= 0 else d.action
             second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]
-            label = f"{self.actions[action].name.split('_', 1)[0]} Q {q[action]:.2f}, margin {q[action] - second:+.2f}"
+            name = lambda a: self.actions[a].name.split("_", 1)[0]  # noqa: E731
+            label = f"{name(action)} Q {q[action]:.2f}, margin {q[action] - second:+.2f}"
+            label += f"; shield: {name(d.action)}" if d.shield else ""
             pub_overlay.publish(contract.rgb_image(img.header, overlay(depth, amap, self.max_range_m, label, kind)))

@@ -1,5 +1,6 @@
 """The decision path, once (no ROS): a state of stacked network inputs -> the network's action, its Q-values and
-attention -> the action's body command -> the safety layer -> the command flown.
+attention -> the shield (when there is one: the network's best action of those the local map says are safe) -> the
+action's body command -> the safety layer -> the command flown.
 
 policy_node decides every frame through `Pilot.decide`, and so do the in-process flights (uav_policy.rollout:
 training, `evaluate --inprocess`, figures, benchmarks), so a frame becomes a command the same way with or without
@@ -16,6 +17,7 @@ from uav_common.actions import Action, turning_indices
 
 from .agent import Agent
 from .safety import SafetyLayer
+from .shield import Shield
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,14 +28,24 @@ class Decision:
     explored: bool  # a random action (epsilon)
     linear_x_mps: float  # the command flown: the action's, or what the safety layer made of it
     yaw_rate_radps: float
-    safety: str  # what the safety layer changed, in words ("" when nothing)
+    safety: str  # what the safety layer (or a shield without odometry) changed, in words ("" when nothing)
+    unshielded: int = -1  # the network's own choice when a shield checked it (-1: no shield)
+    shield: str = ""  # what the shield changed, in words ("" when the network's choice flew)
 
 
 class Pilot:
     """Decides on a state: the agent's action as a body command, then the safety layer (when there is one)."""
 
-    def __init__(self, agent: Agent, actions: tuple[Action, ...], step_duration_s: float, safety: SafetyLayer | None = None):
+    def __init__(
+        self,
+        agent: Agent,
+        actions: tuple[Action, ...],
+        step_duration_s: float,
+        safety: SafetyLayer | None = None,
+        shield: Shield | None = None,
+    ):
         self.agent, self.actions, self.step_duration_s, self.safety = agent, actions, step_duration_s, safety
+        self.shield = shield
         self.turning = turning_indices(actions)
 
     def command_of(self, action: int) -> tuple[float, float]:
@@ -48,11 +60,19 @@ class Pilot:
         action, q, w, explored = self.agent.act(state, epsilon)
         if instead is not None:
             action, explored = instead, False
+        unshielded, shielded, why = -1, "", ""
+        if self.shield is not None and instead is None:
+            verdict = self.shield.check(q, action)
+            unshielded, shielded = action, verdict.why
+            if not verdict.safe.any() and verdict.why.startswith("shield: no fresh odometry"):
+                why = verdict.why  # nothing vouched for: stop, as the safety layer does when frames stop
+            action = verdict.action
         vx, wz = self.command_of(action)
-        why = ""
-        if self.safety is not None:
+        if why:
+            vx, wz = 0.0, 0.0
+        elif self.safety is not None:
             # Should the way be blocked, the network's best turning action decides the way round.
             best_turn = max(self.turning, key=lambda i: q[i], default=None)
             turn = self.command_of(best_turn)[1] if best_turn is not None else 0.0
             vx, wz, why = self.safety.filter(vx, wz, newest_input, turn)
-        return Decision(action, q, w, explored, vx, wz, why)
+        return Decision(action, q, w, explored, vx, wz, why, unshielded, shielded)

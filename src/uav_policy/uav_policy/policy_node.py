@@ -3,8 +3,8 @@
 Wiring only; each job has its module: frames onto the network's input (camera_input), one camera per stack
 (camera_identity); a simulator's frames joined with their outcomes, stacked, held for lockstep learning
 (simulator_link); a camera alone answered at most control_rate_hz, with a stop when frames stop (camera_control);
-the decision and safety layer (pilot, safety); cmd_vel, action, q_values, attention or Grad-CAM (outputs); what
-decisions look at (explainer, insight); signed weight pushes (push, push_receiver); answers counted (answer_stats).
+the decision, shield and safety layer (pilot, shield, safety); cmd_vel, action, q_values, attention or Grad-CAM
+(outputs); what decisions look at (explainer, insight); signed weight pushes (push, push_receiver); answers counted.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, Range
@@ -32,12 +33,13 @@ from .camera_identity import CameraIdentity
 from .camera_input import CameraInput
 from .config import RETIRED, PolicySettings
 from .explainer import Explainer
-from .networks import SIZE_FIELDS, NetConfig, QEnsemble, parameter_count
+from .networks import NetConfig, parameter_count, swap_notes
 from .outputs import Outputs
 from .pilot import Pilot
 from .push import PUSH_QOS, PushService
 from .push_receiver import PushReceiver, Refused
 from .safety import Interventions, SafetyLayer
+from .shield import ShieldFeed
 from .simulator_link import SimulatorLink
 
 
@@ -74,15 +76,15 @@ class PolicyNode(Node):
         except ValueError as e:  # WeightsError included
             raise ParameterError(f"parameter 'weights': {e}") from None
         self.cfg = net.cfg  # with the files' layer sizes
-        self.safety = None
-        if st.safety.safety:
-            trained = hfov if hfov is not None else wio.UNRECORDED_HFOV_DEG
-            self.safety = SafetyLayer(st.safety, self.cfg.height, self.cfg.width, trained)
+        trained = hfov if hfov is not None else wio.UNRECORDED_HFOV_DEG
+        self.safety = SafetyLayer(st.safety, self.cfg.height, self.cfg.width, trained) if st.safety.safety else None
         on_view = self.safety.set_hfov if self.safety else lambda _hfov: None
         self.camera = CameraInput(self.cfg.height, self.cfg.width, hfov, log, on_view)
         period = 1.0 / st.control_rate_hz
         self.control = CameraControl(st.frame_stack, st.step_duration_s, period, st.safety.frame_timeout_s, log)
-        self.link = SimulatorLink(st.frame_stack, st.wait_for_trainer, st.wait_for_trainer_timeout_s, log)
+        self.shield = ShieldFeed(self.actions, st.step_duration_s, st.shield, log) if st.shield.shield != "never" else None
+        joins = st.shield.shield == "always"  # a simulator's frames wait for the odometry of their stamp
+        self.link = SimulatorLink(st.frame_stack, st.wait_for_trainer, st.wait_for_trainer_timeout_s, log, joins)
         self.identity = CameraIdentity(st.camera_switch_s, log, stacks=(self.control, self.link))  # one camera a stack
         self.agent = Agent(net, self.cfg, device, st.seed)
         self.pilot = Pilot(self.agent, self.actions, st.step_duration_s, self.safety)
@@ -97,12 +99,12 @@ class PolicyNode(Node):
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), contract.SENSOR_QOS)
         self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), contract.STREAM_QOS)
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, contract.SENSOR_QOS)
+        if self.shield:
+            self.create_subscription(Odometry, contract.ODOM_TOPIC, self._on_odom, contract.SENSOR_QOS)
         self.outcome_topic = self.resolve_topic_name(contract.OUTCOME_TOPIC)
         self.info_topic = self.resolve_topic_name(contract.CAMERA_INFO_TOPIC)
         self.frame_awaiting_info = None  # the newest frame that waited for depth/camera_info
-        # Pushes are validated on a worker thread so frames keep being answered meanwhile. The
-        # service needs its own callback group: a suspended async callback holds its group. Its request
-        # queue (PUSH_QOS) holds a burst of forged pushes, each refused in milliseconds, without losing the trainer's.
+        # Pushes are validated on a worker thread, in their own callback group (a suspended callback holds its group).
         if st.accept_pushes:
             group = MutuallyExclusiveCallbackGroup()
             self.create_service(PushService, "~/push_weights", self._on_push, qos_profile=PUSH_QOS, callback_group=group)
@@ -120,6 +122,10 @@ class PolicyNode(Node):
             held, self.frame_awaiting_info = self.frame_awaiting_info, None
             self.stats.received -= 1  # counted when it came
             self._on("frame", held)
+
+    def _on_odom(self, msg: Odometry) -> None:
+        if self.shield.odometry(msg.header.stamp, contract.odometry_pose(msg)) and self.shield.joins(self.control.active):
+            self._on("odom", msg)
 
     def _on(self, stream: str, msg) -> None:
         t_in = time.perf_counter()
@@ -141,25 +147,17 @@ class PolicyNode(Node):
         if restarted:
             self.out.forget()
         if joined is not None:
-            self._act(joined["frame"], joined["outcome"], t_in)
+            self._act(joined, t_in)
         elif stream == "frame" and stamp == self.link.last_stamp:
             self.out.say_again()
 
     def _check_held(self) -> None:
         for joined in self.link.expired(time.monotonic()):
-            self._act(joined["frame"], joined["outcome"], time.perf_counter())
-
-    def _decode(self, img: Image) -> np.ndarray | None:
-        try:
-            return contract.image_to_depth(img)
-        except ValueError as e:
-            self.stats.malformed += 1
-            self.get_logger().warning(f"ignoring malformed depth frame: {e}", throttle_duration_sec=2.0)
-            return None
+            self._act(joined, time.perf_counter())
 
     def _on_camera_frame(self, img: Image, stamp: int, t_in: float) -> None:
         """A camera's frame (no simulator): answered now, or at a control tick (uav_policy.camera_control)."""
-        depth = self._decode(img)
+        depth = self.stats.decode(img, self.get_logger())
         if depth is not None:
             net_in = self.camera(depth)
             if self.control.add(stamp / 1e9, net_in, (t_in, img, depth, net_in), time.monotonic()):
@@ -183,29 +181,32 @@ class PolicyNode(Node):
             self.out.command(Twist(), self.get_clock().now().to_msg())
 
     def _simulator_found(self) -> None:
-        """The frames answered as a camera's came from a simulator whose step_outcome was discovered after
-        them: from now on each frame is answered with its outcome, stacked on those answered so far, and no
-        stop command goes out (it would step the simulator)."""
+        """Frames answered as a camera's came from a simulator: from now on each is answered with its outcome."""
         state = self.control.hand_over()
         if state is not None:
             self.link.stack.restore(state)
 
-    def _act(self, img: Image, outcome: Range, t_in: float) -> None:
-        """A simulator's frame, joined with its step's outcome: answered at once."""
+    def _act(self, joined: dict, t_in: float) -> None:
+        """A simulator's frame, joined with its step's outcome (and odometry, with a shield): answered at once."""
+        img, outcome, odom = joined["frame"], joined["outcome"], joined.get("odom")
         if contract.stamp_ns(img.header.stamp) == self.link.last_stamp:
             return  # already answered (before the simulator's step_outcome was discovered)
-        depth = self._decode(img)
+        depth = self.stats.decode(img, self.get_logger())
         if depth is not None:
             net_in = self.camera(depth)
-            state = self.link.state(net_in, contract.outcome_new_episode(outcome))
-            self._decide(img, depth, net_in, state, t_in)
+            new = contract.outcome_new_episode(outcome)
+            state = self.link.state(net_in, new)
+            self._decide(img, depth, net_in, state, t_in, (contract.odometry_pose(odom) if odom else None, new))
 
-    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float) -> None:
+    def _decide(self, img: Image, depth: np.ndarray, net_in: np.ndarray, state: np.ndarray, t_in: float, sim=()) -> None:
         t0 = time.perf_counter()
-        fly = self.link.gate.fly_action_for(contract.stamp_ns(img.header.stamp))  # a teacher's, in training
+        stamp = contract.stamp_ns(img.header.stamp)
+        if self.shield:  # auto: on for a camera's frames (a drone), off for a simulator's
+            self.pilot.shield = self.shield.frame(depth, self.camera.intrinsics, stamp, *sim, camera=self.control.active)
+        fly = self.link.gate.fly_action_for(stamp)  # a teacher's, in training
         d = self.pilot.decide(state, net_in, self.epsilon, instead=fly)
-        if d.safety:
-            self.get_logger().info(f"safety: {d.safety}", throttle_duration_sec=2.0)
+        if d.safety or d.shield:
+            self.get_logger().info(f"{d.shield or d.safety}", throttle_duration_sec=2.0)
         self.out.decision(img, d, self.pilot.command_of)
         t_out = time.perf_counter()
         self.link.last_stamp = contract.stamp_ns(img.header.stamp)
@@ -246,7 +247,7 @@ class PolicyNode(Node):
             response.message = self.receiver.reject(response.message, released)
         if released:
             for joined in self.link.gate.release(push.release_stamp_ns, push.fly_action):
-                self._act(joined["frame"], joined["outcome"], time.perf_counter())
+                self._act(joined, time.perf_counter())
         if response.success and push.epsilon is not None:  # after the answer: ros2 param get and /diagnostics agree
             self.epsilon_param.set(push.epsilon)
         return response
@@ -255,11 +256,8 @@ class PolicyNode(Node):
         replaced = self.agent.net
         self.agent.swap(net)
         self.receiver.retire(replaced)
-        if isinstance(replaced, QEnsemble):
-            self.get_logger().info(f"pushed weights replace the ensemble of {len(replaced.members)} networks")
-        if net.cfg != self.cfg:
-            sizes = ", ".join(f"{k} {getattr(net.cfg, k)}" for k in SIZE_FIELDS)
-            self.get_logger().info(f"pushed weights changed the layer sizes: {sizes} ({parameter_count(net)} parameters)")
+        for line in swap_notes(replaced, net, self.cfg):
+            self.get_logger().info(line)
         self.explainer.regrid(net.grid_hw)
         self.cfg = net.cfg
         self.camera.set_weights(self.cfg.height, self.cfg.width, wio.read_header_camera(blob))
@@ -283,6 +281,7 @@ class PolicyNode(Node):
             **self.camera.values(),
             **self.identity.values(),
             **(self.safety.counts if self.safety else Interventions()).values(on=self.safety is not None),
+            **(self.shield.values(self.pilot.shield is not None) if self.shield else {"shield": "off"}),
             "explained_by": "attention" if self.cfg.model == "sam" else "saliency (Grad-CAM)",
             **self.explainer.values(),
             **self.out.listeners(),  # a recorder waits until we hear it too (uav_bringup.record)

@@ -16,15 +16,16 @@ from .push import ReleaseGate
 
 
 class SimulatorLink:
-    def __init__(self, frames: int, hold: bool, wait_timeout_s: float, log):
+    def __init__(self, frames: int, hold: bool, wait_timeout_s: float, log, odom: bool = False):
+        """With `odom` (a shield), a frame is answered once the odometry of its stamp has come too."""
         self.log, self.hold, self.wait_timeout_s = log, hold, wait_timeout_s
-        self.joiner = contract.StampJoiner(("frame", "outcome"))
+        self.joiner = contract.StampJoiner(("frame", "outcome", "odom") if odom else ("frame", "outcome"))
         self.stack = FrameStack(frames)
         self.gate = ReleaseGate(wait_timeout_s)
         self.last_stamp = None  # the last frame answered (the caller sets it, a camera's frames included)
 
     def add(self, stream: str, stamp: int, msg, now: float) -> tuple[dict | None, bool]:
-        """A frame or outcome -> ({"frame", "outcome"} to answer now or None, whether the stamps went back: the
+        """A frame, outcome or odometry -> (the joined messages to answer now or None, whether the stamps went back: the
         source restarted, and nothing from before is answered or stacked with what comes now)."""
         restarts = self.joiner.restarts
         joined = self.joiner.add(stream, stamp, msg)

@@ -44,6 +44,7 @@ def generate_launch_description():
                         "wait_for_trainer": True,
                         "accept_pushes": True,
                         "safety": False,
+                        "shield": "never",
                         "push_key_file": LaunchConfiguration("push_key_file"),
                     },
                 ],

@@ -181,7 +181,7 @@ def main(argv=None) -> int:
             + p([f"model:={a.model}", f"seed:={seed}", "epsilon:=1.0", "wait_for_trainer:=true"])
             # insight_every:=0: an actor whose weights change every other step measures no explanations (a frame's
             # measurement would hold the next release); `evaluate` measures the run's weights.
-            + p(["accept_pushes:=true", f"push_key_file:={key}", "safety:=false", "insight_every:=0"])
+            + p(["accept_pushes:=true", f"push_key_file:={key}", "safety:=false", "shield:=never", "insight_every:=0"])
             + p([f"input_{side}:={px}" for px in size for side in ("height", "width")] + frames),
         )
     trainer = procs.start(

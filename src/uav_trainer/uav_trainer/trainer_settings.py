@@ -74,5 +74,5 @@ def describe(cfg: TrainerConfig, training, parameters: int, namespaces: list[str
         f"training {cfg.model} ({parameters} parameters, seed {cfg.seed}) on {training.learner.device} into "
         f"{training.dir}; budget {cfg.total_steps or 'unlimited'} env steps; replay {cfg.replay_capacity} frames; "
         f"reward: {reward_description(cfg)}; {how}; pushes signed with the key in {key_file} (policy_node needs "
-        f"accept_pushes:=true push_key_file:={key_file} safety:=false)"
+        f"accept_pushes:=true push_key_file:={key_file} safety:=false shield:=never)"
     )

@@ -90,7 +90,7 @@ class TrainerConfig:
         "none",
         "A teacher for every training frame (uav_sim.planner; over ROS sim_node's teacher_action, which train turns on): "
         "stack, the planner knowing what the last frame_stack frames showed (realizable from the state); all, knowing the "
-        "whole world; none, pure RL",
+        "whole world; map, planning on the local map of the measured depth and odometry (what a drone knows); none, pure RL",
         choices=contract.TEACHERS,
     )
     teacher_act_start: float = setting(
