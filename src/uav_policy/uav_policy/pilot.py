@@ -34,7 +34,8 @@ class Decision:
 
 
 class Pilot:
-    """Decides on a state: the agent's action as a body command, then the safety layer (when there is one)."""
+    """Decides on a state: the agent's action, the shield's verdict on it and the safety layer (each when there is
+    one), as a body command."""
 
     def __init__(
         self,
@@ -64,7 +65,7 @@ class Pilot:
         if self.shield is not None and instead is None:
             verdict = self.shield.check(q, action)
             unshielded, shielded = action, verdict.why
-            if not verdict.safe.any() and verdict.why.startswith("shield: no fresh odometry"):
+            if not verdict.vouched:
                 why = verdict.why  # nothing vouched for: stop, as the safety layer does when frames stop
             action = verdict.action
         vx, wz = self.command_of(action)

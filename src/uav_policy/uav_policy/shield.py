@@ -68,6 +68,7 @@ class Verdict:
     action: int  # the action to fly
     safe: np.ndarray  # (actions,) bool: what the map vouched for (all False without odometry)
     why: str  # "" when the network's choice flies, else what the shield did
+    vouched: bool = True  # False without fresh odometry: nothing was checked, forward flight must stop
 
 
 class Shield:
@@ -112,7 +113,7 @@ class Shield:
         n = len(q)
         if self._pose is None:
             self.counts.no_odometry += 1
-            return Verdict(choice, np.zeros(n, dtype=bool), "shield: no fresh odometry, nothing vouched for")
+            return Verdict(choice, np.zeros(n, dtype=bool), "shield: no fresh odometry, nothing vouched for", vouched=False)
         plan = self.search.plan(*self._pose, self.map)
         safe = np.asarray(plan.safe, dtype=bool)
         if safe[choice]:
@@ -146,12 +147,14 @@ class ShieldFeed:
         self.shield, self.log, self.mode = Shield(actions, step_duration_s, st), log, st.shield
         self.odom: tuple[int, tuple[float, float, float, float]] | None = None  # (stamp ns, (x, y, z, yaw))
         self.stale = 0
+        self.odometry_received = 0
 
     def odometry(self, stamp, pose: tuple[float, float, float, float] | None) -> bool:
         """The newest odometry (its header stamp; base_link in the odometry frame: x, y, z, yaw; None: malformed,
         ignored); whether it was taken."""
         if pose is not None:
             self.odom = (stamp.sec * 1_000_000_000 + stamp.nanosec, pose)
+            self.odometry_received += 1
         return pose is not None
 
     def on(self, camera: bool) -> bool:
@@ -191,6 +194,7 @@ class ShieldFeed:
         """For /diagnostics (`on`: whether it checks the decisions now)."""
         return {
             **self.shield.counts.values(on),
+            "shield_odometry_received": self.odometry_received,
             "shield_frames_without_odometry": self.stale,
             "shield_last": self.shield.last_why,
         }
