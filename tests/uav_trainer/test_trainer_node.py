@@ -322,12 +322,15 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch
     assert trained.crashes < baseline.crashes, "episodes must be longer than random flight"
 
 
-@pytest.mark.parametrize("recipe", ["rl", "shipped"])
+@pytest.mark.parametrize("recipe", ["rl", "shipped", "map"])
 def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, recipe):
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
     trainer train one recipe, read from one file. The default recipe with its teacher (sim_node's planner labelling every
-    frame, and flying the steps the trainer's releases say), and the pure-RL one."""
+    frame, and flying the steps the trainer's releases say), the pure-RL one, and the default with the planner on the
+    local map as the teacher (teacher map)."""
+    teacher_map = recipe == "map"
+    recipe = "shipped" if teacher_map else recipe
     import torch
 
     from uav_trainer import inprocess
@@ -339,13 +342,15 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
-    extra += ["--recipe", recipe]
-    r, logs = run_train(ros_dir, str(80 + (recipe != "rl")), "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
+    extra += ["--recipe", recipe] + (["--trainer-arg", "teacher:=map"] if teacher_map else [])
+    domain = "88" if teacher_map else str(80 + (recipe != "rl"))
+    r, logs = run_train(ros_dir, domain, "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert f"recipes/{recipe}.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
     args = ["--steps", str(steps), "--seed", str(seed), "--run-dir", str(ip_dir), "--params-dir", str(ROOT / "params")]
     args += [] if recipe == "shipped" else ["--recipe", recipe]  # the default
+    args += ["--teacher", "map"] if teacher_map else []
     args += [x for k, v in learn.items() for x in (f"--{k.replace('_', '-')}", str(v))]
     snaps = snapshot_steps(9, steps)
     threads = torch.get_num_threads()
@@ -365,8 +370,9 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     starts = learn["learning_starts"]
     assert f"({steps} env steps, {(steps - starts) // 2} updates)" in logs["trainer"], logs["trainer"][-1500:]
     if recipe == "shipped":  # both runs learnt from the planner's labels, flying its actions at first
-        assert "teacher: the planner (stack)" in capsys.readouterr().out
-        assert "teacher_action: the planner (stack)" in logs["sim"]
+        knowledge = "map" if teacher_map else "stack"
+        assert f"teacher: the planner ({knowledge})" in capsys.readouterr().out
+        assert f"teacher_action: the planner ({knowledge})" in logs["sim"]
 
 
 def stopped(ros, trainer, what: str) -> tuple[int, str]:
