@@ -580,6 +580,7 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
         (180.0, None, 90.0, "max", 64, {}, False, False),
         (0.0, 90.0, None, "flatten", 48, {"d_model": 24, "heads": 2, "relational_blocks": 2, "frames": 7}, False, False),
         (180.0, 120.0, None, "query", 64, {}, False, True),
+        (180.0, 120.0, None, "query", 64, {"local_map": True}, False, False),  # the map from sim_node's odom
     ],
 )
 def test_ros_evaluation_equals_the_in_process_measurement(
@@ -588,7 +589,7 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     """Same simulator, stack, network and decision path (uav_policy.pilot, the shield and safety layer included): flying through
     the ROS nodes changes nothing (and the random start heading, extra sim parameters, the weights' SAM readout, input
     size, layer sizes and frame stack and, without an hfov_deg argument, the camera recorded in the weights and the
-    reward window it records reach the nodes)."""
+    reward window it records reach the nodes; a network with the local map gets it from the frames and odom)."""
     from uav_eval.flights import evaluate_inprocess
     from uav_sim.simulator import SimConfig
 

@@ -255,3 +255,54 @@ def test_a_restarted_simulator_starts_a_new_chain_and_is_released_again():
     stamps = lambda msgs: [contract.stamp_ns(m.header.stamp) for s, m in msgs if s == "frame"]  # noqa: E731
     assert released == stamps(before) + stamps(after)
     assert asm.report()["stamp_restarts"] == 1
+
+
+def test_with_the_local_map_each_frame_is_stored_with_the_map_its_odometry_places():
+    """With a map grid, sim_node's odom completes an observation: the frames go into the local map in stamp order
+    whatever the interleaving, and each is stored with the grid StackedSim gives the same run in process (a new episode
+    forgets); malformed odometry is counted and starts a new chain."""
+    from uav_sim.messages import odometry_msg
+    from uav_sim.stacked_sim import StackedSim
+
+    sim = Simulator(load_world("complex"), SimConfig(seed=4, image_width=64, image_height=64, hfov_deg=90.0))
+    env = StackedSim(sim, 5, input_hw=(64, 64), map_grid=(64, 0.1))
+    rng = np.random.default_rng(4)
+    msgs, grids, r = [], [], env.last
+    for k in range(150):
+        stamp = contract.stamp_from_seconds(r.sim_time_s)
+        odom = odometry_msg(r.pose, BodyTwist(0.0), stamp, "odom", "base_link")
+        if k == 100:
+            odom.pose.pose.position.x = float("nan")
+        msgs += [("frame", contract.depth_to_image(r.depth_m, stamp, "cam")), ("odom", odom)]
+        msgs.append(("outcome", contract.make_outcome(r.beta_m, r.collided, stamp, "cam", 0.1, 10.0, 0.3, r.truncated)))
+        grids.append(env.last_grid.copy())
+        a = int(rng.integers(4))
+        ts = TwistStamped()
+        ts.header.stamp = stamp
+        ts.twist.linear.x, ts.twist.angular.z = PAPER_ACTIONS[a].linear_x_mps, PAPER_ACTIONS[a].yaw_rate_radps(0.5)
+        msgs.append(("action", ts))
+        r = env.step(a)
+    k_matrix = sim.camera.intrinsics.k_matrix()
+    sim.close()
+
+    class MapSink(Sink):
+        def add_first(self, frame, grid=None):
+            self.events.append(("first", frame, grid))
+
+        def add_step(self, action, beta, collided, frame, teacher=-1, grid=None):
+            self.events.append(("step", frame, grid))
+
+        def add_truncated(self, frame, grid=None):
+            self.events.append(("truncated", frame, grid))
+
+    for order in range(2):
+        sink = MapSink()
+        asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), map_grid=(64, 0.1))
+        asm.set_camera((k_matrix[0], k_matrix[4], k_matrix[2], k_matrix[5], 64, 64), 90.0)
+        for stream, m in shuffled_across_streams(msgs, np.random.default_rng(20 + order)):
+            asm.add(stream, m)
+        stored = [e[2] for e in sink.events]
+        assert len(stored) == 149 and asm.report()["unmapped_frames"] == 1, asm.report()
+        assert sum(g.sum() > 0 for g in stored) > 100, "the map shows obstacles"
+        # Up to the bad odometry every frame's grid is the in-process one; after it the map starts afresh.
+        assert all(np.array_equal(g, want) for g, want in zip(stored[:100], grids[:100], strict=True))

@@ -328,7 +328,8 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
     trainer train one recipe, read from one file. The default recipe with its teacher (sim_node's planner labelling every
     frame, and flying the steps the trainer's releases say), the pure-RL one, and the default with the planner on the
-    local map as the teacher (teacher map)."""
+    local map as the teacher and a student that sees the local map too (teacher map, local_map: the trainer maps the
+    frames with sim_node's odom, policy_node with its own, as in process)."""
     teacher_map = recipe == "map"
     recipe = "shipped" if teacher_map else recipe
     import torch
@@ -342,7 +343,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
-    extra += ["--recipe", recipe] + (["--trainer-arg", "teacher:=map"] if teacher_map else [])
+    extra += ["--recipe", recipe] + (["--trainer-arg", "teacher:=map", "--trainer-arg", "local_map:=true"] if teacher_map else [])
     domain = "88" if teacher_map else str(80 + (recipe != "rl"))
     r, logs = run_train(ros_dir, domain, "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert f"recipes/{recipe}.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
@@ -350,7 +351,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
     args = ["--steps", str(steps), "--seed", str(seed), "--run-dir", str(ip_dir), "--params-dir", str(ROOT / "params")]
     args += [] if recipe == "shipped" else ["--recipe", recipe]  # the default
-    args += ["--teacher", "map"] if teacher_map else []
+    args += ["--teacher", "map", "--local-map"] if teacher_map else []
     args += [x for k, v in learn.items() for x in (f"--{k.replace('_', '-')}", str(v))]
     snaps = snapshot_steps(9, steps)
     threads = torch.get_num_threads()
@@ -363,6 +364,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     names = [f"policy_sam_step{n}.safetensors" for n in snaps] + ["policy_sam.safetensors"]
     for name in names:
         made = wio.config_for("sam", ros_dir / name)  # the recipe's readout
+        assert made.local_map == teacher_map
         a, b = wio.load_file(ros_dir / name, made), wio.load_file(ip_dir / name, made)
         for (k, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
             assert torch.equal(x, y), f"{name}: tensor {k} differs"

@@ -174,13 +174,16 @@ def q_values_msg(q: np.ndarray, label: str) -> Float32MultiArray:
 
 def attention_weights_msg(w: np.ndarray, grid_hw: tuple[int, int]) -> Float32MultiArray:
     """SAM's raw attention the decision uses [heads, queries, key_nodes], nodes row-major on the grid: the relational
-    block's (queries = the nodes) or the attention readout's (one query per head)."""
+    block's (queries = the nodes) or the attention readout's (one query per head); a network with the local map has
+    the map's cells after the image's."""
     h, n, k = w.shape
+    cells = grid_hw[0] * grid_hw[1]
+    label = f"key_nodes(grid {grid_hw[0]}x{grid_hw[1]} row-major" + (", then the local map's)" if k == 2 * cells else ")")
     msg = Float32MultiArray()
     msg.layout.dim = [
         MultiArrayDimension(label="heads", size=h, stride=h * n * k),
         MultiArrayDimension(label="queries", size=n, stride=n * k),
-        MultiArrayDimension(label=f"key_nodes(grid {grid_hw[0]}x{grid_hw[1]} row-major)", size=k, stride=k),
+        MultiArrayDimension(label=label, size=k, stride=k),
     ]
     msg.data = w.astype(np.float32).ravel().tolist()
     return msg

@@ -33,6 +33,8 @@ from scipy import ndimage
 
 from .settings import setting
 
+# sim_node's camera sits this far ahead of base_link (m): what odometry gives is base_link's pose.
+CAMERA_FORWARD_M = 0.22
 _OFFSET = 1 << 20  # cell indices are stored as one int64 key: (ix + _OFFSET) << 21 | (iy + _OFFSET)
 NEIGHBOURS_BEYOND_M = 2.0  # ... and beyond this range a cell's neighbours count with it (depth noise spreads a surface)
 BIN_M = 0.1  # the height bins of the weather filter's standing-from-the-floor test
@@ -302,11 +304,25 @@ class LocalMap:
         return self._field
 
     # -- the student's view ------------------------------------------------------------------------
-    def egocentric(self, cells: int, resolution_m: float) -> np.ndarray:
+    def keys_at(self, mask: np.ndarray) -> np.ndarray:
+        """The cells (sorted int64 keys) that the newest frame's pixels under `mask` (a bool image) fell in."""
+        if self._pixel_keys is None:
+            raise RuntimeError("the local map has no frame yet")
+        keys = self._pixel_keys[np.asarray(mask, dtype=bool)]
+        return np.unique(keys[keys >= 0])
+
+    def egocentric(self, cells: int, resolution_m: float, near_keys: np.ndarray | None = None) -> np.ndarray:
         """(cells, cells) float32 occupancy in the body frame of the newest pose: row 0 is farthest ahead, the
-        vehicle at the bottom centre looking up the image, left on the left."""
+        vehicle at the bottom centre looking up the image, left on the left. With `near_keys`, only the occupied
+        cells within one cell of those (say the cells a decision's reason put there)."""
         grid = np.zeros((cells, cells), dtype=np.float32)
-        xy = self.occupied_xy()
+        occupied = self.occupied()
+        if near_keys is not None:
+            r = np.arange(-1, 2, dtype=np.int64)
+            near = ((r[:, None] << 21) + r[None, :]).ravel()
+            occupied = occupied[np.isin(occupied, (np.asarray(near_keys, np.int64)[:, None] + near[None, :]).ravel())]
+        cx, cy = _centres(occupied, self.config.resolution_m)
+        xy = np.stack([cx, cy], axis=-1)
         if not len(xy):
             return grid
         x, y, _, yaw = self._pose
@@ -318,6 +334,11 @@ class LocalMap:
         ok = (row >= 0) & (row < cells) & (col >= 0) & (col < cells)
         grid[row[ok], col[ok]] = 1.0
         return grid
+
+
+def camera_position(x_m: float, y_m: float, yaw_rad: float, forward_m: float = CAMERA_FORWARD_M) -> tuple[float, float]:
+    """Where a camera `forward_m` ahead of base_link at (x, y, yaw) is (the pose odometry gives is base_link's)."""
+    return x_m + forward_m * math.cos(yaw_rad), y_m + forward_m * math.sin(yaw_rad)
 
 
 def _keys(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:

@@ -50,7 +50,9 @@ def fly(model: str, files: list[str], world: str, steps: int, seed: int = 0):
     sim = Simulator(load_world(world), sim_cfg)
     from uav_sim.stacked_sim import StackedSim
 
-    flight = Flight(StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=camera), agent)
+    flight = Flight(
+        StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=camera, map_grid=cfg.map_grid), agent
+    )
     out = []
     try:
         for _ in range(steps):

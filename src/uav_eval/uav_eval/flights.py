@@ -246,7 +246,7 @@ def evaluate_inprocess(
         )
         sim = Simulator(load_world(world), sim_cfg)
         layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
-        env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg)
+        env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg, map_grid=cfg.map_grid)
     if shield and model in PLANNERS:
         raise ValueError(f"--shield: the {model} flies no network, so there is nothing to shield")
     guard = None

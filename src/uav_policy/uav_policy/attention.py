@@ -22,9 +22,12 @@ def attention_map(weights: np.ndarray, grid_hw: tuple[int, int], image_hw: tuple
     uav_common.frame_stack.CameraView a camera's frames were mapped through: the input cells' borders in the
     image's pixels) the cells land where they see the camera's image, a camera of another field of view or
     aspect included; camera pixels outside the trained view get 0. Without it the grid is stretched over the image.
+    A network with the local map attends over the image's cells and the map's: the image's are drawn, as their share.
     """
     gh, gw = grid_hw
     dist = received(weights)
+    if dist.size == 2 * gh * gw:  # a network with the local map: the image's cells are the first half
+        dist = received(dist[: gh * gw])
     if dist.size != gh * gw:
         raise ValueError(f"{dist.size} nodes do not fill a {gh}x{gw} grid")
     rel = (dist * dist.size).reshape(grid_hw).astype(np.float32)

@@ -64,6 +64,11 @@ class PolicySettings:
     shield: ShieldSettings = ShieldSettings()
     actions: ActionSettings = ActionSettings()
     frame_stack: int = setting(NetConfig.frames, "Depth frames in the state", 1, MAX_FRAMES)
+    local_map: bool = setting(
+        False,
+        "The network takes the local map of the frames and odom (NetConfig.local_map) when no weights file is given "
+        "(train sets it); a weights file's header says so itself",
+    )
     input_height: int = setting(
         64, "Network input height (px); frames of another size keep the nearest depth of each cell", 8, 512
     )

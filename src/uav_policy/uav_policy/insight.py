@@ -140,16 +140,37 @@ def node_of_pixel(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.nda
     return out
 
 
-def masked_states(
-    state: np.ndarray, nodes: list[np.ndarray], grid_hw: tuple[int, int]
-) -> np.ndarray:  # (len(nodes), frames, H, W)
-    """Copies of `state` (frames, H, W), each with the image regions of one set of nodes set to "no return"
-    (+inf) in every frame."""
+def state_nodes(state: np.ndarray, grid_hw: tuple[int, int], nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """((channels, H, W) the node each value of `state` belongs to, (channels, 1, 1) what a removed value reads as).
+    With `nodes` twice the grid's (a network with the local map): the depth frames' pixels are the first half's
+    nodes and read as "no return" (+inf) when removed, the map channel's cells the second half's and read as free."""
+    cells = grid_hw[0] * grid_hw[1]
     pixel_node = node_of_pixel(tuple(grid_hw), tuple(state.shape[-2:]))
-    gone = np.zeros((len(nodes), grid_hw[0] * grid_hw[1]), dtype=bool)
+    channels = state.shape[0]
+    fill = np.full((channels, 1, 1), np.inf, dtype=np.float32)
+    per_channel = np.broadcast_to(pixel_node, (channels, *pixel_node.shape))
+    if nodes == 2 * cells:
+        per_channel = np.concatenate([per_channel[:-1], pixel_node[None] + cells])
+        fill[-1] = 0.0
+    return per_channel, fill
+
+
+def newest_depth(state: np.ndarray, nodes: int, grid_hw: tuple[int, int]) -> np.ndarray:
+    """The newest depth frame of a state (the last channel but one with the local map)."""
+    return state[-2] if nodes == 2 * grid_hw[0] * grid_hw[1] else state[-1]
+
+
+def masked_states(
+    state: np.ndarray, nodes: list[np.ndarray], grid_hw: tuple[int, int], count: int | None = None
+) -> np.ndarray:  # (len(nodes), channels, H, W)
+    """Copies of `state` (channels, H, W), each with the image regions of one set of nodes set to "no return"
+    (+inf) in every frame (and a map node's cells to free: state_nodes); `count`: the nodes (default: the grid's)."""
+    count = grid_hw[0] * grid_hw[1] if count is None else count
+    pixel_node, fill = state_nodes(state, grid_hw, count)
+    gone = np.zeros((len(nodes), count), dtype=bool)
     for i, chosen in enumerate(nodes):
         gone[i, np.asarray(chosen, dtype=np.int64)] = True
-    return np.where(gone[:, pixel_node][:, None], np.float32(np.inf), np.asarray(state, dtype=np.float32)[None])
+    return np.where(gone[:, pixel_node], fill[None], np.asarray(state, dtype=np.float32)[None])
 
 
 def ranked(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -173,9 +194,9 @@ def compared_sets(dist: np.ndarray, rng: np.random.Generator, prior: np.ndarray 
 
 
 @torch.no_grad()
-def decisions_with(net: torch.nn.Module, state: np.ndarray, gone: list[np.ndarray], grid_hw) -> np.ndarray:
+def decisions_with(net: torch.nn.Module, state: np.ndarray, gone: list[np.ndarray], grid_hw, count=None) -> np.ndarray:
     """(len(gone),) the greedy action on `state` with the image regions of each set of nodes read as no return."""
-    q, _ = net(torch.from_numpy(masked_states(state, gone, grid_hw)).to(next(net.parameters()).device))
+    q, _ = net(torch.from_numpy(masked_states(state, gone, grid_hw, count)).to(next(net.parameters()).device))
     return q.argmax(dim=1).cpu().numpy()
 
 
@@ -192,7 +213,7 @@ def deletion_test(
     """(does masking the top-k explained nodes change the greedy action, the share of RANDOM_DRAWS masks of
     k random nodes that change it, does masking the top-k nodes of `prior` change it (None without a prior)),
     k = the top 10 % of the nodes."""
-    changed = decisions_with(net, state, compared_sets(dist, rng, prior), grid_hw) != action
+    changed = decisions_with(net, state, compared_sets(dist, rng, prior), grid_hw, received(dist).size) != action
     return bool(changed[0]), float(changed[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(changed[-1])
 
 
@@ -205,19 +226,19 @@ def margin(q: torch.Tensor, action: int) -> torch.Tensor:
 @torch.no_grad()
 def curve_areas(net: torch.nn.Module, state: np.ndarray, orders: list[np.ndarray], action: int, grid_hw) -> np.ndarray:
     """(len(orders), 2): the deletion and the insertion curve's area (mean margin, trapezoids over CURVE_LEVELS + 1
-    points) of the decision `action` on `state` (frames, H, W), the nodes removed or restored in each order."""
-    nodes = grid_hw[0] * grid_hw[1]
-    k = np.array([round(i * nodes / CURVE_LEVELS) for i in range(CURVE_LEVELS + 1)])[:, None, None]
-    pixel_node = node_of_pixel(tuple(grid_hw), tuple(state.shape[-2:]))
+    points) of the decision `action` on `state` (channels, H, W), the nodes removed or restored in each order."""
+    nodes = len(orders[0])
+    k = np.array([round(i * nodes / CURVE_LEVELS) for i in range(CURVE_LEVELS + 1)])[:, None, None, None]
+    pixel_node, fill = state_nodes(state, grid_hw, nodes)
     x0 = np.asarray(state, dtype=np.float32)[None]
     device = next(net.parameters()).device
     out = np.empty((len(orders), 2))
     for i, order in enumerate(orders):
         rank = np.empty(nodes, dtype=np.int64)  # each node's place in the order
         rank[order] = np.arange(nodes)
-        pixel_rank = rank[pixel_node][None]  # (1, H, W)
+        pixel_rank = rank[pixel_node][None]  # (1, channels, H, W)
         gone = np.concatenate([pixel_rank < k, pixel_rank >= k])  # deletion levels, then insertion levels
-        x = np.where(gone[:, None], np.float32(np.inf), x0)  # (2 * levels, frames, H, W)
+        x = np.where(gone, fill[None], x0)  # (2 * levels, channels, H, W)
         q, _ = net(torch.from_numpy(x).to(device))
         m = margin(q, action).cpu().numpy().reshape(2, CURVE_LEVELS + 1)
         out[i] = ((m[:, :-1] + m[:, 1:]) / 2).mean(axis=1)
@@ -235,8 +256,9 @@ def grad_cam(net: torch.nn.Module, state: np.ndarray, action: int) -> np.ndarray
     maps = []
     with torch.enable_grad():
         for m in members:
-            fmap = m.trunk(x).detach().requires_grad_(True)
-            q, _ = m.from_features(fmap)
+            fmap, map_fmap = m.features(x)
+            fmap = fmap.detach().requires_grad_(True)
+            q, _ = m.from_features(fmap, map_fmap)
             others = torch.cat([q[0, :action], q[0, action + 1 :]])
             (grad,) = torch.autograd.grad(q[0, action] - others.max(), fmap)
             cam = torch.relu((grad.mean(dim=(2, 3), keepdim=True) * fmap).sum(dim=1))[0].flatten()
@@ -356,7 +378,8 @@ class Insight:
         dist = received(rows)
         prior = np.mean([f[0] for f in self.frames], axis=0) if self.frames else None
         top, rand, by_prior = deletion_test(net, state, dist, action, self.grid_hw, self.rng, prior)
-        near = near_ratio(dist, state[-1], self.grid_hw)
+        image = dist[: self.grid_hw[0] * self.grid_hw[1]]  # with the local map, the image's cells (the first half)
+        near = near_ratio(image, newest_depth(state, dist.size, self.grid_hw), self.grid_hw)
         orders = [ranked(dist, self.rng), self.rng.permutation(dist.size)] + (
             [ranked(prior, self.rng)] if prior is not None else []
         )
@@ -364,7 +387,7 @@ class Insight:
         areas[: len(orders)] = curve_areas(net, state, orders, action, self.grid_hw)
         values = readout_values(net, state)
         kept = sufficiency_test(net, state, dist, action, self.grid_hw, self.rng, prior)
-        on_reason = reason_measures(dist, reason, self.grid_hw) if reason is not None else None
+        on_reason = reason_measures(image, reason, self.grid_hw) if reason is not None else None
         checks = (math.nan if values is None else conicity(values), *kept, on_reason)
         self.frames.append((dist, normalised_entropy(rows), top_share(dist), top, rand, near, by_prior, areas, checks))
 

@@ -41,7 +41,7 @@ def readout_values(net: torch.nn.Module, state: np.ndarray) -> np.ndarray | None
     x = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)).unsqueeze(0).to(device)
     out = []
     for m in members:
-        unmixed = m.unmixed_nodes(m.trunk(x))
+        unmixed = m.unmixed_nodes(*m.features(x))
         r = m.query_readout
         _, v = r.kv(r.norm(unmixed)).view(1, unmixed.shape[1], 2, r.heads, r.d_head).permute(2, 0, 3, 1, 4)
         out.append(v[0].cpu().numpy())  # (heads, nodes, d_head)
@@ -53,7 +53,7 @@ def sufficiency_test(net, state: np.ndarray, dist: np.ndarray, action: int, grid
     many random nodes that keep it, does keeping the top 10 % of `prior` keep it (None without a prior))."""
     everything = np.arange(received(dist).size)
     gone = [np.setdiff1d(everything, keep) for keep in compared_sets(dist, rng, prior)]
-    same = decisions_with(net, state, gone, grid_hw) == action
+    same = decisions_with(net, state, gone, grid_hw, everything.size) == action
     return bool(same[0]), float(same[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(same[-1])
 
 

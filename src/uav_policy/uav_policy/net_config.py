@@ -10,6 +10,9 @@ import json
 MODELS = ("sam", "cnn")
 SAM_READOUTS = ("max", "flatten", "attend", "query", "topk")
 TOPK_SHARE = 8  # the topk readout keeps a node in every TOPK_SHARE (8 of the default 64)
+# With `local_map`, the state's last channel is the local map (uav_common.local_map.LocalMap.egocentric) of
+# height x width cells covering MAP_EXTENT_M ahead and behind (a quarter of it behind), 1 where an obstacle is.
+MAP_EXTENT_M = 6.4
 # The most depth frames in a state (policy_node's frame_stack range; a file's header may not ask for more).
 MAX_FRAMES = 16
 # The layer sizes inside the network: nothing outside it (camera, frame stack, action set) depends
@@ -49,6 +52,19 @@ class NetConfig:
     feature_norm: bool = (
         False  # LayerNorm before the dueling heads: files that record it load; no recipe trains it (it did not help)
     )
+    # The local map as a last input channel beside the depth frames (a second trunk; SAM attends over image and map
+    # cells): the network needs odometry.
+    local_map: bool = False
+
+    @property
+    def channels(self) -> int:
+        """Input channels: the depth frames, and the local map's grid with `local_map`."""
+        return self.frames + int(self.local_map)
+
+    @property
+    def map_grid(self) -> tuple[int, float] | None:
+        """The local map input's (cells a side, cell size in m): StackedSim's map_grid; None without one."""
+        return (self.height, MAP_EXTENT_M / self.height) if self.local_map else None
 
     def __post_init__(self):
         # The CNN has no readout choice: a sam_readout set for SAM (e.g. in params/policy.yaml)
@@ -57,8 +73,11 @@ class NetConfig:
             object.__setattr__(self, "sam_readout", "max")
 
     def validate(self) -> None:
-        if type(self.feature_norm) is not bool:
-            raise ValueError(f"feature_norm must be true or false, got {self.feature_norm!r}")
+        for name in ("feature_norm", "local_map"):
+            if type(getattr(self, name)) is not bool:
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        if self.local_map and self.height != self.width:
+            raise ValueError(f"the local map input needs a square input, got {self.width}x{self.height}")
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         if self.sam_readout not in SAM_READOUTS:

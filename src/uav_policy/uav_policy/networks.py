@@ -25,6 +25,11 @@ nodes/TOPK_SHARE of each head, unmixed, reach the dueling head, weighted by thei
 
 D3QN-CNN: the same trunk, flattened, a hidden layer, and the same dueling head.
 
+With `local_map` (NetConfig) the state's last channel is the egocentric local map (0/1 occupancy, the vehicle at the
+bottom centre): a second trunk of the same shape reads it. SAM's nodes are the image cells then the map cells, each
+with its coordinates and a flag saying which (so attention ranges over both: (B, heads, m, 2 x cells)); the CNN
+flattens both feature maps into its hidden layer.
+
 Dueling head: Q = V + A - mean(A), with linear outputs (no ELU: Q-values must reach -10). With `feature_norm`
 the features the heads read (the CNN's hidden layer, SAM's pooled vector or, with `query`, each attended vector)
 pass a LayerNorm first (Bjorck et al. 2022 trace seed variance to features that saturate early in training).
@@ -55,22 +60,37 @@ def normalise_depth(depth_m: torch.Tensor, max_range_m: float) -> torch.Tensor:
 
 
 class ConvTrunk(nn.Module):
-    """Stride-2 4x4 convolutions: 64x64 -> 8x8 feature map with the default three layers."""
+    """Stride-2 4x4 convolutions: 64x64 -> 8x8 feature map with the default three layers. The depth trunk normalises
+    its frames; the map trunk (`channels_in` 1, `depth` False) reads the 0/1 grid as it is."""
 
-    def __init__(self, cfg: NetConfig):
+    def __init__(self, cfg: NetConfig, channels_in: int | None = None, depth: bool = True):
         super().__init__()
-        layers, c_in = [], cfg.frames
+        c_in = cfg.frames if channels_in is None else channels_in
+        layers, first = [], c_in
         for c_out in cfg.conv_channels:
             layers += [nn.Conv2d(c_in, c_out, kernel_size=4, stride=2, padding=1), nn.ReLU(inplace=True)]
             c_in = c_out
         self.net = nn.Sequential(*layers)
-        self.max_range_m = cfg.max_range_m
+        self.max_range_m = cfg.max_range_m if depth else None
         with torch.no_grad():
-            out = self.net(torch.zeros(1, cfg.frames, cfg.height, cfg.width))
+            out = self.net(torch.zeros(1, first, cfg.height, cfg.width))
         self.out_channels, self.grid_h, self.grid_w = out.shape[1:]
 
-    def forward(self, depth_m: torch.Tensor) -> torch.Tensor:
-        return self.net(normalise_depth(depth_m, self.max_range_m))
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.float() if self.max_range_m is None else normalise_depth(x, self.max_range_m))
+
+
+def split_state(x: torch.Tensor, cfg: NetConfig) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(the depth frames, the local map channel or None) of a state (B, channels, H, W)."""
+    if x.shape[1] != cfg.channels:
+        what = f"{cfg.frames} depth frames" + (" and the local map" if cfg.local_map else "")
+        raise ValueError(f"the network takes {cfg.channels} input channels ({what}), got {x.shape[1]}")
+    return (x[:, : cfg.frames], x[:, cfg.frames :]) if cfg.local_map else (x, None)
+
+
+def trunk_features(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    depth, grid = split_state(x, net.cfg)
+    return net.trunk(depth), None if grid is None else net.map_trunk(grid)
 
 
 class MultiHeadSelfAttention(nn.Module):
@@ -202,8 +222,13 @@ class D3QNSam(nn.Module):
         cfg.validate()
         self.cfg = cfg
         self.trunk = ConvTrunk(cfg)
-        self.register_buffer("coords", grid_coordinates(self.trunk.grid_h, self.trunk.grid_w), persistent=False)
-        self.node_projection = nn.Linear(self.trunk.out_channels + 2, cfg.d_model)
+        self.map_trunk = ConvTrunk(cfg, 1, depth=False) if cfg.local_map else None
+        coords = grid_coordinates(self.trunk.grid_h, self.trunk.grid_w)
+        if cfg.local_map:  # a third coordinate: 0 on image cells, 1 on map cells
+            flag = torch.cat([torch.zeros(len(coords), 1), torch.ones(len(coords), 1)])
+            coords = torch.cat([torch.cat([coords, coords]), flag], dim=1)
+        self.register_buffer("coords", coords, persistent=False)
+        self.node_projection = nn.Linear(self.trunk.out_channels + coords.shape[1], cfg.d_model)
         self.relational_blocks = nn.ModuleList(
             RelationalBlock(cfg.d_model, cfg.heads, cfg.mlp_hidden) for _ in range(cfg.relational_blocks)
         )
@@ -211,13 +236,13 @@ class D3QNSam(nn.Module):
         if cfg.sam_readout == "attend":
             self.pooling = AttentionPooling(cfg.d_model, cfg.heads)
         if cfg.sam_readout == "topk":
-            self.pooling = TopKPooling(cfg.d_model, cfg.heads, max(1, self.trunk.grid_h * self.trunk.grid_w // TOPK_SHARE))
+            self.pooling = TopKPooling(cfg.d_model, cfg.heads, max(1, len(coords) // TOPK_SHARE))
         self.readout = None
         if cfg.sam_readout == "query":
             self.query_readout = QueryReadout(cfg.d_model, cfg.heads, cfg.actions, cfg.head_hidden, cfg.feature_norm)
             self.dueling_head = None  # its own heads, one per query
         elif cfg.sam_readout == "flatten":
-            c, n = self.trunk.out_channels, self.trunk.grid_h * self.trunk.grid_w
+            c, n = self.trunk.out_channels, len(coords)
             self.readout = nn.Sequential(
                 nn.Linear(cfg.d_model, c), nn.Flatten(1), nn.Linear(n * c, cfg.cnn_hidden), nn.ReLU(inplace=True)
             )
@@ -233,17 +258,24 @@ class D3QNSam(nn.Module):
         """Q-values (B, actions) and the attention the decision uses: the last block's weights (B, heads, nodes,
         nodes), or the readout's weights with `attend` / `topk` (B, heads, 1, nodes) and `query` (B, heads,
         actions + 1, nodes)."""
-        return self.from_features(self.trunk(depth_m))
+        return self.from_features(*self.features(depth_m))
 
-    def unmixed_nodes(self, fmap: torch.Tensor) -> torch.Tensor:
-        """(B, h*w, d_model): one node per cell of the feature map (row-major), its coordinates appended, projected."""
+    def features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The trunks' feature maps of a state: the image's, the local map's (None without one)."""
+        return trunk_features(self, x)
+
+    def unmixed_nodes(self, fmap: torch.Tensor, map_fmap: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, nodes, d_model): one node per cell of the feature map (row-major; then the map's), its coordinates
+        appended, projected."""
         nodes = fmap.flatten(2).transpose(1, 2)  # (B, h*w, C), row-major cells
+        if self.map_trunk is not None:
+            nodes = torch.cat([nodes, map_fmap.flatten(2).transpose(1, 2)], dim=1)
         coords = self.coords.unsqueeze(0).expand(nodes.shape[0], -1, -1)
         return self.node_projection(torch.cat([nodes, coords], dim=-1))
 
-    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """forward() from the trunk's feature map (B, C, h, w) on."""
-        nodes = unmixed = self.unmixed_nodes(fmap)
+    def from_features(self, fmap: torch.Tensor, map_fmap: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward() from the trunks' feature maps (B, C, h, w) on."""
+        nodes = unmixed = self.unmixed_nodes(fmap, map_fmap)
         weights = None
         for block in self.relational_blocks:
             nodes, weights = block(nodes)
@@ -266,7 +298,8 @@ class D3QNCnn(nn.Module):
         cfg.validate()
         self.cfg = cfg
         self.trunk = ConvTrunk(cfg)
-        flat = self.trunk.out_channels * self.trunk.grid_h * self.trunk.grid_w
+        self.map_trunk = ConvTrunk(cfg, 1, depth=False) if cfg.local_map else None
+        flat = self.trunk.out_channels * self.trunk.grid_h * self.trunk.grid_w * (2 if cfg.local_map else 1)
         self.hidden = nn.Sequential(nn.Linear(flat, cfg.cnn_hidden), nn.ReLU(inplace=True))
         self.dueling_head = DuelingHead(cfg.cnn_hidden, cfg.head_hidden, cfg.actions, cfg.feature_norm)
 
@@ -276,11 +309,16 @@ class D3QNCnn(nn.Module):
         return self.trunk.grid_h, self.trunk.grid_w
 
     def forward(self, depth_m: torch.Tensor) -> tuple[torch.Tensor, None]:
-        return self.from_features(self.trunk(depth_m))
+        return self.from_features(*self.features(depth_m))
 
-    def from_features(self, fmap: torch.Tensor) -> tuple[torch.Tensor, None]:
-        """forward() from the trunk's feature map (B, C, h, w) on."""
-        return self.dueling_head(self.hidden(fmap.flatten(1))), None
+    def features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The trunks' feature maps of a state: the image's, the local map's (None without one)."""
+        return trunk_features(self, x)
+
+    def from_features(self, fmap: torch.Tensor, map_fmap: torch.Tensor | None = None) -> tuple[torch.Tensor, None]:
+        """forward() from the trunks' feature maps (B, C, h, w) on."""
+        flat = fmap.flatten(1) if map_fmap is None else torch.cat([fmap.flatten(1), map_fmap.flatten(1)], dim=1)
+        return self.dueling_head(self.hidden(flat)), None
 
 
 class QEnsemble(nn.Module):
@@ -332,7 +370,7 @@ def forward_flops(cfg: NetConfig) -> int:
     with torch.device("meta"):
         net = D3QNSam(cfg) if cfg.model == "sam" else D3QNCnn(cfg)
         with FlopCounterMode(display=False) as counter:
-            net(torch.zeros(1, cfg.frames, cfg.height, cfg.width))
+            net(torch.zeros(1, cfg.channels, cfg.height, cfg.width))
     return int(counter.get_total_flops())
 
 

@@ -3,9 +3,8 @@
 Wiring only; each job has its module: frames onto the network's input (camera_input), one camera per stack
 (camera_identity); a simulator's frames joined with their outcomes, stacked, held for lockstep learning
 (simulator_link); a camera alone answered at most control_rate_hz, with a stop when frames stop (camera_control);
-the decision, shield and safety layer (pilot, shield, safety); cmd_vel, action, q_values, attention or Grad-CAM
-(outputs); what decisions look at (explainer, insight); signed weight pushes (push, push_receiver); answers counted.
-"""
+the decision, shield, local map and safety layer (pilot, shield, safety); cmd_vel, action, q_values, attention or
+Grad-CAM (outputs); what decisions look at (explainer, insight); signed weight pushes (push_receiver); answers counted."""
 
 from __future__ import annotations
 
@@ -58,14 +57,8 @@ class PolicyNode(Node):
             self.actions = st.actions.table()
         except ValueError as e:
             raise ParameterError(f"parameters 'action_*': {e}") from None
-        cfg = NetConfig(
-            model=st.model,
-            frames=st.frame_stack,
-            height=st.input_height,
-            width=st.input_width,
-            actions=len(self.actions),
-            max_range_m=st.max_range_m,
-        )
+        size = dict(frames=st.frame_stack, height=st.input_height, width=st.input_width, max_range_m=st.max_range_m)
+        cfg = NetConfig(model=st.model, actions=len(self.actions), local_map=st.local_map, **size)
         try:
             device = resolve_device(st.device)
             files = wio.parse_files(st.weights)
@@ -82,8 +75,9 @@ class PolicyNode(Node):
         self.camera = CameraInput(self.cfg.height, self.cfg.width, hfov, log, on_view)
         period = 1.0 / st.control_rate_hz
         self.control = CameraControl(st.frame_stack, st.step_duration_s, period, st.safety.frame_timeout_s, log)
-        self.shield = ShieldFeed(self.actions, st.step_duration_s, st.shield, log) if st.shield.shield != "never" else None
-        joins = st.shield.shield == "always"  # a simulator's frames wait for the odometry of their stamp
+        mapped = st.shield.shield != "never" or self.cfg.local_map  # the shield's, or the network's input
+        self.shield = ShieldFeed(self.actions, st.step_duration_s, st.shield, log, self.cfg.local_map) if mapped else None
+        joins = st.shield.shield == "always" or self.cfg.local_map  # a simulator's frames wait for their stamp's odom
         self.link = SimulatorLink(st.frame_stack, st.wait_for_trainer, st.wait_for_trainer_timeout_s, log, joins)
         self.identity = CameraIdentity(st.camera_switch_s, log, stacks=(self.control, self.link))  # one camera a stack
         self.agent = Agent(net, self.cfg, device, st.seed)
@@ -203,6 +197,7 @@ class PolicyNode(Node):
         stamp = contract.stamp_ns(img.header.stamp)
         if self.shield:  # auto: on for a camera's frames (a drone), off for a simulator's
             self.pilot.shield = self.shield.frame(depth, self.camera.intrinsics, stamp, *sim, camera=self.control.active)
+            state = self.shield.with_map(state, self.cfg.map_grid) if self.cfg.local_map else state
         fly = self.link.gate.fly_action_for(stamp)  # a teacher's, in training
         d = self.pilot.decide(state, net_in, self.epsilon, instead=fly)
         if d.safety or d.shield:

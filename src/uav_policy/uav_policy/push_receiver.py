@@ -36,7 +36,7 @@ class PushReceiver:
         """Time the network flown at start (the best of five passes): what prices a pushed architecture."""
         net = agent.net
         members = len(net.members) if isinstance(net, QEnsemble) else 1
-        state = np.zeros((net.cfg.frames, net.cfg.height, net.cfg.width), np.float32)
+        state = np.zeros((net.cfg.channels, net.cfg.height, net.cfg.width), np.float32)
         agent.q_values(state)  # warm-up
         best = math.inf
         for _ in range(5):
@@ -82,6 +82,9 @@ class PushReceiver:
         layer sizes, the interface must match `cfg`). `reuse`: the spare is written over when it has the pushed
         architecture (False while anything may still read it)."""
         self.check_cost(blob, cfg)
+        if wio.read_header_config(blob).local_map != cfg.local_map:
+            has = "needs" if cfg.local_map else "does not take"
+            raise ValueError(f"the pushed network's local map input differs: the one flown {has} it (restart policy_node)")
         spare, self.spare = (self.spare if reuse else None), None
         return wio.load_bytes(blob, cfg, sizes_from_blob=True, into=spare)
 

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from uav_common.actions import Action
-from uav_common.local_map import LocalMap, MapConfig, PinholeCamera
+from uav_common.local_map import CAMERA_FORWARD_M, LocalMap, MapConfig, PinholeCamera, camera_position
 from uav_common.plan_search import Planner, PlannerConfig
 from uav_common.settings import setting
 
@@ -44,7 +44,10 @@ class ShieldSettings:
         0.5, "Shield: odometry older than this (against the frame's stamp) vouches for nothing: forward flight stops", 0.01, 10.0
     )
     camera_forward_m: float = setting(
-        0.22, "Shield: the camera's position ahead of base_link (m; sim_node's camera is 0.22 m ahead)", -5.0, 5.0
+        CAMERA_FORWARD_M,
+        "Shield and local map: the camera's position ahead of base_link (m; sim_node's camera is 0.22 m ahead)",
+        -5.0,
+        5.0,
     )
     map_frames: int = setting(5, "Shield: depth frames the local map remembers", 1, 32)
 
@@ -93,9 +96,7 @@ class Shield:
         frame) when it was taken. A jump of the pose of more than JUMP_M forgets what was mapped before."""
         if self._pose is not None and math.hypot(x_m - self._pose[0], y_m - self._pose[1]) > JUMP_M:
             self.map.reset()
-        off = self.st.camera_forward_m
-        cx, cy = x_m + off * math.cos(yaw_rad), y_m + off * math.sin(yaw_rad)
-        self.map.insert(depth_m, camera, cx, cy, z_m, yaw_rad)
+        self.map.insert(depth_m, camera, *camera_position(x_m, y_m, yaw_rad, self.st.camera_forward_m), z_m, yaw_rad)
         self._pose = (x_m, y_m, yaw_rad)
 
     def forget_pose(self) -> None:
@@ -141,10 +142,13 @@ def pooled(depth_m: np.ndarray, camera: PinholeCamera, max_width: int = 128) -> 
 
 class ShieldFeed:
     """policy_node's frames and odometry onto a Shield (no ROS): a simulator's frame comes with the odometry of its
-    own stamp; a camera's is matched with the newest odometry, which must be within odom_timeout_s of it."""
+    own stamp; a camera's is matched with the newest odometry, which must be within odom_timeout_s of it. With
+    `needs_map` (a network with the local map) every frame is mapped, whether or not the shield checks decisions, and
+    the network's state gets the map (`with_map`); without fresh odometry forward flight stops all the same."""
 
-    def __init__(self, actions: tuple[Action, ...], step_duration_s: float, st: ShieldSettings, log):
+    def __init__(self, actions: tuple[Action, ...], step_duration_s: float, st: ShieldSettings, log, needs_map=False):
         self.shield, self.log, self.mode = Shield(actions, step_duration_s, st), log, st.shield
+        self.needs_map = needs_map
         self.odom: tuple[int, tuple[float, float, float, float]] | None = None  # (stamp ns, (x, y, z, yaw))
         self.stale = 0
         self.odometry_received = 0
@@ -163,13 +167,13 @@ class ShieldFeed:
 
     def joins(self, camera: bool) -> bool:
         """Whether odometry is joined with a simulator's frames (shield on, no camera flying)."""
-        return self.mode == "always" and not camera
+        return (self.mode == "always" or self.needs_map) and not camera
 
     def frame(self, depth_m, intrinsics, stamp_ns: int, pose=None, new_episode=False, camera=True) -> Shield | None:
         """A frame (metres) with its CameraInfo intrinsics ((fx, fy, cx, cy, width, height); None: unknown) and, from a
         simulator, the odometry of its stamp and whether it begins an episode (the map forgets, as in process); the
         shield to decide with, None where it is off (`camera`: a camera's frame)."""
-        if not self.on(camera):
+        if not (self.on(camera) or self.needs_map):
             return None
         if new_episode:
             self.shield.reset()
@@ -180,7 +184,8 @@ class ShieldFeed:
             self.stale += 1
             self.shield.forget_pose()
             why = "no odometry within odom_timeout_s of the frame" if intrinsics is not None else "no depth/camera_info"
-            self.log.warning(f"shield: {why}: nothing is vouched for, forward flight stops", throttle_duration_sec=2.0)
+            who = "shield" if self.on(camera) else "the network's local map"
+            self.log.warning(f"{who}: {why}: nothing is vouched for, forward flight stops", throttle_duration_sec=2.0)
             return self.shield
         fx, fy, cx, cy, width, height = intrinsics
         if (height, width) != depth_m.shape:
@@ -188,7 +193,11 @@ class ShieldFeed:
             fx, fy, cx, cy = fx * scale, fy * scale, cx * scale, cy * scale
         depth, view = pooled(depth_m, PinholeCamera(depth_m.shape[1], depth_m.shape[0], fx, fy, cx, cy))
         self.shield.observe(depth, view, *pose)
-        return self.shield
+        return self.shield if self.on(camera) else None
+
+    def with_map(self, state: np.ndarray, map_grid: tuple[int, float]) -> np.ndarray:
+        """`state` with the local map's egocentric grid (NetConfig.map_grid) as its last channel."""
+        return np.concatenate([state, self.shield.map.egocentric(*map_grid)[None]])
 
     def values(self, on: bool) -> dict:
         """For /diagnostics (`on`: whether it checks the decisions now)."""

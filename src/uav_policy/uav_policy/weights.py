@@ -326,12 +326,13 @@ def config_for(model: str, path: str | os.PathLike | None) -> NetConfig:
 
 
 def with_sizes_of(cfg: NetConfig, made: NetConfig) -> NetConfig:
-    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout and feature norm: the architecture a file made
-    as `made` is loaded with."""
+    """`cfg` with `made`'s layer sizes (networks.SIZE_FIELDS), SAM readout, feature norm and local map input: the
+    architecture a file made as `made` is loaded with."""
     return dataclasses.replace(
         cfg,
         sam_readout=made.sam_readout,
         feature_norm=made.feature_norm,
+        local_map=made.local_map,
         **{name: getattr(made, name) for name in SIZE_FIELDS},
     )
 
@@ -373,6 +374,8 @@ def policy_network(paths: list[str], cfg: NetConfig, seed: int, warn=print):
     if packaged:
         try:
             net, source, camera = open_files([str(p) for p in packaged], cfg)
+            if net.cfg.local_map != cfg.local_map:
+                raise ValueError("they " + ("lack" if cfg.local_map else "take") + " the local map input")
             return net, f"packaged pretrained weights: {source}", camera
         except ValueError as e:
             warn(f"packaged weights unusable ({e}); using a random initialisation")

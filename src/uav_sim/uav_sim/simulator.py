@@ -21,6 +21,7 @@ import numpy as np
 import pybullet as p
 
 from uav_common.kinematics import HOVER, BodyTwist, Pose, TwistLimits, integrate, twist_error
+from uav_common.local_map import CAMERA_FORWARD_M
 from uav_common.settings import setting
 
 from .camera import CameraIntrinsics, DepthCamera
@@ -78,7 +79,7 @@ class SimConfig:
     seed: int = setting(0, "Seed for weather, start jitter and 'random' worlds", 0, 2**31 - 1)
     limits: TwistLimits = TwistLimits()
     body_half_extents_m: tuple[float, float, float] = (0.2, 0.2, 0.06)
-    camera_forward_offset_m: float = 0.22
+    camera_forward_offset_m: float = CAMERA_FORWARD_M
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that cannot be used."""

@@ -154,13 +154,13 @@ class ActorSink:
     training: Training
     actor: int
 
-    def add_first(self, frame: np.ndarray) -> None:
-        self.training.add_first(frame, self.actor)
+    def add_first(self, frame: np.ndarray, grid: np.ndarray | None = None) -> None:
+        self.training.add_first(frame, self.actor, grid)
 
     def add_step(
-        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1, reason=None
+        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1, reason=None, grid=None
     ) -> float:
-        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher, reason)
+        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher, reason, grid)
 
-    def add_truncated(self, first_frame: np.ndarray) -> None:
-        self.training.add_truncated(first_frame, self.actor)
+    def add_truncated(self, first_frame: np.ndarray, grid: np.ndarray | None = None) -> None:
+        self.training.add_truncated(first_frame, self.actor, grid)

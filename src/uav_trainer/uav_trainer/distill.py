@@ -174,15 +174,15 @@ def distill(
     first, layouts = worlds.load(seed)
     sim = Simulator(first, sim_cfg, next_worlds=layouts)
     hw = (cfg.height, cfg.width)
-    env = StackedSim(sim, cfg.frames, input_hw=hw, trained_hfov_deg=hfov)
-    states = np.empty((0, cfg.frames, *hw), FRAMES_DTYPE)
+    env = StackedSim(sim, cfg.frames, input_hw=hw, trained_hfov_deg=hfov, map_grid=cfg.map_grid)
+    states = np.empty((0, cfg.channels, *hw), FRAMES_DTYPE)
     targets = np.empty((0, cfg.actions), np.float32)
     summary = {"rounds": [], "teachers": len(files)}
     t0 = time.monotonic()
     try:
         for r in range(rounds):
             actor = teacher if r == 0 else student
-            fresh = collect(env, actor, steps_per_round, epsilon, rng, cfg.frames, hw, f"round {r + 1}/{rounds}")
+            fresh = collect(env, actor, steps_per_round, epsilon, rng, cfg.channels, hw, f"round {r + 1}/{rounds}")
             labels = q_of(teacher, fresh).astype(np.float32)
             agree = agreement(student, labels, fresh)
             states, targets = np.concatenate([states, fresh]), np.concatenate([targets, labels])

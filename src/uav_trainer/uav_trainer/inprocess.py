@@ -101,8 +101,8 @@ def run(
     # The policy's own network, answering each frame with the weights its release carries (as over ROS).
     acting = Agent(build_network(training.net_cfg, seed=cfg.seed), training.net_cfg, str(training.learner.device), seed=cfg.seed)
     net_cfg = training.net_cfg
-    flight = Flight(StackedSim(sim, net_cfg.frames, input_hw=(net_cfg.height, net_cfg.width)), acting)
-    training.add_first(flight.env.last_input)
+    flight = Flight(StackedSim(sim, net_cfg.frames, input_hw=(net_cfg.height, net_cfg.width), map_grid=net_cfg.map_grid), acting)
+    training.add_first(flight.env.last_input, grid=flight.env.last_grid)
     loaded = None  # the version of the released weights the acting network has
     # The teacher labels every frame; it flies a step instead of the student with a probability that falls to 0.
     teacher = (
@@ -120,7 +120,11 @@ def run(
         plan = teacher.label() if teacher is not None else None
         label = plan.action if plan is not None else -1
         if training.reason_grid is not None:
-            reason = node_shares(flight.env.input_mask(teacher.reason_mask()), training.reason_grid)
+            mask = teacher.reason_mask()
+            reason = node_shares(flight.env.input_mask(mask), training.reason_grid)
+            if net_cfg.local_map:  # and on the map: the cells its pixels put there
+                grid = flight.env.map.egocentric(*net_cfg.map_grid, near_keys=flight.env.map.keys_at(mask))
+                reason = np.concatenate([reason, node_shares(grid > 0, training.reason_grid)])
         decision = flight.decide(training.epsilon(), instead=training.teacher_flies(label))
         training.after_release()
         if teacher is not None:
@@ -133,11 +137,11 @@ def run(
         while not training.budget_done and not training.failed:
             step = flight.execute(decision)
             r = step.after
-            frame = flight.env.last_input  # on the network's input, as policy_node gives it
+            frame, grid = flight.env.last_input, flight.env.last_grid  # on the network's input, as policy_node gives it
             if r.truncated:
-                training.add_truncated(frame)
+                training.add_truncated(frame, grid=grid)
             else:
-                training.add_step(step.action, r.beta_m, r.collided, frame, teacher=label, reason=reason)
+                training.add_step(step.action, r.beta_m, r.collided, frame, teacher=label, reason=reason, grid=grid)
             if not training.budget_done:
                 # The policy acts on the new frame before this step's updates, as over ROS, where trainer_node
                 # releases the frame first and learns while the policy acts and the simulator steps.

@@ -21,6 +21,10 @@ it): each stored transition carries the teacher's action for the frame it left (
 and `teacher_of(stamp)` gives it for a frame about to be released. With `reason_grid` too, sim_node's `teacher_reason`
 (the pixels the planner's decision is about): mapped onto the network's input as the frames are, each transition
 carries the share of each cell of that grid it covers in the frame it left (as the in-process loop computes it).
+
+With `map_grid` (a network with the local map), an observation is also sim_node's `odom` of the frame's stamp: each
+frame goes into a local map in stamp order (a new episode forgets) and is stored with its egocentric grid, as
+uav_sim.stacked_sim.StackedSim maps the frames in process; the reason's share covers the map's cells too.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import numpy as np
 from uav_common import contract
 from uav_common.actions import match_action
 from uav_common.frame_stack import NetworkInput
+from uav_common.local_map import LocalMap, PinholeCamera, camera_position
 from uav_policy.insight import node_shares
 
 
@@ -59,23 +64,31 @@ class TransitionAssembler:
         on_ready=None,
         teacher=False,
         reason_grid: tuple[int, int] | None = None,
+        map_grid: tuple[int, float] | None = None,
     ):
         self.sink, self.actions, self.step_ns, self.net_hw = sink, actions, step_ns, net_hw
-        self.on_ready, self.reason_grid = on_ready, reason_grid
+        self.on_ready, self.reason_grid, self.map_grid = on_ready, reason_grid, map_grid
+        self.map = LocalMap() if map_grid is not None else None
+        self.camera: PinholeCamera | None = None  # the frames' intrinsics (the local map's)
         # What a step's simulator says.
         self.observation = ("frame", "outcome") + (("teacher",) if teacher else ()) + (("reason",) if reason_grid else ())
+        self.observation += ("odom",) if map_grid is not None else ()
         self.joiner = contract.StampJoiner(self.STREAMS + self.observation[2:], max_pending=max_pending)
         self.prev: _Prev | None = None
         self.early: tuple[int, bool] | None = None  # (stamp, frame usable) stored before its record completed
         self.released = -1  # the newest stamp handed to on_ready
         self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0, "unmatched_teacher_actions": 0}
         self.counts |= {"bad_reasons": 0} if reason_grid else {}
+        self.counts |= {"unmapped_frames": 0} if map_grid else {}
         self.to_input = NetworkInput(*net_hw)
 
     def set_camera(self, intrinsics, hfov_deg: float) -> None:
         """Frames go onto the network's input through the camera's intrinsics, as policy_node maps them (the
         trained field of view is the camera's own): a sensor preset's frames are padded to a square view."""
         self.to_input.set_camera(intrinsics, hfov_deg)
+        if intrinsics is not None:
+            fx, fy, cx, cy, width, height = intrinsics
+            self.camera = PinholeCamera(width, height, fx, fy, cx, cy)
 
     def add(self, stream: str, msg) -> None:
         restarts = self.joiner.restarts
@@ -88,13 +101,27 @@ class TransitionAssembler:
         self._store_next()
         self._release()
 
-    def _frame(self, img):
-        """The frame at the network's size, or None (counted) when malformed."""
+    def _frame(self, slot: dict):
+        """(the frame at the network's size, with the local map its local map's grid else None), or None (counted)
+        when malformed. Called once per frame, in stamp order: the map takes it."""
         try:
-            return self.to_input(contract.image_to_depth(img))
+            depth = contract.image_to_depth(slot["frame"])
+            frame = self.to_input(depth)
         except ValueError:
             self.counts["bad_frames"] += 1
             return None
+        if self.map is None:
+            return frame, None
+        if contract.outcome_new_episode(slot["outcome"]):
+            self.map.reset()
+        pose, camera = contract.odometry_pose(slot["odom"]), self.camera
+        if pose is None or camera is None or (camera.height, camera.width) != depth.shape:
+            self.counts["unmapped_frames"] += 1  # malformed odometry, or no depth/camera_info of the frame's size
+            self.map.reset()
+            return None
+        x, y, z, yaw = pose
+        self.map.insert(depth, camera, *camera_position(x, y, yaw), z, yaw)
+        return frame, self.map.egocentric(*self.map_grid)
 
     def _action(self, rec: dict) -> int | None:
         tw = rec["action"].twist
@@ -122,8 +149,12 @@ class TransitionAssembler:
                 raise ValueError("not the frame's size")
         except ValueError:
             self.counts["bad_reasons"] += 1
-            return np.zeros(self.reason_grid[0] * self.reason_grid[1], np.float32)
-        return node_shares(self.to_input.mask(mask), self.reason_grid)
+            return np.zeros(self.reason_grid[0] * self.reason_grid[1] * (1 + (self.map is not None)), np.float32)
+        shares = node_shares(self.to_input.mask(mask), self.reason_grid)
+        if self.map is None:
+            return shares
+        grid = self.map.egocentric(*self.map_grid, near_keys=self.map.keys_at(mask))  # and the cells it put there
+        return np.concatenate([shares, node_shares(grid > 0, self.reason_grid)])
 
     def teacher_of(self, stamp: int) -> int:
         """The teacher's action for the observation at `stamp` (-1: none): for its release."""
@@ -132,17 +163,18 @@ class TransitionAssembler:
             return self._teacher(slot)
         return self.prev.teacher if self.prev is not None and self.prev.stamp == stamp else -1
 
-    def _store(self, frame, out) -> None:
-        """The step from record self.prev to (frame, out), one step later."""
+    def _store(self, mapped, out) -> None:
+        """The step from record self.prev to (frame, out), one step later (`mapped`: _frame's)."""
+        frame, grid = mapped[0], ({"grid": mapped[1]} if self.map is not None else {})
         if contract.outcome_truncated(out):  # a new episode without a collision: nothing to learn
-            self.sink.add_truncated(frame)
+            self.sink.add_truncated(frame, **grid)
         else:
             collided = contract.outcome_collided(out)
             beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
             if "teacher" in self.observation and self.prev.teacher < 0:
                 self.counts["unmatched_teacher_actions"] += 1
             reason = {"reason": self.prev.reason} if self.reason_grid else {}
-            self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher, **reason)
+            self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher, **grid, **reason)
 
     def _record(self, rec: dict) -> None:
         stamp = contract.stamp_ns(rec["frame"].header.stamp)
@@ -152,7 +184,7 @@ class TransitionAssembler:
             reason = kept if kept is not None or self.reason_grid is None else self._reason(rec)
             self.prev = _Prev(stamp, self._action(rec), teacher=self._teacher(rec), reason=reason) if usable else None
             return
-        frame = self._frame(rec["frame"])
+        frame = self._frame(rec)
         if frame is None:
             self.prev = None
             return
@@ -163,7 +195,7 @@ class TransitionAssembler:
         else:
             if prev is not None and not contract.outcome_truncated(out):  # ~/reset republishes at the same stamp
                 self.counts["chain_breaks"] += 1
-            self.sink.add_first(frame)
+            self.sink.add_first(frame[0], **({"grid": frame[1]} if self.map is not None else {}))
         self.prev = _Prev(stamp, action, teacher=self._teacher(rec), reason=self._reason(rec))
 
     def _store_next(self) -> None:
@@ -175,7 +207,7 @@ class TransitionAssembler:
         slot = self.joiner.pending.get(stamp)
         if slot is None or not all(k in slot for k in self.observation):
             return
-        frame = self._frame(slot["frame"])
+        frame = self._frame(slot)
         self.early = (stamp, frame is not None)
         if frame is None:
             self.prev = None
@@ -208,6 +240,7 @@ class TransitionAssembler:
             "frames_without_outcome": j.dropped["outcome"],
             **({"frames_without_teacher_action": j.dropped["teacher"]} if "teacher" in j.dropped else {}),
             **({"frames_without_teacher_reason": j.dropped["reason"]} if "reason" in j.dropped else {}),
+            **({"frames_without_odometry": j.dropped["odom"]} if "odom" in j.dropped else {}),
             "outcomes_or_actions_without_frame": j.dropped["frame"],
             "duplicates": j.duplicates,
             "said_again": j.late,

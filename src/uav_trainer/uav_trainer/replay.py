@@ -6,6 +6,8 @@ for slot i is frames i-N+1..i, where every frame before the latest episode start
 window is replaced by that start frame - exactly what the policy's FrameStack does at reset.
 The next state of transition i is the stack at slot i+1; `done` masks it after a collision.
 
+With `local_map`, slot i also keeps the local map of frame i (bits packed), appended to a stack as its last channel.
+
 The memory is journaled, not saved whole: `segment(since)` holds the slots written since write `since`
 (each checkpoint writes one, a few MiB), and `load_segments` rebuilds the memory from them as it was after
 a given write, the slots where they were. So a resume after a stop or a crash learns on at once.
@@ -16,11 +18,21 @@ ReplayMemory with an equal share of the capacity), so a transition's frames stay
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
 class ReplayMemory:
-    def __init__(self, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0, reason_nodes: int = 0):
+    def __init__(
+        self,
+        capacity: int,
+        frame_shape: tuple[int, int],
+        frames: int = 5,
+        seed: int = 0,
+        reason_nodes: int = 0,
+        local_map: bool = False,
+    ):
         if capacity < frames + 2:
             raise ValueError(f"capacity must be at least frames + 2 = {frames + 2}, got {capacity}")
         self.capacity, self.frames = capacity, frames
@@ -33,6 +45,9 @@ class ReplayMemory:
         self.teacher = np.full(capacity, -1, dtype=np.int64)  # the teacher's action for the frame (-1: none)
         # With `reason_nodes`: the share of each attention cell the teacher's reason covers in the frame (0: none).
         self.reason = np.zeros((capacity, reason_nodes), dtype=np.float16)
+        # With `local_map`: the frame's local map grid (frame_shape, 0/1), bits packed (512 bytes a 64x64 map).
+        self.map_shape = tuple(frame_shape) if local_map else None
+        self.map = np.zeros((capacity, (math.prod(frame_shape) + 7) // 8 if local_map else 0), dtype=np.uint8)
         self.writes = 0  # frames written since the memory began (slot = write % capacity)
         self.rng = np.random.default_rng(seed)
 
@@ -56,6 +71,7 @@ class ReplayMemory:
         "has_transition": np.bool_,
         "teacher": np.int64,
         "reason": np.float16,
+        "map": np.uint8,
     }
 
     def _geometry(self) -> tuple[int, int, int, int]:
@@ -86,6 +102,10 @@ class ReplayMemory:
             seg
             if "reason" in seg or "action" not in seg
             else {**seg, "reason": np.zeros((len(seg["action"]), self.reason.shape[1]), np.float16)}
+            for seg in segments
+        ]
+        segments = [
+            seg if "map" in seg or "action" not in seg else {**seg, "map": np.zeros((len(seg["action"]), 0), np.uint8)}
             for seg in segments
         ]
         spans = []
@@ -148,8 +168,12 @@ class ReplayMemory:
         """Number of sampleable transitions."""
         return int(self._valid().sum())
 
-    def _write_frame(self, depth: np.ndarray, start: bool) -> None:
+    def _write_frame(self, depth: np.ndarray, start: bool, grid: np.ndarray | None) -> None:
         i = self.cursor
+        if self.map_shape is not None:
+            if grid is None or np.shape(grid) != self.map_shape:
+                raise ValueError(f"this memory keeps a local map of {self.map_shape} with every frame, got {np.shape(grid)}")
+            self.map[i] = np.packbits(np.asarray(grid).ravel() > 0.5)
         with np.errstate(over="ignore"):  # +Inf stays +Inf in float16
             self.frame[i] = np.nan_to_num(depth, nan=np.inf).astype(np.float16)
         self.start[i] = start
@@ -158,15 +182,23 @@ class ReplayMemory:
         self.reason[i] = 0.0
         self.writes += 1
 
-    def add_first(self, depth: np.ndarray) -> None:
-        """A frame that starts an episode or a new chain (no transition leads into it)."""
-        self._write_frame(depth, start=True)
+    def add_first(self, depth: np.ndarray, grid: np.ndarray | None = None) -> None:
+        """A frame that starts an episode or a new chain (no transition leads into it); `grid`: its local map."""
+        self._write_frame(depth, True, grid)
 
     def add_transition(
-        self, action: int, reward: float, done: bool, next_depth: np.ndarray, teacher: int = -1, reason=None
+        self,
+        action: int,
+        reward: float,
+        done: bool,
+        next_depth: np.ndarray,
+        teacher: int = -1,
+        reason=None,
+        grid: np.ndarray | None = None,
     ) -> None:
-        """Complete the transition from the newest frame; `next_depth` is the frame it led to, `teacher` the teacher's
-        action for the newest frame (-1: none), `reason` the share of each cell its reason covers (None: none).
+        """Complete the transition from the newest frame; `next_depth` is the frame it led to (`grid` its local map),
+        `teacher` the teacher's action for the newest frame (-1: none), `reason` the share of each cell its reason
+        covers (None: none).
 
         After a collision (done=True) the next frame is the first of a new episode.
         """
@@ -177,7 +209,7 @@ class ReplayMemory:
         if reason is not None:
             self.reason[i] = reason
         self.has_transition[i] = True
-        self._write_frame(next_depth, start=done)
+        self._write_frame(next_depth, done, grid)
 
     def _valid(self) -> np.ndarray:
         """Slots whose transition can be sampled: complete, next frame stored, full history kept."""
@@ -211,7 +243,12 @@ class ReplayMemory:
         latest = self.frames - 1 - np.argmax(starts[:, ::-1], axis=1)
         older = starts.any(axis=1)[:, None] & (np.arange(self.frames)[None, :] < latest[:, None])
         idx = np.where(older, idx[np.arange(len(slots)), latest][:, None], idx)
-        return self.frame[idx].astype(np.float32)
+        states = self.frame[idx].astype(np.float32)
+        if self.map_shape is None:
+            return states
+        n = math.prod(self.map_shape)
+        grids = np.unpackbits(self.map[slots], axis=1, count=n).reshape(len(slots), 1, *self.map_shape)
+        return np.concatenate([states, grids.astype(np.float32)], axis=1)
 
     def sample(self, batch: int, valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """A batch of transitions drawn uniformly (the paper's one-step Q-learning); `valid`: the sampleable
@@ -238,13 +275,21 @@ class LanedReplay:
     several actors that resumes refills its memory."""
 
     def __init__(
-        self, lanes: int, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0, reason_nodes: int = 0
+        self,
+        lanes: int,
+        capacity: int,
+        frame_shape: tuple[int, int],
+        frames: int = 5,
+        seed: int = 0,
+        reason_nodes: int = 0,
+        local_map: bool = False,
     ):
         if lanes < 2:
             raise ValueError(f"a laned memory needs at least 2 lanes, got {lanes} (one actor: ReplayMemory)")
         share = capacity // lanes
         self.lanes = [
-            ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i, reason_nodes=reason_nodes) for i in range(lanes)
+            ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i, reason_nodes=reason_nodes, local_map=local_map)
+            for i in range(lanes)
         ]
         self.capacity = share * lanes
         self.rng = np.random.default_rng(seed)  # which lane each sample comes from

@@ -146,6 +146,8 @@ def main(argv=None) -> int:
     teacher = str(trainer_values.get("teacher", "none"))
     stack = a.frames or int(trainer_values.get("frame_stack", NetConfig.frames))
     teach = [f"teacher:={teacher}", f"teacher_frames:={stack}"] if teacher != "none" else []
+    # A network with the local map: the policy's first network takes it too (the pushes' architecture).
+    frames += ["local_map:=true"] if str(trainer_values.get("local_map", False)).lower() == "true" else []
     size = [] if a.input_size is None else [a.input_size]
     run_dir = Path(a.run_dir or f"runs/{a.model}_seed{a.seed}")
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None

@@ -1,7 +1,7 @@
 """trainer_node: replay memory, learning, weight pushes and checkpoints over ROS 2.
 
-Joins depth/image_raw, step_outcome, the policy's action (and with a teacher sim_node's teacher_action) by exact stamp
-into transitions (uav_trainer.pairing; reward: uav_sim.reward); what does not pair is counted, never guessed. Learning
+Joins depth/image_raw, step_outcome, the policy's action (with a teacher sim_node's teacher_action, with the local map its
+odom) by exact stamp into transitions (uav_trainer.pairing; reward: uav_sim.reward); nothing is guessed. Learning
 is in lockstep with acting (policy_node's wait_for_trainer:=true; train sets it): each stored step's frame is released
 on policy_node/push_weights with the exact epsilon, the weights as at the release before (Training.released_weights) and
 whether the teacher flies it (Training.teacher_flies); then the updates replay_ratio allows run while the policy acts and
@@ -23,6 +23,7 @@ import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
@@ -57,11 +58,11 @@ class Actor(ActorState):
         topic = lambda name: f"{namespace.rstrip('/')}/{name}" if namespace else name  # noqa: E731 ("/": the root)
         super().__init__(index, namespace, node.resolve_topic_name(topic(contract.OUTCOME_TOPIC)))
         teacher = node.cfg.teacher != "none"  # sim_node's teacher_action completes each observation
-        on_ready = lambda stamp: node._on_ready(self, stamp)  # noqa: E731
-        sink = node.training.sink(index)
+        on_ready, sink = lambda stamp: node._on_ready(self, stamp), node.training.sink(index)
         grid = node.training.reason_grid  # with attention_weight: sim_node's teacher_reason completes it too
+        maps = node.training.net_cfg.map_grid  # a network with the local map: sim_node's odom completes it too
         self.pairing = TransitionAssembler(
-            sink, node.actions, node.step_ns, hw, on_ready=on_ready, teacher=teacher, reason_grid=grid
+            sink, node.actions, node.step_ns, hw, on_ready=on_ready, teacher=teacher, reason_grid=grid, map_grid=maps
         )
         self.node = node
         q = contract.DEEP_QOS
@@ -69,6 +70,8 @@ class Actor(ActorState):
             node.create_subscription(TwistStamped, topic(contract.TEACHER_TOPIC), self.on_teacher, q)
         if grid:
             node.create_subscription(Image, topic(contract.TEACHER_REASON_TOPIC), self.on_reason, q)
+        if maps:
+            node.create_subscription(Odometry, topic(contract.ODOM_TOPIC), lambda m: self.pairing.add("odom", m), q)
         node.create_subscription(Image, topic(contract.DEPTH_TOPIC), self.on_frame, q)
         node.create_subscription(Range, topic(contract.OUTCOME_TOPIC), self.on_outcome, q)
         node.create_subscription(TwistStamped, topic(contract.ACTION_TOPIC), lambda m: node._on_action(self, m), q)

@@ -72,6 +72,7 @@ class Training:
             width=cfg.input_size_px,
             frames=cfg.frames,
             conv_channels=tuple(cfg.conv_channels),
+            local_map=cfg.local_map,
             **{name: getattr(cfg, name) for name in SAM_SIZES},
         )
         # The depth camera's field of view, recorded in every weights file written; None until the
@@ -87,11 +88,16 @@ class Training:
         shape = (self.net_cfg.height, self.net_cfg.width)
         # With attention_weight, the cells of the attention shown, on which the teacher's reason is kept per frame.
         self.reason_grid = self.learner.online.grid_hw if cfg.pulls_attention else None
-        cells = math.prod(self.reason_grid) if self.reason_grid else 0
+        # (a map network attends over the image's cells and then the map's: a reason for each)
+        cells = math.prod(self.reason_grid) * (1 + self.net_cfg.local_map) if self.reason_grid else 0
         if actors == 1:
-            self.replay = ReplayMemory(cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells)
+            self.replay = ReplayMemory(
+                cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells, local_map=cfg.local_map
+            )
         else:
-            self.replay = LanedReplay(actors, cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells)
+            self.replay = LanedReplay(
+                actors, cfg.replay_capacity, shape, self.net_cfg.frames, cfg.seed, cells, local_map=cfg.local_map
+            )
         # The journal keeps one actor's chain; with several, a resume refills the memory.
         self.journal = cfg.save_replay and actors == 1
         if cfg.save_replay and actors > 1:
@@ -230,14 +236,24 @@ class Training:
         """Where actor `actor`'s steps go (a TransitionAssembler's sink)."""
         return ActorSink(self, actor)
 
-    def add_first(self, frame: np.ndarray, actor: int = 0) -> None:
-        self._memory(actor).add_first(frame)
+    def add_first(self, frame: np.ndarray, actor: int = 0, grid: np.ndarray | None = None) -> None:
+        """A frame that starts a chain (`grid`: its local map, with `local_map`)."""
+        self._memory(actor).add_first(frame, grid)
 
     def add_step(
-        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, actor: int = 0, teacher: int = -1, reason=None
+        self,
+        action: int,
+        beta_m: float,
+        collided: bool,
+        next_frame: np.ndarray,
+        actor: int = 0,
+        teacher: int = -1,
+        reason=None,
+        grid: np.ndarray | None = None,
     ) -> float:
         """One transition of `actor` (`teacher`: the teacher's action for the frame it left, -1 for none; `reason`: the
-        share of each cell of `reason_grid` its reason covers in that frame, None for none); the reward
+        share of each node of the attention its reason covers in that frame, None for none; `grid`: the next frame's
+        local map, with `local_map`); the reward
         comes from the simulator package's reward function. Steps after the budget is spent are not recorded (not
         learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
@@ -245,7 +261,7 @@ class Training:
             reward -= self.cfg.turn_penalty
         if self.budget_done:  # over ROS a step can arrive before trainer_node has shut down: not recorded
             return reward
-        self._memory(actor).add_transition(action, reward, collided, next_frame, teacher, reason)
+        self._memory(actor).add_transition(action, reward, collided, next_frame, teacher, reason, grid)
         self.env_steps += 1
         self.actor_steps[actor] += 1
         self.reward_sum += reward
@@ -253,13 +269,13 @@ class Training:
         self._log_episode(self.stats.step(reward, collided, self.env_steps, actor), "crash")
         return reward
 
-    def add_truncated(self, first_frame: np.ndarray, actor: int = 0) -> None:
+    def add_truncated(self, first_frame: np.ndarray, actor: int = 0, grid: np.ndarray | None = None) -> None:
         """A step that ended its episode without a collision (the simulator's time limit): nothing is
         learnt from it, because its next frame is already the new episode's first (`first_frame`),
         which starts a new chain. Counted as an environment step with reward 0 in the episode stats."""
         if self.budget_done:
             return
-        self._memory(actor).add_first(first_frame)
+        self._memory(actor).add_first(first_frame, grid)
         self.env_steps += 1
         self.actor_steps[actor] += 1
         self._log_episode(self.stats.step(0.0, True, self.env_steps, actor), "time_limit")

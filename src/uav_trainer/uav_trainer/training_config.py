@@ -118,6 +118,11 @@ class TrainerConfig:
     frames: int = setting(
         NetConfig.frames, "Depth frames in the state (the paper's 5); policy_node's", 1, MAX_FRAMES, name="frame_stack"
     )
+    local_map: bool = setting(
+        False,
+        "The network also sees the local map: the measured depth of the last frames placed by odometry, weather "
+        "filtered (uav_common.local_map), as a last input channel beside the depth frames; it then needs odom",
+    )
     conv_channels: tuple[int, ...] = setting(
         NetConfig.conv_channels,
         "Conv trunk output channels, one stride-2 layer each (both models; [16, 32] gives SAM 16 x 16 nodes from 64 px)",
