@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 
 import numpy as np
 import yaml
@@ -162,3 +163,53 @@ def test_a_launcher_waits_until_the_recorder_and_the_policy_have_matched_each_ot
     assert not reports.ready(topics)  # the action's publisher has not matched the recorder yet
     node.callback(report("uav_policy", heard))
     assert reports.ready(topics) and not reports.ready(["/uav5/action"])
+
+
+def test_a_flooded_recorder_counts_every_message_it_lost_exactly(ros, tmp_path):
+    """A publisher floods a topic while the recorder does not read (a busy machine): its reader queue overflows. Every
+    message the publisher sent after the first that reached the recorder is in the bag or counted lost on its topic,
+    exactly (written + lost = sent), from the publishers' sequence numbers; what it sent before is counted apart; the
+    counts are in the closing line and the bag's metadata, which attention_figures reads back."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
+    from std_msgs.msg import String
+
+    from uav_bringup.record import Recorder
+    from uav_bringup.taps import DEPTH
+    from uav_eval.figures import lost_in_bag
+
+    pub = ros.node.create_publisher(String, "/flood", QoSProfile(depth=10 * DEPTH))
+    for i in range(5):  # before any recorder: not for the bag, not lost from it
+        pub.publish(String(data=f"early {i}"))
+    bag = tmp_path / "flood"
+    rec = Recorder(bag, ["/flood"], quiet=True, context=ros.context)
+    spin = SingleThreadedExecutor(context=ros.context)
+    spin.add_node(rec)
+    try:
+        end = time.monotonic() + 20
+        while "/flood" not in rec.tap.types or pub.get_subscription_count() < 1:  # matched both ways
+            spin.spin_once(timeout_sec=0.05)
+            assert time.monotonic() < end, "the recorder never subscribed"
+        pub.publish(String(data="first"))  # the stream's first message reaches it
+        while not rec.counts.get("/flood"):
+            spin.spin_once(timeout_sec=0.05)
+            assert time.monotonic() < end, "the recorder never got the first message"
+        sent = 1 + 3 * DEPTH  # then more than its reader queue holds, while it reads nothing
+        for i in range(3 * DEPTH):
+            pub.publish(String(data=str(i)))
+        last, quiet_since = -1, time.monotonic()
+        while time.monotonic() - quiet_since < 1.0:  # read until nothing more comes for a second
+            spin.spin_once(timeout_sec=0.05)
+            if rec.counts["/flood"] != last:
+                last, quiet_since = rec.counts["/flood"], time.monotonic()
+        written, lost = rec.counts["/flood"], rec.lost.get("/flood", 0)
+        assert lost > 0 and written + lost == sent, (written, lost)
+        assert rec.accounting.topics["/flood"].before >= 5  # the early ones, and any sent while the two matched
+    finally:
+        rec.close()
+        spin.shutdown()
+        rec.destroy_node()
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["custom_data"]["lost /flood"] == str(lost) and meta["custom_data"]["written /flood"] == str(written)
+    assert sum(t["message_count"] for t in meta["topics_with_message_count"]) == written
+    assert lost_in_bag(bag) == {"/flood": lost}

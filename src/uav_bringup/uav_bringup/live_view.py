@@ -52,7 +52,7 @@ class LiveView(Node):
         self.channels[topic] = self.foxglove.Channel(topic, schema=schema, message_encoding="cdr")
         return True
 
-    def on_message(self, topic: str, _msgtype: str, data: bytes, receive_ns: int) -> None:
+    def on_message(self, topic: str, _msgtype: str, data: bytes, receive_ns: int, _seq=None) -> None:
         self.channels[topic].log(bytes(data), log_time=receive_ns)
         self.messages += 1
 

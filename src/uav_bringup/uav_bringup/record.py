@@ -8,6 +8,11 @@ opens and a full ROS install's `ros2 bag info` / `ros2 bag play` read. Messages 
 arrive on the wire (serialized CDR, receive time), so recording costs the stack little. Topics are
 taken as they appear; relative names resolve in the recorder's namespace. Ctrl-C (or SIGTERM) closes
 the bag: it is complete and readable.
+
+Nothing is lost silently: every message's publication sequence number is checked (uav_bringup.accounting), and
+what a publisher sent that never reached the bag is counted per topic, exactly: on /diagnostics (`lost TOPIC`, WARN),
+in the progress and closing lines, and in the bag's metadata (custom_data: written, lost and before_recording per
+topic), which `attention_figures --bag` reads back.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from uav_common import contract
 from uav_common.node_runner import DeferredInterrupt, run
 from uav_common.ros_params import ParameterError
 
+from .accounting import Accounting
 from .taps import DEFAULT_TOPICS, TopicTap, typestore
 
 PROGRESS_S = 5.0
@@ -54,19 +60,19 @@ def open_bag(path: Path):
 
 
 class Recorder(Node):
-    def __init__(self, out: Path, topics, quiet: bool = False, hold=None):
-        super().__init__("recorder")
+    def __init__(self, out: Path, topics, quiet: bool = False, hold=None, **node_options):  # context=: a test's
+        super().__init__("recorder", **node_options)
         self.out = out
         self.hold = hold or DeferredInterrupt()  # Ctrl-C never lands inside a write: the bag stays whole
         self.quiet = quiet
         self.writer = open_bag(out)
         self.connections = {}
         self.counts: dict[str, int] = {}
-        self.lost: dict[str, int] = {}  # messages the middleware says never reached us (we fell behind), by topic
+        self.accounting = Accounting()  # what each topic's publishers sent, written or lost
         self.bytes = 0
         self.started = time.monotonic()
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
-        self.tap = TopicTap(self, topics, self.on_message, self.on_new, self.on_lost)
+        self.tap = TopicTap(self, topics, self.on_message, self.on_new)
         self.create_timer(PROGRESS_S, self.progress)
         self.create_timer(1.0, self.publish_diagnostics)
         names = " ".join(self.tap.wanted)
@@ -81,17 +87,20 @@ class Recorder(Node):
         self.counts[topic] = 0
         return True
 
-    def on_message(self, topic: str, _msgtype: str, data: bytes, receive_ns: int) -> None:
+    @property
+    def lost(self) -> dict[str, int]:
+        """{topic: messages its publishers sent that never reached the bag}, where any were."""
+        return self.accounting.lost
+
+    def on_message(self, topic: str, _msgtype: str, data: bytes, receive_ns: int, seq: int | None = None) -> None:
         if self.writer is None:
             return
         with self.hold:
             self.writer.write(self.connections[topic], receive_ns, data)
         self.counts[topic] += 1
         self.bytes += len(data)
-
-    def on_lost(self, topic: str, n: int) -> None:
+        n = self.accounting.add(topic, seq)
         if n > 0:
-            self.lost[topic] = self.lost.get(topic, 0) + n
             self.get_logger().warning(
                 f"{sum(self.lost.values())} message(s) lost so far ({n} on {topic}): the recorder fell behind its "
                 "publishers' queues (a slow disk or a busy machine)",
@@ -116,7 +125,7 @@ class Recorder(Node):
         the publishers matched per topic (`publishers TOPIC`: a launcher can wait for them before the flight starts)."""
         values = {"bag": str(self.out), "messages": sum(self.counts.values()), "megabytes": f"{self.bytes / 1e6:.2f}"}
         values.update(self.counts)
-        values.update({f"lost {t}": n for t, n in self.lost.items()})
+        values.update({f"{contract.LOST_KEY}{t}": n for t, n in self.lost.items()})
         values.update({f"publishers {t}": n for t, n in self.tap.publishers().items()})
         level, text = ("WARN", "recording; messages lost") if self.lost else ("OK", "recording")
         self.pub_diag.publish(contract.diagnostics(self, "uav_bringup/record", level, text, values))
@@ -125,6 +134,8 @@ class Recorder(Node):
         if self.writer is None:
             return
         writer, self.writer = self.writer, None
+        for key, value in self.accounting.metadata().items():
+            writer.set_custom_data(key, value)
         writer.close()
         counts = ", ".join(f"{t} {c}" + (f" ({self.lost[t]} lost)" if t in self.lost else "") for t, c in self.counts.items())
         print(f"bag {self.out} closed: {self.summary()} ({counts})", flush=True)
@@ -154,7 +165,7 @@ class RecorderReports:
             if st.name == "uav_bringup/record":
                 self.heard.update(counts(st, "publishers "))
                 self.written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
-                self.lost.update(counts(st, "lost "))
+                self.lost.update(counts(st, contract.LOST_KEY))
                 self.reports += 1
             elif st.name == "uav_policy":
                 self.heard_by_policy.update(counts(st, "subscribers "))

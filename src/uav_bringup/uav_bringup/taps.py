@@ -7,7 +7,6 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -75,9 +74,9 @@ def matching_qos(node: Node, topic: str) -> QoSProfile | None:
 
 class TopicTap:
     """Subscribes `node` to each of `topics` once it has a publisher; every message goes to
-    `on_message(topic, msgtype, data, receive_ns)` as serialized bytes. `on_new(topic, msgtype)` is
-    called once per topic before its first message and may return False to skip the topic; `on_lost(topic, n)`
-    when the middleware says n messages of `topic` were lost to this tap (it fell behind a publisher's queue)."""
+    `on_message(topic, msgtype, data, receive_ns, seq)` as serialized bytes with its publication sequence number (its
+    publisher's count, None where the middleware gives none: uav_bringup.accounting). `on_new(topic, msgtype)` is
+    called once per topic before its first message and may return False to skip the topic."""
 
     def __init__(
         self,
@@ -85,13 +84,11 @@ class TopicTap:
         topics,
         on_message: Callable[[str, str, bytes, int], None],
         on_new: Callable[[str, str], bool] | None = None,
-        on_lost: Callable[[str, int], None] | None = None,
     ):
         self.node = node
         self.wanted = [node.resolve_topic_name(t) for t in topics]
         self.on_message = on_message
         self.on_new = on_new or (lambda topic, msgtype: True)
-        self.on_lost = on_lost
         self.types: dict[str, str] = {}
         self.skipped: set[str] = set()
         self._subs = []
@@ -136,9 +133,8 @@ class TopicTap:
             return
         self.types[topic] = msgtype
         clock = self.node.get_clock()
-        cb = lambda data, t=topic, m=msgtype: self.on_message(t, m, data, clock.now().nanoseconds)  # noqa: E731
-        events = None
-        if self.on_lost is not None:
-            lost = lambda status, t=topic: self.on_lost(t, status.total_count_change)  # noqa: E731
-            events = SubscriptionEventCallbacks(message_lost=lost)
-        self._subs.append(self.node.create_subscription(cls, topic, cb, qos, raw=True, event_callbacks=events))
+
+        def cb(data, info, t=topic, m=msgtype):
+            self.on_message(t, m, data, clock.now().nanoseconds, info.get("publication_sequence_number"))
+
+        self._subs.append(self.node.create_subscription(cls, topic, cb, qos, raw=True))

@@ -50,6 +50,8 @@ PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
 # For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
 # history holds the backlog (64x64 frames: ~16 KiB each).
+# The key prefix of a recorder's per-topic count of messages lost to it, in its /diagnostics and its bag's metadata.
+LOST_KEY = "lost "
 DEEP_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=5000)
 # What camera drivers publish with (rclpy's sensor-data profile): best effort, a few frames. A best-effort
 # reader takes both these and sim_node's reliable frames; a lost simulator frame is said again by sim_node.

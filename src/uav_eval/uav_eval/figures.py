@@ -201,6 +201,23 @@ def main(argv=None) -> int:
     return 0
 
 
+def lost_in_bag(bag: Path) -> dict[str, int]:
+    """{topic: messages lost to the recorder} that a bag's metadata records (uav_bringup.record); {} when none were or
+    the bag does not say."""
+    import yaml
+
+    from uav_common import contract
+
+    folder = bag.parent if bag.is_file() else bag
+    try:
+        meta = yaml.safe_load((folder / "metadata.yaml").read_text()) or {}
+        custom = meta.get("rosbag2_bagfile_information", {}).get("custom_data") or {}
+        lost = {k[len(contract.LOST_KEY) :]: int(v) for k, v in custom.items() if k.startswith(contract.LOST_KEY)}
+    except (OSError, yaml.YAMLError, AttributeError, ValueError):
+        return {}
+    return {t: n for t, n in lost.items() if n}
+
+
 def figures_from_bag(bag: Path, namespace: str, out: Path, panels: int) -> int:
     if not bag.exists():
         print(f"attention_figures: --bag {bag}: no such bag", file=sys.stderr)
@@ -220,6 +237,10 @@ def figures_from_bag(bag: Path, namespace: str, out: Path, panels: int) -> int:
     grid_png(frames, representative(frames, panels), png, f"{name}: depth (top) and attention (bottom), recorded")
     flight_gif(frames, gif)
     print(f"written: {png} {gif} ({len(frames)} frames, {with_attention} with attention)")
+    lost = lost_in_bag(bag)
+    if lost:
+        each = ", ".join(f"{t} {n}" for t, n in lost.items())
+        print(f"the recorder lost {sum(lost.values())} message(s) of this flight ({each}): frames may lack their answer")
     return 0
 
 
