@@ -10,7 +10,8 @@ import torch
 from uav_common.local_map import LocalMap, PinholeCamera
 from uav_policy import weights as wio
 from uav_policy.attention import attention_map
-from uav_policy.insight import Insight, explanation, masked_states
+from uav_policy.insight import Insight, explanation
+from uav_policy.masking import masked_states
 from uav_policy.networks import NetConfig, build_network, forward_flops
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.stacked_sim import StackedSim

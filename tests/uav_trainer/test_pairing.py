@@ -130,7 +130,7 @@ def test_teacher_reasons_pair_with_their_frames_as_cell_shares():
     """With a reason grid, sim_node's teacher_reason (the pixels the planner's decision is about, mono8, stamped as its
     frame) completes an observation too: each stored transition carries the shares of the grid's cells that the mask
     of the frame it left covers, in any interleaving; a malformed mask is counted and gives no share."""
-    from uav_policy.insight import node_shares
+    from uav_common.frame_stack import node_shares
 
     msgs, _ = simulate(120, seed=8)
     rng = np.random.default_rng(9)

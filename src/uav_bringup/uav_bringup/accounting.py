@@ -74,4 +74,3 @@ class Accounting:
             out[f"{contract.LOST_KEY}{t}"] = str(c.lost)
             out[f"before_recording {t}"] = str(c.before)
         return out
-

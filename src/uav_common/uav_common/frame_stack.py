@@ -88,6 +88,19 @@ def fit_to_network(depth_m: np.ndarray, height: int, width: int, view: CameraVie
     return np.ascontiguousarray(out)
 
 
+def node_slices(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> list[tuple[slice, slice]]:
+    """The image region each node sees (row-major), the grid laid evenly over the image."""
+    gh, gw = grid_hw
+    h, w = image_hw
+    return [(slice(r * h // gh, (r + 1) * h // gh), slice(c * w // gw, (c + 1) * w // gw)) for r in range(gh) for c in range(gw)]
+
+
+def node_shares(mask: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
+    """(nodes,) float32: the share of each node's image region (node_slices) that the bool image `mask` covers."""
+    m = np.asarray(mask, dtype=bool)
+    return np.array([m[rs, cs].mean() for rs, cs in node_slices(grid_hw, m.shape)], dtype=np.float32)
+
+
 class NetworkInput:
     """Frames of one camera onto the network's input: with `set_camera` (CameraInfo's intrinsics and the
     field of view the weights were trained with) cropped or padded to that view, else stretched whole.

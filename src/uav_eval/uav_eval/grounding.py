@@ -37,8 +37,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from uav_policy.insight import explanation, increase_on, mass_ratio, received
+from uav_policy.insight import explanation, increase_on
 from uav_policy.map_checks import reason_measures
+from uav_policy.masking import mass_ratio, received
 
 ROOM_M = 26.0  # the empty room's side: its walls stand beyond the 10 m range from its centre
 START = (0.0, 0.0, 1.0)

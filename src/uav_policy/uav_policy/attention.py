@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .insight import received
+from .masking import received
 
 SCALE_MAX = 4.0  # the overlay's full colour: four times a uniform share
 OVERLAY_MIN_PX = 256  # the overlay's shorter side is upscaled to at least this

@@ -29,43 +29,37 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import functools
 import math
 
 import numpy as np
 import torch
 
+from uav_common.frame_stack import node_slices
+
+from .map_checks import conicity, readout_values, reason_measures, sufficiency_test
+from .masking import (
+    RANDOM_DRAWS,
+    compared_sets,
+    decisions_with,
+    mass_ratio,
+    newest_depth,
+    ranked,
+    received,
+    rows_of,
+    state_nodes,
+    top_count,
+)
+
 NEAR_M = 3.0  # grounding: "near" is nearer than this
-TOP_FRACTION = 0.1  # sharpness and the deletion test: the top tenth of the nodes
-RANDOM_DRAWS = 4  # the deletion test's random masks per frame
 CURVE_LEVELS = 8  # deletion and insertion curves: the nodes removed or restored an eighth of the grid at a time
-
-
-def _rows(weights: np.ndarray) -> np.ndarray:
-    """(..., nodes) -> (rows, nodes), each row a distribution."""
-    w = np.asarray(weights, dtype=np.float64)
-    if w.ndim < 1 or w.shape[-1] < 2:
-        raise ValueError(f"an explanation needs at least 2 nodes on its last axis, got shape {w.shape}")
-    return w.reshape(-1, w.shape[-1])
-
-
-def received(weights: np.ndarray) -> np.ndarray:
-    """The mass each node receives, (nodes,), summing to 1: the rows of (..., nodes) averaged."""
-    r = _rows(weights).mean(axis=0)
-    total = r.sum()
-    return r / total if total > 0 else np.full_like(r, 1.0 / r.size)
 
 
 def normalised_entropy(weights: np.ndarray) -> float:
     """Mean over rows (heads x queries) of H(row) / log(nodes): 1 for uniform rows, 0 for one-hot rows."""
-    rows = _rows(weights)
+    rows = rows_of(weights)
     p = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
     h = -(p * np.log(np.where(p > 0, p, 1.0))).sum(axis=1)
     return float(h.mean() / math.log(rows.shape[1]))
-
-
-def top_count(nodes: int) -> int:
-    return max(1, math.ceil(TOP_FRACTION * nodes))
 
 
 def top_share(dist: np.ndarray) -> float:
@@ -89,30 +83,6 @@ def map_correlation(maps: np.ndarray) -> float:
     return float(np.median(corr))
 
 
-def node_slices(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> list[tuple[slice, slice]]:
-    """The image region each node sees (row-major), the grid laid evenly over the image."""
-    gh, gw = grid_hw
-    h, w = image_hw
-    return [(slice(r * h // gh, (r + 1) * h // gh), slice(c * w // gw, (c + 1) * w // gw)) for r in range(gh) for c in range(gw)]
-
-
-def node_shares(mask: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
-    """(nodes,) float32: the share of each node's image region (node_slices) that the bool image `mask` covers."""
-    m = np.asarray(mask, dtype=bool)
-    return np.array([m[rs, cs].mean() for rs, cs in node_slices(grid_hw, m.shape)], dtype=np.float32)
-
-
-def mass_ratio(dist: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> float | None:
-    """The explanation's mass on the pixels of `mask` (an image-sized bool array) over their share of the image
-    (1 = no preference, 2 = twice their share); None when the mask is empty."""
-    d = received(dist)
-    m = np.asarray(mask, dtype=bool)
-    share = float(m.mean())
-    if share == 0.0:
-        return None
-    return float((d * node_shares(m, grid_hw)).sum() / share)
-
-
 def increase_on(dist: np.ndarray, reference: np.ndarray, mask: np.ndarray, grid_hw: tuple[int, int]) -> bool:
     """Does the node whose mass grew most over `reference` (the explanation without the object) see a pixel of
     `mask` (the object)? False when no node grew (a map that does not move with the scene finds nothing)."""
@@ -127,77 +97,6 @@ def increase_on(dist: np.ndarray, reference: np.ndarray, mask: np.ndarray, grid_
 def near_ratio(dist: np.ndarray, depth_m: np.ndarray, grid_hw: tuple[int, int], near_m: float = NEAR_M) -> float | None:
     """The mass on pixels nearer than near_m over their share of the image; None when nothing is near."""
     return mass_ratio(dist, np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=np.inf) < near_m, grid_hw)
-
-
-@functools.lru_cache(maxsize=16)
-def node_of_pixel(grid_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
-    """(H, W) the node each pixel belongs to (node_slices' regions); cached and read-only: measuring maps cells to
-    pixels on every call."""
-    out = np.zeros(image_hw, dtype=np.int64)
-    for n, (rs, cs) in enumerate(node_slices(grid_hw, image_hw)):
-        out[rs, cs] = n
-    out.flags.writeable = False
-    return out
-
-
-def state_nodes(state: np.ndarray, grid_hw: tuple[int, int], nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    """((channels, H, W) the node each value of `state` belongs to, (channels, 1, 1) what a removed value reads as).
-    With `nodes` twice the grid's (a network with the local map): the depth frames' pixels are the first half's
-    nodes and read as "no return" (+inf) when removed, the map channel's cells the second half's and read as free."""
-    cells = grid_hw[0] * grid_hw[1]
-    pixel_node = node_of_pixel(tuple(grid_hw), tuple(state.shape[-2:]))
-    channels = state.shape[0]
-    fill = np.full((channels, 1, 1), np.inf, dtype=np.float32)
-    per_channel = np.broadcast_to(pixel_node, (channels, *pixel_node.shape))
-    if nodes == 2 * cells:
-        per_channel = np.concatenate([per_channel[:-1], pixel_node[None] + cells])
-        fill[-1] = 0.0
-    return per_channel, fill
-
-
-def newest_depth(state: np.ndarray, nodes: int, grid_hw: tuple[int, int]) -> np.ndarray:
-    """The newest depth frame of a state (the last channel but one with the local map)."""
-    return state[-2] if nodes == 2 * grid_hw[0] * grid_hw[1] else state[-1]
-
-
-def masked_states(
-    state: np.ndarray, nodes: list[np.ndarray], grid_hw: tuple[int, int], count: int | None = None
-) -> np.ndarray:  # (len(nodes), channels, H, W)
-    """Copies of `state` (channels, H, W), each with the image regions of one set of nodes set to "no return"
-    (+inf) in every frame (and a map node's cells to free: state_nodes); `count`: the nodes (default: the grid's)."""
-    count = grid_hw[0] * grid_hw[1] if count is None else count
-    pixel_node, fill = state_nodes(state, grid_hw, count)
-    gone = np.zeros((len(nodes), count), dtype=bool)
-    for i, chosen in enumerate(nodes):
-        gone[i, np.asarray(chosen, dtype=np.int64)] = True
-    return np.where(gone[:, pixel_node], fill[None], np.asarray(state, dtype=np.float32)[None])
-
-
-def ranked(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The nodes by mass, most first; nodes of equal mass in random order, not by index."""
-    d = received(dist)
-    shuffled = rng.permutation(d.size)
-    return shuffled[np.argsort(-d[shuffled], kind="stable")]
-
-
-def top_nodes(dist: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The top 10 % of the nodes by mass (`ranked`)."""
-    return ranked(dist, rng)[: top_count(received(dist).size)]
-
-
-def compared_sets(dist: np.ndarray, rng: np.random.Generator, prior: np.ndarray | None = None) -> list[np.ndarray]:
-    """The node sets a deletion or sufficiency test compares: the map's top 10 %, RANDOM_DRAWS sets of as many random
-    nodes, and with a `prior` its top 10 %."""
-    d = received(dist)
-    sets = [top_nodes(d, rng)] + [rng.choice(d.size, size=top_count(d.size), replace=False) for _ in range(RANDOM_DRAWS)]
-    return sets + ([top_nodes(prior, rng)] if prior is not None else [])
-
-
-@torch.no_grad()
-def decisions_with(net: torch.nn.Module, state: np.ndarray, gone: list[np.ndarray], grid_hw, count=None) -> np.ndarray:
-    """(len(gone),) the greedy action on `state` with the image regions of each set of nodes read as no return."""
-    q, _ = net(torch.from_numpy(masked_states(state, gone, grid_hw, count)).to(next(net.parameters()).device))
-    return q.argmax(dim=1).cpu().numpy()
 
 
 @torch.no_grad()
@@ -270,7 +169,7 @@ def explanation(net: torch.nn.Module, state: np.ndarray, action: int, weights: n
     """The rows (heads x queries, nodes) the decision is explained by: SAM's attention weights as the network
     returns them, else Grad-CAM as one row."""
     if weights is not None:
-        return _rows(weights)
+        return rows_of(weights)
     return grad_cam(net, state, action)[None]
 
 
@@ -373,7 +272,6 @@ class Insight:
         """Measure one decision: `state` (frames, H, W) in metres, its greedy `action`, and the `explanation` of it;
         `reason`, when known (in simulation), the pixels of the newest frame the planner's decision is about, on the
         network's input. The mean-map baseline is the mean of the maps observed before it (none for the first frame)."""
-        from .map_checks import conicity, readout_values, reason_measures, sufficiency_test
 
         dist = received(rows)
         prior = np.mean([f[0] for f in self.frames], axis=0) if self.frames else None

@@ -16,7 +16,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .insight import RANDOM_DRAWS, compared_sets, decisions_with, mass_ratio, node_slices, received
+from uav_common.frame_stack import node_slices
+
+from .masking import RANDOM_DRAWS, compared_sets, decisions_with, mass_ratio, received
 
 
 def conicity(values: np.ndarray) -> float:

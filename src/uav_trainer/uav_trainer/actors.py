@@ -2,19 +2,11 @@
 to release, the push in flight, the weights its policy has) and whether the actor is alive. An actor whose simulator
 says nothing, or whose policy answers no release, for actor_timeout_s is reported once (missing at start-up, lost
 later) and taken up again when it is heard from or answers; a release not answered within release_timeout_s is sent
-again, with the weights. Times are time.monotonic() seconds. `ActorSink`: an actor's side of the Training its
-TransitionAssembler fills."""
+again, with the weights. Times are time.monotonic() seconds."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
-
-import numpy as np
-
-if TYPE_CHECKING:
-    from .training import Training
 
 # The policy refused the learner's weights: it would act on others for the rest of the run, so no step would be in
 # lockstep (each one held for its wait_for_trainer_timeout_s). trainer_node stops; its final checkpoint lets the same
@@ -145,22 +137,3 @@ class ActorState:
         others = sum(a.silent is None for a in actors)
         goes_on = f"training goes on with {others} other actor(s)" if others else "no actor is heard from: training waits"
         return count, f"{what}; {goes_on}, and takes it up when it comes"
-
-
-@dataclasses.dataclass(frozen=True)
-class ActorSink:
-    """One actor's side of a Training: the steps a TransitionAssembler completes, tagged with the actor."""
-
-    training: Training
-    actor: int
-
-    def add_first(self, frame: np.ndarray, grid: np.ndarray | None = None) -> None:
-        self.training.add_first(frame, self.actor, grid)
-
-    def add_step(
-        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1, reason=None, grid=None
-    ) -> float:
-        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher, reason, grid)
-
-    def add_truncated(self, first_frame: np.ndarray, grid: np.ndarray | None = None) -> None:
-        self.training.add_truncated(first_frame, self.actor, grid)

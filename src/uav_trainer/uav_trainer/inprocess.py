@@ -18,10 +18,10 @@ import numpy as np
 import torch
 
 from uav_common.actions import PAPER_ACTIONS, turning_indices
+from uav_common.frame_stack import node_shares
 from uav_common.settings import SettingError, add_flags, build, given_flags, refuse_retired_flags, specs
 from uav_policy import weights as wio
 from uav_policy.agent import Agent
-from uav_policy.insight import node_shares
 from uav_policy.networks import build_network
 from uav_policy.rollout import Flight
 from uav_sim.planner import PlannerConfig, SimPlanner

@@ -35,9 +35,8 @@ import numpy as np
 
 from uav_common import contract
 from uav_common.actions import match_action
-from uav_common.frame_stack import NetworkInput
+from uav_common.frame_stack import NetworkInput, node_shares
 from uav_common.local_map import LocalMap, PinholeCamera, camera_position
-from uav_policy.insight import node_shares
 
 
 @dataclasses.dataclass
@@ -247,3 +246,22 @@ class TransitionAssembler:
             "stamp_restarts": j.restarts,
             **self.counts,
         }
+
+
+@dataclasses.dataclass(frozen=True)
+class ActorSink:
+    """One actor's side of a Training: the steps a TransitionAssembler completes, tagged with the actor."""
+
+    training: object  # a uav_trainer.training.Training
+    actor: int
+
+    def add_first(self, frame: np.ndarray, grid: np.ndarray | None = None) -> None:
+        self.training.add_first(frame, self.actor, grid)
+
+    def add_step(
+        self, action: int, beta_m: float, collided: bool, next_frame: np.ndarray, teacher: int = -1, reason=None, grid=None
+    ) -> float:
+        return self.training.add_step(action, beta_m, collided, next_frame, self.actor, teacher, reason, grid)
+
+    def add_truncated(self, first_frame: np.ndarray, grid: np.ndarray | None = None) -> None:
+        self.training.add_truncated(first_frame, self.actor, grid)

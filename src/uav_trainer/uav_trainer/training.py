@@ -24,9 +24,9 @@ from uav_policy.networks import NetConfig
 from uav_sim.reward import step_reward
 
 from . import checkpoint
-from .actors import ActorSink
 from .episodes import EpisodeStats
 from .learner import Learner, NonFiniteLoss
+from .pairing import ActorSink
 from .replay import LanedReplay, ReplayMemory
 from .run_logs import METRICS_COLUMNS, plot_curves, record_machine
 from .training_config import SAM_SIZES, TrainerConfig, linear_epsilon, snapshot_file, snapshot_steps
@@ -90,14 +90,8 @@ class Training:
         self.reason_grid = self.learner.online.grid_hw if cfg.pulls_attention else None
         # (a map network attends over the image's cells and then the map's: a reason for each)
         cells = math.prod(self.reason_grid) * (1 + self.net_cfg.local_map) if self.reason_grid else 0
-        if actors == 1:
-            self.replay = ReplayMemory(
-                cfg.replay_capacity, shape, self.net_cfg.frames, seed=cfg.seed, reason_nodes=cells, local_map=cfg.local_map
-            )
-        else:
-            self.replay = LanedReplay(
-                actors, cfg.replay_capacity, shape, self.net_cfg.frames, cfg.seed, cells, local_map=cfg.local_map
-            )
+        memory = (cfg.replay_capacity, shape, self.net_cfg.frames, cfg.seed, cells, cfg.local_map)
+        self.replay = ReplayMemory(*memory) if actors == 1 else LanedReplay(actors, *memory)
         # The journal keeps one actor's chain; with several, a resume refills the memory.
         self.journal = cfg.save_replay and actors == 1
         if cfg.save_replay and actors > 1:
@@ -241,21 +235,12 @@ class Training:
         self._memory(actor).add_first(frame, grid)
 
     def add_step(
-        self,
-        action: int,
-        beta_m: float,
-        collided: bool,
-        next_frame: np.ndarray,
-        actor: int = 0,
-        teacher: int = -1,
-        reason=None,
-        grid: np.ndarray | None = None,
+        self, action: int, beta_m: float, collided: bool, next_frame, actor: int = 0, teacher: int = -1, reason=None, grid=None
     ) -> float:
         """One transition of `actor` (`teacher`: the teacher's action for the frame it left, -1 for none; `reason`: the
         share of each node of the attention its reason covers in that frame, None for none; `grid`: the next frame's
-        local map, with `local_map`); the reward
-        comes from the simulator package's reward function. Steps after the budget is spent are not recorded (not
-        learnt from, counted or logged)."""
+        local map, with `local_map`); the reward comes from the simulator package's reward function. Steps after the
+        budget is spent are not recorded (not learnt from, counted or logged)."""
         reward = step_reward(beta_m, collided)
         if self.cfg.turn_penalty > 0.0 and not collided and action in self.cfg.turning_actions:
             reward -= self.cfg.turn_penalty
