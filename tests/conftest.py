@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import os
 import re
-import signal
 import subprocess
 import sys
 import tempfile
@@ -142,14 +141,9 @@ class RosHarness:
             self.executor.spin_once(timeout_sec=0.02)
 
     def stop(self, proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-        return proc.returncode
+        from uav_common.launching import stop_process
+
+        return stop_process(proc, timeout_s)
 
     def close(self) -> None:
         for proc, _ in self.procs:

@@ -28,6 +28,18 @@ def find_executable(pkg: str, exe: str) -> str:
     raise FileNotFoundError(f"cannot find executable '{exe}' of package '{pkg}': source install/setup.bash first")
 
 
+def stop_process(p: subprocess.Popen, timeout_s: float = 60.0) -> int:
+    """Ctrl-C to a process started in a session of its own (and its children), SIGKILL after `timeout_s`; its code."""
+    if p.poll() is None:
+        os.killpg(p.pid, signal.SIGINT)
+        try:
+            p.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    return p.returncode
+
+
 def stop_signals():
     """Ctrl-C and SIGTERM set a flag instead of raising, so a launcher can stop its nodes in order; the
     returned callable tells whether one came."""
@@ -72,16 +84,7 @@ class Processes:
 
     def stop(self, name: str, timeout_s: float = 60.0) -> int | None:
         p = self.procs.get(name)
-        if p is None:
-            return None
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGINT)
-            try:
-                p.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-        return p.returncode
+        return None if p is None else stop_process(p, timeout_s)
 
     def stop_all(self, order: list[str] | None = None) -> None:
         for name in order or list(self.procs):

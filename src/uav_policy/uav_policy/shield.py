@@ -204,6 +204,7 @@ class ShieldFeed:
         return {
             **self.shield.counts.values(on),
             "shield_odometry_received": self.odometry_received,
+            "local_map_input": "on" if self.needs_map else "off",  # the network's own map (it needs odom too)
             "shield_frames_without_odometry": self.stale,
             "shield_last": self.shield.last_why,
         }
