@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# The suite beside the main job, as users run the two README commands together: N times (default 3), a clean clone
+# of this repository's HEAD runs `CI=true bash .ci/run` while `train --model sam` (from this checkout's install) trains
+# beside it on a ROS domain the tests never take. Prints each run's verdict and main-suite time; exit 1 if any failed.
+#   bash scripts/check_under_load.sh [N]
+set -uo pipefail
+cd "$(dirname "$0")/.."
+runs=${1:-3}
+repo=$(pwd)
+shared=$(cd .. && pwd)/shared
+if [ ! -x install/uav_trainer/lib/uav_trainer/train ]; then
+  echo "check_under_load: build first (bash scripts/setup.sh): the main job runs from install/" >&2
+  exit 2
+fi
+failed=0
+for i in $(seq 1 "$runs"); do
+  work=$(mktemp -d)
+  git clone -q "$repo" "$work/main" && ln -s "$shared" "$work/shared"
+  # The main job on a domain of its own (the tests take 1-101), its run folder and logs in the scratch folder.
+  (source .venv/bin/activate && source install/setup.bash && export ROS_DOMAIN_ID=150 \
+     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST && exec install/uav_trainer/lib/uav_trainer/train --model sam \
+     --run-dir "$work/train_run" --log-dir "$work/train_logs" --validation-steps 0) >"$work/train.out" 2>&1 &
+  job=$!
+  (cd "$work/main" && CI=true bash .ci/run) >"$work/ci.out" 2>&1
+  code=$?
+  kill -INT "$job" 2>/dev/null
+  wait "$job" 2>/dev/null
+  suite=$(grep -o "main suite took [0-9]* s" "$work/ci.out" || echo "main suite: no time (see $work/ci.out)")
+  steps=$(grep -o "step *[0-9]*" "$work/train_logs"/trainer.log 2>/dev/null | tail -n 1)
+  if [ "$code" -eq 0 ]; then verdict=green; else verdict="FAILED (code $code)"; failed=1; fi
+  echo "run $i/$runs: $verdict; $suite; the main job beside it reached ${steps:-no step logged} ($work)"
+done
+exit $failed
