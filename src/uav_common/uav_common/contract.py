@@ -50,6 +50,9 @@ PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
 # For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
 # history holds the backlog (64x64 frames: ~16 KiB each).
+# What every decision says (commands, actions, Q-values, attention maps: small messages): kept 1000 deep, so a recorder
+# that falls seconds behind on a busy machine loses none (100 lost a few a minute beside the main job).
+DECISION_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=1000)
 # The key prefix of a recorder's per-topic count of messages lost to it, in its /diagnostics and its bag's metadata.
 LOST_KEY = "lost "
 DEEP_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=5000)

@@ -22,15 +22,17 @@ from .pilot import Decision
 class Outputs:
     def __init__(self, node: Node, actions: tuple[Action, ...], stamped: bool, overlays: bool, max_range_m: float):
         self.actions, self.overlays, self.max_range_m = actions, overlays, max_range_m
-        q, pub = contract.STREAM_QOS, node.create_publisher
+        # A decision's record is kept deep for a recorder that falls behind (DECISION_QOS); the overlays (pictures of
+        # 0.2 MB and more) STREAM_QOS's 100 deep.
+        q, pub, big = contract.DECISION_QOS, node.create_publisher, contract.STREAM_QOS
         self.cmd = pub(Twist, contract.CMD_VEL_TOPIC, q)
         self.stamped = pub(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, q) if stamped else None
         self.base_frame = contract.vehicle_frame(node.get_namespace(), "base_link")  # what action commands move
         self.action = pub(TwistStamped, contract.ACTION_TOPIC, q)
-        self.q_values = pub(Float32MultiArray, contract.Q_VALUES_TOPIC, 10)
-        self.attention = (pub(Image, contract.ATTENTION_TOPIC, 10), pub(Image, contract.ATTENTION_OVERLAY_TOPIC, 10))
-        self.weights = pub(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, 10)
-        self.saliency = (pub(Image, contract.SALIENCY_TOPIC, 10), pub(Image, contract.SALIENCY_OVERLAY_TOPIC, 10))
+        self.q_values = pub(Float32MultiArray, contract.Q_VALUES_TOPIC, q)
+        self.attention = (pub(Image, contract.ATTENTION_TOPIC, q), pub(Image, contract.ATTENTION_OVERLAY_TOPIC, big))
+        self.weights = pub(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, q)
+        self.saliency = (pub(Image, contract.SALIENCY_TOPIC, q), pub(Image, contract.SALIENCY_OVERLAY_TOPIC, big))
         self.q_label = "action:" + ",".join(a.name for a in actions)
         self.last_cmd, self.last_cmd_unheard = None, False
 
