@@ -13,6 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from uav_eval.flights import FlightSpec
 from uav_eval.ros_flights import evaluate_once
 
 WARMUP = 100  # steps before the clock starts: start-up and discovery are not the loop
@@ -28,7 +29,7 @@ def loop_rate(steps: int, bag: Path | None) -> float:
         if done[0] >= WARMUP and "t0" not in marks:
             marks["t0"], marks["s0"] = time.perf_counter(), done[0]
 
-    evaluate_once("sam", "", "basic", steps, progress=progress, record_to=bag)
+    evaluate_once(FlightSpec("sam", "", "basic", steps), progress=progress, record_to=bag)
     return (done[0] - marks["s0"]) / (time.perf_counter() - marks["t0"])
 
 

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from uav_common.settings import build
-from uav_eval.flights import evaluate_inprocess
+from uav_eval.flights import FlightSpec, evaluate_inprocess
 from uav_policy.networks import NetConfig
 from uav_sim.simulator import SimConfig
 from uav_trainer.episodes import steady_metrics_rows
@@ -144,7 +144,7 @@ def actors_learning(actors: int, seed: int, budget: int, domain: int, out: Path)
     jitter = float(load_recipe("shipped", ROOT / "params").node("sim_node").get("start_yaw_jitter_deg", 0.0))
     weights = str(run_dir / "policy_sam.safetensors")
     return {
-        world: evaluate_inprocess("sam", weights, world, 1000, seed=seed, start_yaw_jitter_deg=jitter).crashes
+        world: evaluate_inprocess(FlightSpec("sam", weights, world, 1000, seed, jitter)).crashes
         for world in ("basic", "complex", "turbulent")
     }
 
@@ -158,7 +158,7 @@ def time_to_zero_crashes(seed: int, eval_every: int, max_steps: int) -> tuple[fl
     def on_step(training):
         if training.env_steps % eval_every:
             return False
-        r = evaluate_inprocess("sam", "", "basic", 1000, net=training.learner.online, hfov_deg=90.0)
+        r = evaluate_inprocess(FlightSpec("sam", "", "basic", 1000, hfov_deg=90.0), training.learner.online)
         history.append((training.env_steps, r.crashes, round(r.mean_reward, 3), round(time.perf_counter() - t0, 1)))
         print(
             f"  after {training.env_steps} steps ({time.perf_counter() - t0:.0f} s): {r.crashes} crashes in 1000 "

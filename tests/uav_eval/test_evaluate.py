@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from conftest import ROOT, executable, read_bag
-from uav_eval.flights import Behaviour
+from uav_eval.flights import Behaviour, FlightSpec
 from uav_eval.ros_flights import evaluate_once
 from uav_eval.tables import INSIGHT_COLUMNS
 from uav_policy import weights as wio
@@ -179,7 +179,7 @@ def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model, 
     assert {preset_for_camera(wio.read_file_camera(p)) for p in shipped} == {"realsense_d435"}
     assert {wio.read_file_window(p) for p in shipped} == {None}
     monkeypatch.setenv("ROS_DOMAIN_ID", "76")
-    r = evaluate_once(model, "", "basic", 200)  # "" = what policy_node uses by default: the packaged files
+    r = evaluate_once(FlightSpec(model, "", "basic", 200))  # "" = what policy_node uses by default: the packaged files
     assert r.steps == 200 and r.crashes == 0, r
 
 
@@ -601,9 +601,9 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
     kw = dict(seed=3, start_yaw_jitter_deg=jitter, safety=safety, shield=shield)
     world = "complex" if shield else "basic"  # the shield overrides this network there (34-50 times in 100 steps)
-    over_ros = evaluate_once("sam", str(w), world, 100, sim_args=sim_args, **kw)
+    over_ros = evaluate_once(FlightSpec("sam", str(w), world, 100, sim_args=sim_args, **kw))
     flown = hfov if hfov is not None else trained_hfov
-    local = evaluate_inprocess("sam", str(w), world, 100, hfov_deg=flown, **kw)
+    local = evaluate_inprocess(FlightSpec("sam", str(w), world, 100, hfov_deg=flown, **kw))
     assert (over_ros.crashes, over_ros.steps, over_ros.crash_sites) == (local.crashes, local.steps, local.crash_sites)
     assert (over_ros.turn_steps, over_ros.cells, over_ros.interventions) == (local.turn_steps, local.cells, local.interventions)
     assert local.interventions > 0 if safety else local.interventions == -1, local.interventions
@@ -612,7 +612,7 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     assert abs(over_ros.mean_reward - local.mean_reward) < 1e-5 and abs(over_ros.distance_m - local.distance_m) < 1e-6
     if trained_hfov is not None:  # the recorded camera was used: the default camera flies otherwise
         assert trained_hfov != SimConfig.hfov_deg
-        fly = lambda **kw: evaluate_inprocess("sam", str(w), "basic", 100, seed=3, start_yaw_jitter_deg=jitter, **kw)  # noqa: E731
+        fly = lambda **kw: evaluate_inprocess(FlightSpec("sam", str(w), "basic", 100, 3, jitter, **kw))  # noqa: E731
         by_header, default = fly(), fly(hfov_deg=SimConfig.hfov_deg)
         assert by_header.mean_reward == local.mean_reward and default.mean_reward != local.mean_reward
         paper_window = fly(reward_window_fraction=SimConfig.reward_window_fraction)  # same flight, another reward

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from uav_eval.flights import ENSEMBLE_SEP, evaluate_inprocess
+from uav_eval.flights import ENSEMBLE_SEP, FlightSpec, evaluate_inprocess
 
 WEIGHTS = Path(__file__).resolve().parents[2] / "src" / "uav_policy" / "weights"
 # folder: (model, crashes, mean reward per step, turning steps) over 150 steps of Complex, random start headings,
@@ -24,9 +24,7 @@ def test_each_packaged_set_flies_as_pinned(folder):
     model, crashes, reward, turns = PINNED[folder]
     files = sorted((WEIGHTS / folder).glob("*.safetensors"))
     assert len(files) >= 1, folder
-    r = evaluate_inprocess(
-        model, ENSEMBLE_SEP.join(map(str, files)), "complex", 150, seed=3, start_yaw_jitter_deg=180.0, insight_every=0
-    )
+    r = evaluate_inprocess(FlightSpec(model, ENSEMBLE_SEP.join(map(str, files)), "complex", 150, 3, 180.0, insight_every=0))
     assert (r.crashes, r.turn_steps) == (crashes, turns) and r.mean_reward == pytest.approx(reward, abs=1e-6), (
         f"{folder} flies differently: {r.crashes} crashes, reward {r.mean_reward!r}, {r.turn_steps} turning steps"
     )

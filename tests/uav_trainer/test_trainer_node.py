@@ -14,6 +14,7 @@ from sensor_msgs.msg import Range
 from conftest import ROOT, SMALL_WORLD, deep_qos, executable, start_up_error
 from uav_common import contract
 from uav_eval import selection
+from uav_eval.flights import FlightSpec
 from uav_eval.ros_flights import evaluate_once
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
@@ -313,9 +314,9 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch
     untrained = tmp_path / "untrained.safetensors"
     wio.save_file(build_network(NetConfig(), seed=0), NetConfig(), untrained)
     monkeypatch.setenv("ROS_DOMAIN_ID", "73")
-    trained = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=0.0)
-    baseline = evaluate_once("sam", str(weights), SMALL_WORLD, 500, epsilon=1.0)
-    before = evaluate_once("sam", str(untrained), SMALL_WORLD, 500, epsilon=0.0)
+    trained = evaluate_once(FlightSpec("sam", str(weights), SMALL_WORLD, 500, epsilon=0.0))
+    baseline = evaluate_once(FlightSpec("sam", str(weights), SMALL_WORLD, 500, epsilon=1.0))
+    before = evaluate_once(FlightSpec("sam", str(untrained), SMALL_WORLD, 500, epsilon=0.0))
     print(f"trained greedy: {trained}\nepsilon=1 baseline: {baseline}\nuntrained greedy: {before}")
     assert trained.steps == baseline.steps == 500
     assert trained.mean_reward > baseline.mean_reward + 0.5, (trained, baseline)
@@ -471,7 +472,7 @@ def test_the_main_jobs_default_recipe_is_the_packaged_weights_recipe_and_it_name
     # The trainer may start listening after the sim's first steps: it sees at most the sim's cuts.
     assert 0 < sum(r["end"] == "time_limit" for r in rows) <= logs["sim"].count("time limit: episode")
     monkeypatch.setenv("ROS_DOMAIN_ID", "74")
-    flown = evaluate_once("sam", chosen.weights, "basic", 20)  # the printed command's file, through the nodes
+    flown = evaluate_once(FlightSpec("sam", chosen.weights, "basic", 20))  # the printed command's file, through the nodes
     assert flown.steps == 20 and flown.weights == chosen.weights
 
 

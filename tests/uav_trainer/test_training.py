@@ -283,19 +283,19 @@ def test_snapshots_are_a_thirtieth_of_the_budget_apart_and_need_a_budget(tmp_pat
 
 
 def test_sam_layer_sizes_reach_the_network_the_weights_file_and_the_evaluation(tmp_path):
-    from uav_eval.flights import evaluate_inprocess
+    from uav_eval.flights import FlightSpec, evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, d_model=24, heads=2, relational_blocks=2)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
     assert t.learner.updates > 0 and len(t.learner.online.relational_blocks) == 2
     made = wio.read_file_config(t.policy_weights_path)
     assert (made.d_model, made.heads, made.relational_blocks, made.mlp_hidden) == (24, 2, 2, NetConfig.mlp_hidden)
-    r = evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1)  # sizes from the file
+    r = evaluate_inprocess(FlightSpec("sam", str(t.policy_weights_path), "basic", 20, seed=1))  # sizes from the file
     assert r.steps == 20
 
 
 def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):
-    from uav_eval.flights import evaluate_inprocess
+    from uav_eval.flights import FlightSpec, evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, input_size_px=48)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
@@ -304,25 +304,25 @@ def test_input_size_reaches_the_network_the_camera_and_the_evaluation(tmp_path):
     assert (made.height, made.width) == (48, 48) and t.learner.online.grid_hw == (6, 6)
     assert wio.config_for("sam", t.policy_weights_path) == made
     # The evaluation renders at the file's input size: a 64 x 64 camera would not fit the network.
-    r = evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1)
+    r = evaluate_inprocess(FlightSpec("sam", str(t.policy_weights_path), "basic", 20, seed=1))
     assert r.steps == 20
 
 
 def test_the_frame_stack_reaches_the_network_the_replay_memory_and_the_evaluation(tmp_path):
-    from uav_eval.flights import architecture_args, evaluate_inprocess
+    from uav_eval.flights import FlightSpec, architecture_args, evaluate_inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, frames=3)
     t = run_inprocess(cfg, tmp_path, log=lambda s: None, hfov_deg=90.0)
     assert t.learner.updates > 0 and t.replay.frames == 3 and t.learner.online.trunk.net[0].in_channels == 3
     assert wio.read_file_config(t.policy_weights_path).frames == 3
     assert architecture_args("sam", str(t.policy_weights_path)) == ["frame_stack:=3"]  # policy_node's parameter
-    assert evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1).steps == 20  # stacks 3 frames
+    assert evaluate_inprocess(FlightSpec("sam", str(t.policy_weights_path), "basic", 20, seed=1)).steps == 20  # stacks 3 frames
     with pytest.raises(ValueError, match=r"frames in \[1, 16\]"):
         NetConfig(frames=17).validate()  # nor may a weights file's header ask for more
 
 
 def test_a_two_layer_trunk_gives_sam_16_by_16_nodes_and_the_file_carries_it(tmp_path, monkeypatch, capsys):
-    from uav_eval.flights import architecture_args, evaluate_inprocess
+    from uav_eval.flights import FlightSpec, architecture_args, evaluate_inprocess
     from uav_trainer import inprocess
 
     cfg = TrainerConfig(model="sam", seed=2, total_steps=60, learning_starts=30, conv_channels=(16, 32))
@@ -332,7 +332,7 @@ def test_a_two_layer_trunk_gives_sam_16_by_16_nodes_and_the_file_carries_it(tmp_
     made = wio.read_file_config(t.policy_weights_path)
     assert made.conv_channels == (16, 32) and wio.config_for("sam", t.policy_weights_path) == made
     assert architecture_args("sam", str(t.policy_weights_path)) == []  # policy_node takes layer sizes from the file
-    assert evaluate_inprocess("sam", str(t.policy_weights_path), "basic", 20, seed=1).steps == 20
+    assert evaluate_inprocess(FlightSpec("sam", str(t.policy_weights_path), "basic", 20, seed=1)).steps == 20
     with pytest.raises(ValueError, match="7 conv layers leave nothing of a 64x64 input .* use at most 6"):
         NetConfig(conv_channels=(8,) * 7).validate()  # nor may a weights file's header ask for more
     for bad, said in (["16", "0"], "conv_channels must be integer"), (["8"] * 7, "7 conv layers leave nothing"):
@@ -410,27 +410,27 @@ def test_a_time_limit_ends_the_episode_and_stores_no_transition(tmp_path):
 def test_a_deterministic_policy_at_a_fixed_start_repeats_its_crash_site():
     """Why evaluate reports crash sites: flying straight ahead in a small room from the same start
     pose crashes at one site every lap; random start headings spread the crashes out."""
-    from uav_eval.flights import evaluate_inprocess
+    from uav_eval.flights import FlightSpec, evaluate_inprocess
 
     class Straight(torch.nn.Module):  # constant Q: the agent always picks action 3 (2 m/s ahead)
         def forward(self, x):
             return torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(x.shape[0], 4), None
 
-    fixed = evaluate_inprocess("cnn", "", SMALL_WORLD, 300, net=Straight())
-    varied = evaluate_inprocess("cnn", "", SMALL_WORLD, 300, net=Straight(), start_yaw_jitter_deg=180.0)
+    fixed = evaluate_inprocess(FlightSpec("cnn", "", SMALL_WORLD, 300), Straight())
+    varied = evaluate_inprocess(FlightSpec("cnn", "", SMALL_WORLD, 300, start_yaw_jitter_deg=180.0), Straight())
     assert fixed.crashes >= 3 and fixed.crash_sites == 1
     assert varied.crash_sites > 1
 
 
 def test_the_crash_log_says_where_when_and_from_which_start(tmp_path):
     from uav_eval.evaluate import main as evaluate_main
-    from uav_eval.flights import CRASH_FIELDS, evaluate_inprocess
+    from uav_eval.flights import CRASH_FIELDS, FlightSpec, evaluate_inprocess
 
     class Straight(torch.nn.Module):  # constant Q: the agent always picks action 3 (2 m/s ahead)
         def forward(self, x):
             return torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(x.shape[0], 4), None
 
-    fly = lambda log, **kw: evaluate_inprocess("cnn", "", SMALL_WORLD, 300, net=Straight(), crash_log=log, **kw)  # noqa: E731
+    fly = lambda log, **kw: evaluate_inprocess(FlightSpec("cnn", "", SMALL_WORLD, 300, **kw), Straight(), crash_log=log)  # noqa: E731
     fixed, varied = [], []
     r = fly(fixed)
     assert len(fixed) == r.crashes >= 3 and all(tuple(row) == CRASH_FIELDS for row in fixed)

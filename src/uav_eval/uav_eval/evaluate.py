@@ -32,6 +32,7 @@ from .flights import (
     CRASH_FIELDS,
     INPROCESS_SIM_ARGS,
     EvalResult,
+    FlightSpec,
     evaluate_inprocess,
     sim_arg_hfov_deg,
     sim_arg_number,
@@ -317,44 +318,16 @@ def main(argv=None) -> int:
     with tqdm(total=total, unit="step", dynamic_ncols=True, disable=None) as bar:
 
         def measure(model: str, weights: str, world: str, seed: int, group: int, max_crashes: int = 0) -> EvalResult:
-            jitter = a.start_yaw_jitter_deg
+            jitter, how = a.start_yaw_jitter_deg, (a.insight_every, a.safety, a.shield)
             if not a.inprocess:
                 bag = Path(a.record) / bag_name(model, world, group, seed) if a.record else None
-                return evaluate_once(
-                    model,
-                    weights,
-                    world,
-                    a.steps,
-                    a.epsilon,
-                    seed,
-                    params,
-                    start_yaw_jitter_deg=jitter,
-                    sim_args=tuple(a.sim_arg),
-                    progress=bar.update,
-                    record_to=bag,
-                    safety=a.safety,
-                    insight_every=a.insight_every,
-                    shield=a.shield,
+                spec = FlightSpec(
+                    model, weights, world, a.steps, seed, jitter, *how, sim_args=tuple(a.sim_arg), epsilon=a.epsilon
                 )
+                return evaluate_once(spec, params, progress=bar.update, record_to=bag)
             net, net_cfg, hfov, win = ensembles.get((model, weights), (None, None, hfov_deg, window))
-            r = evaluate_inprocess(
-                model,
-                weights,
-                world,
-                a.steps,
-                seed,
-                net=net,
-                start_yaw_jitter_deg=jitter,
-                hfov_deg=hfov,
-                net_cfg=net_cfg,
-                crash_log=crash_rows if a.crash_log else None,
-                reward_window_fraction=win,
-                insight_every=a.insight_every,
-                safety=a.safety,
-                max_crashes=max_crashes,
-                shield=a.shield,
-                **sensor,
-            )
+            spec = FlightSpec(model, weights, world, a.steps, seed, jitter, *how, hfov, win, max_crashes=max_crashes, **sensor)
+            r = evaluate_inprocess(spec, net, net_cfg, crash_log=crash_rows if a.crash_log else None)
             bar.update(a.steps)
             return r
 

@@ -164,113 +164,75 @@ def weights_label(files: list[str], model: str = "sam") -> str:
 INPROCESS_SIM_ARGS = ("hfov_deg", "reward_window_fraction", "sensor", "sensor_scale")
 
 
-def evaluate_inprocess(
-    model: str,
-    weights: str,
-    world: str,
-    steps: int,
-    seed: int = 0,
-    net=None,
-    start_yaw_jitter_deg: float = 0.0,
-    hfov_deg: float | None = None,
-    net_cfg=None,
-    crash_log: list | None = None,
-    reward_window_fraction: float | None = None,
-    sensor: str | None = None,
-    sensor_scale: float | None = None,
-    insight_every: int = 1,
-    safety: bool = False,
-    max_crashes: int = 0,
-    shield: bool = False,
-) -> EvalResult:
-    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks. A model of
-    PLANNERS flies uav_sim.planner on the world and pose (no weights; the packaged networks' camera by default).
+@dataclasses.dataclass(frozen=True)
+class FlightSpec:
+    """One measured flight, resolved once: what flies, where, how long and how; `evaluate_inprocess` and
+    `uav_eval.ros_flights.evaluate_once` both take it.
 
-    `weights`: a file, or an ensemble's files joined by ENSEMBLE_SEP, or "" for the packaged files.
-    hfov_deg None: the camera the weights were trained with (with `net` and no file: the sim default).
-    `net_cfg`: `net`'s architecture (default: the weights file's, else the model's default); the
-    camera renders at its input size. `crash_log`, when a list, gets one dict per crash (CRASH_FIELDS; for a network
-    with uav_eval.autopsy's: the map teacher's last disagreement, what was hit and whether it had been seen).
-    `reward_window_fraction` None: the window the weights file records, else the paper's (SimConfig's default).
-    A `sensor` preset renders its own camera (at `sensor_scale`), mapped onto the weights' field of view as
-    policy_node maps a camera through CameraInfo; None: the preset of the weights' camera (uav_sim.sensor.
-    preset_for_camera) at the recipes' scale, else the ideal camera. What the decisions look at is measured on every
-    `insight_every`-th step (policy_node's parameter; 0 = never). With `safety` the commands pass policy_node's
-    safety layer (its default settings), as `evaluate --safety` flies them through the node; its interventions
-    are counted. `max_crashes` N > 0 ends the flight at its N-th crash (the result's steps are those flown). With
-    `shield` the network chooses among the actions the local map says are safe (uav_policy.shield, on the measured
-    frames and the simulator's pose as odometry); its overrides are counted."""
+    `weights`: a file, or an ensemble's files joined by ENSEMBLE_SEP, or "" for the packaged files (a model of PLANNERS
+    flies uav_sim.planner and no weights). In process: `hfov_deg` None flies the camera the weights were trained with,
+    `reward_window_fraction` None the window the weights record (else the paper's); a `sensor` preset renders its own
+    camera (at `sensor_scale`), mapped onto the weights' field of view as policy_node maps a camera through CameraInfo
+    (None: the preset of the weights' camera at the recipes' scale, else the ideal camera); over ROS `sim_args` carry
+    sim_node's parameters and `epsilon` the policy's exploration. What the decisions look at is measured on every
+    `insight_every`-th step (0: never). `safety`: the commands pass policy_node's safety layer (its interventions
+    counted); `shield`: the network chooses among the actions the local map says are safe (its overrides counted).
+    `max_crashes` N > 0 ends an in-process flight at its N-th crash (the result's steps are those flown)."""
+
+    model: str
+    weights: str = ""
+    world: str = "basic"
+    steps: int = 1000
+    seed: int = 0
+    start_yaw_jitter_deg: float = 0.0
+    insight_every: int = 1
+    safety: bool = False
+    shield: bool = False
+    hfov_deg: float | None = None
+    reward_window_fraction: float | None = None
+    sensor: str | None = None
+    sensor_scale: float | None = None
+    max_crashes: int = 0
+    sim_args: tuple[str, ...] = ()
+    epsilon: float = 0.0
+
+
+def evaluate_inprocess(spec: FlightSpec, net=None, net_cfg=None, crash_log: list | None = None) -> EvalResult:
+    """The same measurement without ROS (same simulator, stack and network): for benchmarks and checks. `net`: a
+    network to fly in place of the spec's weights (`net_cfg` its architecture; default: the weights file's, else the
+    model's default; the camera renders at its input size). `crash_log`, when a list, gets one dict per crash
+    (CRASH_FIELDS; for a network with uav_eval.autopsy's: the map teacher's last disagreement, what was hit and whether
+    it had been seen)."""
     from uav_policy.rollout import Flight
 
-    if model in PLANNERS:
-        weights = weights or PLANNER_WEIGHTS
-        sim, env, agent, layer = planner_flight(
-            model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety
-        )
+    if spec.model in PLANNERS:
+        spec = dataclasses.replace(spec, weights=spec.weights or PLANNER_WEIGHTS)
+        sim, env, agent, layer = planner_flight(spec)
     else:
-        from uav_policy import weights as wio
-        from uav_policy.agent import Agent
-        from uav_policy.safety import SafetyLayer, SafetySettings
-        from uav_sim.simulator import SimConfig, Simulator
-        from uav_sim.stacked_sim import StackedSim
-        from uav_sim.world import load_world
-
-        if net is None:
-            files = weights_or_packaged(model, weights)
-            if not files:
-                raise FileNotFoundError(f"no weights given and no packaged {model} weights")
-            net, net_cfg, hfov_deg, reward_window_fraction = wio.load_policy(
-                model, files, hfov_deg, reward_window_fraction, CENTER_WINDOW_FRACTION
-            )
-        cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
-        if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
-            hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
-        if reward_window_fraction is None:
-            reward_window_fraction = wio.window_for(weights, CENTER_WINDOW_FRACTION)
-        if sensor is None:
-            from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
-
-            sensor = preset_for_camera(hfov_deg)
-            sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
-        sensor_scale = 1.0 if sensor_scale is None else sensor_scale
-        agent = Agent(net, cfg, seed=seed)
-        sim_cfg = SimConfig(
-            seed=seed,
-            start_yaw_jitter_deg=start_yaw_jitter_deg,
-            hfov_deg=hfov_deg,
-            image_width=cfg.width,
-            image_height=cfg.height,
-            reward_window_fraction=reward_window_fraction,
-            sensor=sensor,
-            sensor_scale=sensor_scale,
-        )
-        sim = Simulator(load_world(world), sim_cfg)
-        layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if safety else None
-        env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg, map_grid=cfg.map_grid)
-    if shield and model in PLANNERS:
-        raise ValueError(f"--shield: the {model} flies no network, so there is nothing to shield")
+        sim, env, agent, layer, net = network_flight(spec, net, net_cfg)
     guard = None
-    if shield:
+    if spec.shield:
         from uav_policy.shield import Shield
 
         guard = Shield(env.actions, sim.config.step_duration_s)
     flight = Flight(env, agent, safety=layer, shield=guard)
     r = flight.last
-    crashes, reward, dist, sites = 0, 0.0, 0.0, set()
+    crashes, reward, dist, sites, steps = 0, 0.0, 0.0, set(), spec.steps
     behaviour = Behaviour(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad)
     start_yaw = r.pose.yaw_rad  # the episode's start heading
     # What the decisions look at, for the stack's networks (a stand-in network without a grid is not measured).
-    insight = Insight(net.grid_hw, seed=seed) if net is not None and hasattr(net, "grid_hw") and insight_every > 0 else None
+    every = spec.insight_every
+    insight = Insight(net.grid_hw, seed=spec.seed) if net is not None and hasattr(net, "grid_hw") and every > 0 else None
     if insight is not None:
         from uav_sim.planner import SimPlanner
 
         reasons = SimPlanner(sim)  # what each measured decision is about
-    autopsy = Autopsy(sim) if crash_log is not None and model not in PLANNERS else None
+    autopsy = Autopsy(sim) if crash_log is not None and spec.model not in PLANNERS else None
     try:
         for step in range(1, steps + 1):
             episode_step = sim.step_in_episode + 1  # the simulator's count, before it restarts on a crash
             state = flight.env.state  # a new array every step: the step below leaves it as it is
-            measured = insight is not None and step % insight_every == 0
+            measured = insight is not None and step % every == 0
             reason = reason_pixels(reasons, env) if measured else None
             if autopsy is not None:
                 autopsy.before()
@@ -285,35 +247,22 @@ def evaluate_inprocess(
                 crashes += 1
                 sites.add(crash_site((before.x_m, before.y_m)))
                 if crash_log is not None:
-                    crash_log.append(
-                        dict(
-                            model=model,
-                            world=world,
-                            weights=weights,
-                            sim_seed=seed,
-                            step=step,
-                            episode_step=episode_step,
-                            x_m=round(before.x_m, 3),
-                            y_m=round(before.y_m, 3),
-                            yaw_deg=round(math.degrees(before.yaw_rad), 1),
-                            start_yaw_deg=round(math.degrees(start_yaw), 1),
-                            action=flight.actions[s.action].name,
-                            **(autopsy.crash(step, before, flight.actions[s.action]) if autopsy else {}),
-                        )
-                    )
+                    action = flight.actions[s.action]
+                    row = crash_row(spec, step, episode_step, before, start_yaw, action.name)
+                    crash_log.append(row | (autopsy.crash(step, before, action) if autopsy else {}))
                 start_yaw = r.pose.yaw_rad
             else:
                 dist += math.hypot(r.pose.x_m - before.x_m, r.pose.y_m - before.y_m)
             behaviour.step(r.pose.x_m, r.pose.y_m, r.pose.yaw_rad, r.collided)
-            if max_crashes and crashes >= max_crashes:
+            if spec.max_crashes and crashes >= spec.max_crashes:
                 steps = step
                 break
     finally:
         sim.close()
     return EvalResult(
-        model,
-        world,
-        weights,
+        spec.model,
+        spec.world,
+        spec.weights,
         steps,
         crashes,
         reward / steps,
@@ -327,6 +276,74 @@ def evaluate_inprocess(
     )
 
 
+def crash_row(spec: FlightSpec, step: int, episode_step: int, before, start_yaw: float, action: str) -> dict:
+    """A crash's row of crashes.csv (CRASH_FIELDS, the autopsy's aside): where the crashing step began."""
+    return dict(
+        model=spec.model,
+        world=spec.world,
+        weights=spec.weights,
+        sim_seed=spec.seed,
+        step=step,
+        episode_step=episode_step,
+        x_m=round(before.x_m, 3),
+        y_m=round(before.y_m, 3),
+        yaw_deg=round(math.degrees(before.yaw_rad), 1),
+        start_yaw_deg=round(math.degrees(start_yaw), 1),
+        action=action,
+    )
+
+
+def network_flight(spec: FlightSpec, net=None, net_cfg=None):
+    """evaluate_inprocess's simulator, stacked frames, agent, safety layer (or None) and network for a network: the
+    spec's weights (or `net`), behind the camera and with the reward window they were trained with unless the spec
+    says otherwise."""
+    from uav_policy import weights as wio
+    from uav_policy.agent import Agent
+    from uav_policy.safety import SafetyLayer, SafetySettings
+    from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.stacked_sim import StackedSim
+    from uav_sim.world import load_world
+
+    model, weights, hfov_deg, window = spec.model, spec.weights, spec.hfov_deg, spec.reward_window_fraction
+    if net is None:
+        files = weights_or_packaged(model, weights)
+        if not files:
+            raise FileNotFoundError(f"no weights given and no packaged {model} weights")
+        net, net_cfg, hfov_deg, window = wio.load_policy(model, files, hfov_deg, window, CENTER_WINDOW_FRACTION)
+    cfg = net_cfg if net_cfg is not None else wio.config_for(model, weights)
+    if hfov_deg is None:  # `net` given without its camera: the weights file's, else the sim default
+        hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
+    if window is None:
+        window = wio.window_for(weights, CENTER_WINDOW_FRACTION)
+    sensor, scale = camera_preset(spec, hfov_deg)
+    sim_cfg = SimConfig(
+        seed=spec.seed,
+        start_yaw_jitter_deg=spec.start_yaw_jitter_deg,
+        hfov_deg=hfov_deg,
+        image_width=cfg.width,
+        image_height=cfg.height,
+        reward_window_fraction=window,
+        sensor=sensor,
+        sensor_scale=scale,
+    )
+    sim = Simulator(load_world(spec.world), sim_cfg)
+    layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if spec.safety else None
+    env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg, map_grid=cfg.map_grid)
+    return sim, env, Agent(net, cfg, seed=spec.seed), layer, net
+
+
+def camera_preset(spec: FlightSpec, hfov_deg: float) -> tuple[str, float]:
+    """(sensor preset, scale) a flight renders: the spec's, else the preset of a camera of `hfov_deg` at the recipes'
+    scale (uav_sim.sensor.preset_for_camera)."""
+    from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
+
+    sensor, scale = spec.sensor, spec.sensor_scale
+    if sensor is None:
+        sensor = preset_for_camera(hfov_deg)
+        scale = TRAINING_SCALE if sensor != "ideal" and scale is None else scale
+    return sensor, 1.0 if scale is None else scale
+
+
 def reason_pixels(reasons, env) -> np.ndarray | None:
     """The pixels of the newest frame, on the network's input, of what the planner's decision on it is about (its
     reason: uav_sim.planner), or None when nothing bounds that decision."""
@@ -335,29 +352,27 @@ def reason_pixels(reasons, env) -> np.ndarray | None:
     return env.input_mask(reasons.reason_mask())
 
 
-def planner_flight(model, world, seed, start_yaw_jitter_deg, reward_window_fraction, sensor, sensor_scale, safety):
+def planner_flight(spec: FlightSpec):
     """evaluate_inprocess's simulator, stacked frames and agent for the privileged planner: behind the camera the
     packaged networks were trained behind (sensor None), measured with their reward window."""
     from uav_policy.net_config import NetConfig
     from uav_sim.planner import PlannerAgent, PlannerConfig, SimPlanner
-    from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
     from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.stacked_sim import StackedSim
     from uav_sim.world import load_world
 
-    if safety:
-        raise ValueError(f"--safety: the {model} flies no network, so there is no safety layer to measure")
-    if sensor is None:
-        sensor = preset_for_camera(flown_hfov_deg("sam", ""))
-        sensor_scale = TRAINING_SCALE if sensor != "ideal" and sensor_scale is None else sensor_scale
-    window = flown_window("sam", "") if reward_window_fraction is None else reward_window_fraction
+    for flag, what in (("safety", "safety layer"), ("shield", "shield")):
+        if getattr(spec, flag):
+            raise ValueError(f"--{flag}: the {spec.model} flies no network, so there is no {what} to measure")
+    sensor, scale = camera_preset(spec, flown_hfov_deg("sam", ""))
+    window = flown_window("sam", "") if spec.reward_window_fraction is None else spec.reward_window_fraction
     sim_cfg = SimConfig(
-        seed=seed,
-        start_yaw_jitter_deg=start_yaw_jitter_deg,
+        seed=spec.seed,
+        start_yaw_jitter_deg=spec.start_yaw_jitter_deg,
         reward_window_fraction=window,
         sensor=sensor,
-        sensor_scale=1.0 if sensor_scale is None else sensor_scale,
+        sensor_scale=scale,
     )
-    sim = Simulator(load_world(world), sim_cfg)
-    config = PlannerConfig(knowledge=PLANNERS[model], memory_frames=NetConfig.frames)
+    sim = Simulator(load_world(spec.world), sim_cfg)
+    config = PlannerConfig(knowledge=PLANNERS[spec.model], memory_frames=NetConfig.frames)
     return sim, StackedSim(sim, NetConfig.frames), PlannerAgent(SimPlanner(sim, config)), None

@@ -17,6 +17,7 @@ from . import ENSEMBLE_SEP
 from .flights import (
     Behaviour,
     EvalResult,
+    FlightSpec,
     architecture_args,
     crash_site,
     flown_hfov_deg,
@@ -85,43 +86,21 @@ class StepMonitor:
 
 
 def evaluate_once(
-    model: str,
-    weights: str,
-    world: str,
-    steps: int,
-    epsilon: float = 0.0,
-    seed: int = 0,
+    spec: FlightSpec,
     params_dir: Path | None = None,
     timeout_s: float = 600.0,
-    start_yaw_jitter_deg: float = 0.0,
-    sim_args: tuple[str, ...] = (),
     log_dir: Path | None = None,
     progress=None,
     record_to: Path | None = None,
-    safety: bool = False,
-    insight_every: int = 1,
-    shield: bool = False,
 ) -> EvalResult:
-    """Run sim_node + policy_node (installed executables) and measure `steps` lockstep steps; with
+    """Run sim_node + policy_node (installed executables) and measure the spec's steps in lockstep; with
     `record_to`, uav_bringup's `record` keeps the flight there as a bag, from its first frame. The policy
-    flies without its safety layer (its own crashes), or with `safety` through it (interventions counted); with
-    `shield` it chooses among the actions its local map says are safe (overrides counted).
-
-    Without hfov_deg in `sim_args` the simulator gets the camera the weights were trained with, without
-    reward_window_fraction the reward window they record (else the paper's), and without image_width/image_height
-    it renders at their input size. `weights` may be an ensemble's files joined by ENSEMBLE_SEP (which
-    must share architecture, camera and reward window: load_policy checks): policy_node gets the list."""
-    files = weights.split(ENSEMBLE_SEP) if weights else []
-    first = files[0] if files else ""
-    if sim_arg_hfov_deg(sim_args) is None:
-        sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, first)}")
-    if sim_arg_number(sim_args, "reward_window_fraction") is None:
-        sim_args = (*sim_args, f"reward_window_fraction:={flown_window(model, first)}")
-    if not any(arg.startswith("sensor:=") for arg in sim_args):
-        from uav_sim.sensor import sim_args_for_camera
-
-        sim_args = (*sim_args, *sim_args_for_camera(flown_hfov_deg(model, first)))
-    sim_args = (*sim_args, *image_size_args(model, first, sim_args))
+    flies without its safety layer (its own crashes), or with the spec's `safety` through it (interventions counted);
+    with `shield` it chooses among the actions its local map says are safe (overrides counted). sim_node gets the spec's
+    `sim_args` (nodes_args: what they leave out, the weights decide); `weights` may be an ensemble's files joined by
+    ENSEMBLE_SEP (which must share architecture, camera and reward window: load_policy checks)."""
+    steps = spec.steps
+    sim_args, policy_args = nodes_args(spec, params_dir)
     import rclpy
     import rclpy.executors
     from diagnostic_msgs.msg import DiagnosticArray
@@ -141,22 +120,7 @@ def evaluate_once(
     said = {}  # the policy's latest /diagnostics values, and when they came
     node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: policy_said(said, m), 10)
     procs = Processes(log_dir=log_dir, quiet=log_dir is None)
-    pargs = lambda kv: [x for item in kv for x in ("-p", item)]  # noqa: E731
     try:
-        wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
-        policy_args = params_args(params_dir, "policy") + pargs(
-            [
-                f"model:={model}",
-                f"epsilon:={epsilon}",
-                f"seed:={seed}",
-                "publish_overlay:=false",
-                f"safety:={str(safety).lower()}",
-                f"shield:={'always' if shield else 'never'}",
-                f"insight_every:={insight_every}",  # every k-th decision measured, over the whole flight
-                f"insight_window:={2 * steps + 100}",
-                *wargs,
-            ]
-        )
         ready_by = time.monotonic() + 60.0
         sim_extra = []
         recorder = None
@@ -171,26 +135,11 @@ def evaluate_once(
             procs.start("record", "uav_bringup", "record", [], args=["-o", str(record_to), "--quiet"])
             procs.start("policy", "uav_policy", "policy_node", policy_args)
             recorder.wait_for_policy(executor, procs.procs, ready_by - time.monotonic())
-            sim_extra = ["wait_for_subscribers:=3"]
+            sim_extra = ["-p", "wait_for_subscribers:=3"]
         # The lockstep sim only advances once the policy answers, and it says its first frame again
         # every lockstep_republish_s: without a recorder the policy starts once the monitor has that
         # frame, so no step can go by before the monitor hears the simulator.
-        sim = procs.start(
-            "sim",
-            "uav_sim",
-            "sim_node",
-            params_args(params_dir, "sim")
-            + pargs(
-                [
-                    f"world:={world}",
-                    f"seed:={seed}",
-                    f"start_yaw_jitter_deg:={float(start_yaw_jitter_deg)}",
-                    f"step_budget:={steps}",  # exactly the steps measured: no frame after the last to answer
-                    *sim_args,
-                ]
-                + sim_extra
-            ),
-        )
+        sim = procs.start("sim", "uav_sim", "sim_node", sim_args + sim_extra)
         while mon.first:
             executor.spin_once(timeout_sec=0.05)
             if sim.poll() is not None:
@@ -214,17 +163,7 @@ def evaluate_once(
         if mon.gaps:
             raise RuntimeError(f"the monitor missed messages ({mon.gaps} steps out of sequence): the measurement is void")
         if recorder is not None:
-            # A busy recorder may lag, or miss a message and get it again: the simulator lives on (holding
-            # position and saying the last step's outcome again each lockstep_republish_s) until the bag holds every step.
-            outcome, heard, written = node.resolve_topic_name(contract.OUTCOME_TOPIC), mon.outcomes, recorder.written
-            asked = time.monotonic()
-            while written.get(outcome, 0) < heard and time.monotonic() < asked + 60.0:
-                executor.spin_once(timeout_sec=0.05)
-            if written.get(outcome, 0) < heard:
-                raise RuntimeError(
-                    f"the recorder wrote {written.get(outcome, 0)} of the {heard} step outcomes within 60 s: "
-                    f"the bag {record_to} is incomplete"
-                )
+            wait_for_the_bag(executor, recorder, node.resolve_topic_name(contract.OUTCOME_TOPIC), mon.outcomes, record_to)
         # The interventions and insight measured over the flight: the simulator stops first (no step more is
         # flown), then policy_node's next report (every second) is read.
         procs.stop("sim")
@@ -240,9 +179,9 @@ def evaluate_once(
         ctx.try_shutdown()
     b = mon.behaviour
     return EvalResult(
-        model,
-        world,
-        weights,
+        spec.model,
+        spec.world,
+        spec.weights,
         mon.steps,
         mon.crashes,
         mon.reward / max(mon.steps, 1),
@@ -250,10 +189,64 @@ def evaluate_once(
         len(mon.sites),
         b.turn_steps if b else -1,
         len(b.cells) if b else -1,
-        int(said["safety_interventions"]) if safety else -1,
+        int(said["safety_interventions"]) if spec.safety else -1,
         InsightSummary.from_values(said),
-        int(said["shield_overridden"]) if shield else -1,
+        int(said["shield_overridden"]) if spec.shield else -1,
     )
+
+
+def nodes_args(spec: FlightSpec, params_dir: Path | None) -> tuple[list[str], list[str]]:
+    """(sim_node's, policy_node's) arguments for a flight: without hfov_deg in the spec's `sim_args` the simulator gets
+    the camera the weights were trained with, without reward_window_fraction the reward window they record (else the
+    paper's), without a sensor the preset of that camera, and without image_width/image_height their input size."""
+    model, sim_args = spec.model, tuple(spec.sim_args)
+    files = spec.weights.split(ENSEMBLE_SEP) if spec.weights else []
+    first = files[0] if files else ""
+    if sim_arg_hfov_deg(sim_args) is None:
+        sim_args = (*sim_args, f"hfov_deg:={flown_hfov_deg(model, first)}")
+    if sim_arg_number(sim_args, "reward_window_fraction") is None:
+        sim_args = (*sim_args, f"reward_window_fraction:={flown_window(model, first)}")
+    if not any(arg.startswith("sensor:=") for arg in sim_args):
+        from uav_sim.sensor import sim_args_for_camera
+
+        sim_args = (*sim_args, *sim_args_for_camera(flown_hfov_deg(model, first)))
+    sim_args = (*sim_args, *image_size_args(model, first, sim_args))
+    pargs = lambda kv: [x for item in kv for x in ("-p", item)]  # noqa: E731
+    sim = [
+        f"world:={spec.world}",
+        f"seed:={spec.seed}",
+        f"start_yaw_jitter_deg:={float(spec.start_yaw_jitter_deg)}",
+        f"step_budget:={spec.steps}",  # exactly the steps measured: no frame after the last to answer
+        *sim_args,
+    ]
+    wargs = [f"weights:={','.join(files)}", *architecture_args(model, first)] if files else []
+    policy = [
+        f"model:={model}",
+        f"epsilon:={spec.epsilon}",
+        f"seed:={spec.seed}",
+        "publish_overlay:=false",
+        f"safety:={str(spec.safety).lower()}",
+        f"shield:={'always' if spec.shield else 'never'}",
+        f"insight_every:={spec.insight_every}",  # every k-th decision measured, over the whole flight
+        f"insight_window:={2 * spec.steps + 100}",
+        *wargs,
+    ]
+    return params_args(params_dir, "sim") + pargs(sim), params_args(params_dir, "policy") + pargs(policy)
+
+
+def wait_for_the_bag(executor, recorder, outcome_topic: str, heard: int, bag: Path) -> None:
+    """A busy recorder may lag, or miss a message and get it again: the simulator lives on (holding position and
+    saying the last step's outcome again each lockstep_republish_s) until the bag holds every step (RuntimeError
+    when it does not within 60 s)."""
+    written = recorder.written
+    asked = time.monotonic()
+    while written.get(outcome_topic, 0) < heard and time.monotonic() < asked + 60.0:
+        executor.spin_once(timeout_sec=0.05)
+    if written.get(outcome_topic, 0) < heard:
+        raise RuntimeError(
+            f"the recorder wrote {written.get(outcome_topic, 0)} of the {heard} step outcomes within 60 s: the bag {bag} "
+            "is incomplete"
+        )
 
 
 def policy_said(said: dict, msg) -> None:

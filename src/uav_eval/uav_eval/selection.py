@@ -56,7 +56,7 @@ def choose(files: list[Path], model: str, steps: int = VALIDATION_STEPS, log=pri
     complete Candidate (`best`)."""
     from uav_sim.world import VALIDATION_WORLDS
 
-    from .flights import evaluate_inprocess
+    from .flights import FlightSpec, evaluate_inprocess
 
     if not files:
         raise ValueError("no weights files to choose from")
@@ -70,9 +70,7 @@ def choose(files: list[Path], model: str, steps: int = VALIDATION_STEPS, log=pri
         for i, world in enumerate(VALIDATION_WORLDS):
             # An earlier file must have fewer crashes than the best so far: stop it at the count that ties.
             budget = best.crashes - crashes if best is not None else 0
-            r = evaluate_inprocess(
-                model, str(path), world, steps, seed=i, start_yaw_jitter_deg=180.0, insight_every=0, max_crashes=budget
-            )
+            r = evaluate_inprocess(FlightSpec(model, str(path), world, steps, i, 180.0, insight_every=0, max_crashes=budget))
             crashes, flown = crashes + r.crashes, flown + r.steps
             if best is not None and crashes >= best.crashes:
                 break
