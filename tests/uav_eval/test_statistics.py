@@ -148,7 +148,8 @@ def test_the_rule_picks_the_fewest_validation_crashes_ties_to_the_later_file_and
     crashes = {"policy_sam_step10": 3, "policy_sam_step20": 1, "policy_sam_step30": 1, "policy_sam": 2}
     flown = []
 
-    def fake(model, weights, world, steps, seed=0, max_crashes=0, **_):
+    def fake(spec, *_):
+        weights, world, steps, max_crashes = spec.weights, spec.world, spec.steps, spec.max_crashes
         name = Path(weights).stem
         flown.append((name, world))
         i = list(VALIDATION_WORLDS).index(world)
@@ -179,7 +180,8 @@ def test_the_rule_picks_the_fewest_validation_crashes_ties_to_the_later_file_and
 def test_choose_names_one_file_per_run_and_one_across_runs(tmp_path, monkeypatch, capsys):
     per_run = {"r0": {"policy_cnn_step5": 4, "policy_cnn": 6}, "r1": {"policy_cnn_step5": 2, "policy_cnn": 2}}
 
-    def fake(model, weights, world, steps, seed=0, max_crashes=0, **_):
+    def fake(spec, *_):
+        weights, world, steps, max_crashes = spec.weights, spec.world, spec.steps, spec.max_crashes
         c = per_run[Path(weights).parent.name][Path(weights).stem] if world == VALIDATION_WORLDS[0] else 0
         return result(weights, world, steps, min(c, max_crashes) if max_crashes else c)
 

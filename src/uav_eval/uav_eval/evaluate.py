@@ -57,9 +57,7 @@ def expand_worlds(names: list[str]) -> list[str]:
     return list(dict.fromkeys(worlds))
 
 
-def main(argv=None) -> int:
-    from uav_policy.weights import UNRECORDED_HFOV_DEG
-
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument(
         "--model",
@@ -108,6 +106,12 @@ def main(argv=None) -> int:
         help="stop a weights file's repeats in a world once N crashes are counted (0: fly all): with --repeats R and "
         "--steps S each row flies until N crashes or R x S steps, long enough to resolve a 2x difference at N about 20",
     )
+    add_how_flags(ap)
+    return ap
+
+
+def add_how_flags(ap: argparse.ArgumentParser) -> None:
+    """How the policies fly and what is written: ensembles, insight, outputs, in process, crash log, bags, safety, shield."""
     ap.add_argument(
         "--ensemble",
         type=int,
@@ -164,7 +168,11 @@ def main(argv=None) -> int:
         help="the network chooses among the actions the local map says are safe (policy_node's shield; with --inprocess "
         "uav_policy.shield without the node); its overrides are counted. Without it: the network alone",
     )
-    a = ap.parse_args(argv)
+
+
+def checked(ap: argparse.ArgumentParser, a) -> tuple[float | None, float | None, dict]:
+    """(the camera, the reward window, the in-process sensor) the arguments ask for; ap.error for what cannot be flown."""
+    sensor = {}
     if a.record and a.inprocess:
         ap.error("--record needs the ROS nodes: it records their topics (leave out --inprocess)")
     if a.record and Path(a.record).is_dir() and any(Path(a.record).iterdir()):
@@ -214,6 +222,13 @@ def main(argv=None) -> int:
         torch.set_num_threads(1)
     if not 0.0 <= a.start_yaw_jitter_deg <= 180.0:
         ap.error("--start-yaw-jitter-deg must be in [0, 180]")
+    return hfov_deg, window, sensor
+
+
+def protocol_line(a, hfov_deg: float | None) -> str:
+    """The tables' protocol line: how the flights were flown."""
+    from uav_policy.weights import UNRECORDED_HFOV_DEG
+
     if a.start_yaw_jitter_deg > 0:
         protocol = (
             f"Every episode starts at a random heading (uniform ±{a.start_yaw_jitter_deg:g}°), "
@@ -249,14 +264,12 @@ def main(argv=None) -> int:
             f" Each policy is {a.ensemble} weights files flown as one, acting on the mean of their Q-values"
             f" (--ensemble {a.ensemble}); means and intervals are over these policies."
         )
-    if a.from_csv:
-        try:
-            results = read_results_csvs(a.from_csv)
-        except ValueError as e:
-            ap.error(f"--from-csv: {e}")
-        md, _ = write_tables(results, Path(a.out), results[0].steps, protocol)
-        print(md.read_text())
-        return 0
+    return protocol
+
+
+def planned_runs(ap: argparse.ArgumentParser, a, protocol: str) -> tuple[list, dict, str]:
+    """(the runs: (model, its files: one, an ensemble's, or none for the packaged weights), the packaged files per model,
+    the protocol line with what the runs fly)."""
     models = a.model or ["sam"]
     planners = [m for m in models if m in PLANNERS]
     if planners and not a.inprocess:
@@ -282,6 +295,23 @@ def main(argv=None) -> int:
                 f" The packaged {m} weights (policy_node's default) are {len(packaged[m])} files flown as one,"
                 " acting on the mean of their Q-values."
             )
+    return runs, packaged, protocol
+
+
+def main(argv=None) -> int:
+    ap = parser()
+    a = ap.parse_args(argv)
+    hfov_deg, window, sensor = checked(ap, a)
+    protocol = protocol_line(a, hfov_deg)
+    if a.from_csv:
+        try:
+            results = read_results_csvs(a.from_csv)
+        except ValueError as e:
+            ap.error(f"--from-csv: {e}")
+        md, _ = write_tables(results, Path(a.out), results[0].steps, protocol)
+        print(md.read_text())
+        return 0
+    runs, packaged, protocol = planned_runs(ap, a, protocol)
     params = Path(a.params_dir) if Path(a.params_dir).is_dir() else None
     from tqdm import tqdm
 
