@@ -148,3 +148,29 @@ def test_no_module_of_the_stack_imports_itself_through_another():
     graph = module_imports()
     assert len(graph) > 80 and "uav_policy.masking" in graph["uav_policy.insight"]
     assert cycles(graph) == []
+
+
+def long_functions(root=ROOT / "src", max_parameters: int = 10, max_lines: int = 120) -> list[str]:
+    """'path:function (n parameters, m lines)' for each function with more parameters or lines than allowed."""
+    import ast
+
+    out = []
+    for path in sorted(root.glob("uav_*/uav_*/*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                bound = bool(a.args) and a.args[0].arg in ("self", "cls")
+                n = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) - bound
+                lines = node.end_lineno - node.lineno + 1
+                if n > max_parameters or lines > max_lines:
+                    out.append(f"{path.relative_to(root)}:{node.name} ({n} parameters, {lines} lines)")
+    return out
+
+
+def test_no_function_takes_more_than_ten_parameters_or_runs_over_120_lines(tmp_path):
+    """Settings that travel together are one object (uav_eval.flights.FlightSpec, distill's Schedule); a long main is
+    split into its steps."""
+    (tmp_path / "uav_x" / "uav_x").mkdir(parents=True)
+    (tmp_path / "uav_x" / "uav_x" / "m.py").write_text("def f(a, b, c, d, e, f, g, h, i, j, k):\n    pass\n")
+    assert long_functions(tmp_path) == ["uav_x/uav_x/m.py:f (11 parameters, 2 lines)"]  # the check can fail
+    assert long_functions() == []

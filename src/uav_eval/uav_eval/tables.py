@@ -165,10 +165,8 @@ def short_weights(weights: str) -> str:
     return name if len(files) == 1 else f"{name} + {len(files) - 1} more"
 
 
-def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol: str = "") -> tuple[Path, Path]:
-    """results.csv (one row per run) and results.md (Tables 1-2 and distance, mean ± 95% CI over seeds)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path = out_dir / "results.csv"
+def write_csv(results: list[EvalResult], csv_path: Path) -> Path:
+    """results.csv: one row per run (crashes with their interval, reward, distance, behaviour, insight)."""
     with open(csv_path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(
@@ -220,6 +218,13 @@ def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol:
                     *insight,
                 ]
             )
+    return csv_path
+
+
+def write_tables(results: list[EvalResult], out_dir: Path, steps: int, protocol: str = "") -> tuple[Path, Path]:
+    """results.csv (one row per run) and results.md (Tables 1-2 and distance, mean ± 95% CI over seeds)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = write_csv(results, out_dir / "results.csv")
     models = sorted({r.model for r in results}, key=MODELS.index)
     worlds = list(dict.fromkeys(r.world for r in results))
     lines = [

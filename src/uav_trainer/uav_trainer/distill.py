@@ -22,6 +22,7 @@ teachers, recipe and seed give the same student, byte for byte.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import sys
@@ -131,20 +132,28 @@ def collect(env, actor, steps: int, epsilon: float, rng, frames: int, hw, desc: 
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """How a distillation runs: DAgger rounds, states met per round, passes over the data set after each, exploration
+    while collecting, the optimiser's step and batch, where the student starts (`last` teacher file or `random`), seed."""
+
+    rounds: int = 4
+    steps_per_round: int = 2500
+    epochs: int = 3
+    epsilon: float = 0.1
+    lr: float = 1e-4
+    batch: int = 64
+    init: str = "last"
+    seed: int = 0
+
+
 def distill(
     files: list[str],
     recipe_name: str,
     out: Path,
     model: str | None = None,
-    rounds: int = 4,
-    steps_per_round: int = 2500,
-    epochs: int = 3,
-    epsilon: float = 0.1,
-    seed: int = 0,
-    init: str = "last",
-    params_dir: str = "params",
-    lr: float = 1e-4,
-    batch: int = 64,
+    how: Schedule = Schedule(),
+    params_dir="params",
     log=print,
 ) -> dict:
     """Distil the teachers into one network written to `out`; a summary (agreement per round, data set size)."""
@@ -157,6 +166,7 @@ def distill(
     from .recipes import load_recipe
 
     teacher, cfg, hfov, _ = load_teachers(files, model)
+    rounds, seed = how.rounds, how.seed
     recipe = load_recipe(recipe_name, params_dir)
     sim_cfg, worlds = sim_settings(recipe.node("sim_node"), seed, cfg.width)
     sim_cfg = with_sensor(sim_cfg)
@@ -169,7 +179,7 @@ def distill(
     rng = np.random.default_rng(seed)
     members = list(getattr(teacher, "members", [teacher]))
     student = build_network(cfg, seed=seed)
-    if init == "last":
+    if how.init == "last":
         student.load_state_dict(members[-1].state_dict())
     first, layouts = worlds.load(seed)
     sim = Simulator(first, sim_cfg, next_worlds=layouts)
@@ -182,11 +192,11 @@ def distill(
     try:
         for r in range(rounds):
             actor = teacher if r == 0 else student
-            fresh = collect(env, actor, steps_per_round, epsilon, rng, cfg.channels, hw, f"round {r + 1}/{rounds}")
+            fresh = collect(env, actor, how.steps_per_round, how.epsilon, rng, cfg.channels, hw, f"round {r + 1}/{rounds}")
             labels = q_of(teacher, fresh).astype(np.float32)
             agree = agreement(student, labels, fresh)
             states, targets = np.concatenate([states, fresh]), np.concatenate([targets, labels])
-            loss = fit(student, states, targets, epochs, batch, lr, rng)
+            loss = fit(student, states, targets, how.epochs, how.batch, how.lr, rng)
             after = agreement(student, labels, fresh)
             summary["rounds"].append({"flown_by": "teachers" if r == 0 else "student", "agreement_before": agree, "after": after})
             log(
@@ -227,19 +237,8 @@ def main(argv=None) -> int:
         ap.error("--out must not be one of the teachers")
     torch.set_num_threads(a.threads)
     try:
-        summary = distill(
-            a.teachers,
-            a.recipe,
-            Path(a.out),
-            a.model,
-            a.rounds,
-            a.steps_per_round,
-            a.epochs,
-            a.epsilon,
-            a.seed,
-            a.init,
-            a.params_dir,
-        )
+        how = Schedule(a.rounds, a.steps_per_round, a.epochs, a.epsilon, init=a.init, seed=a.seed)
+        summary = distill(a.teachers, a.recipe, Path(a.out), a.model, how, a.params_dir)
     except (ValueError, OSError, WeightsError) as e:
         ap.error(str(e))
     last = summary["rounds"][-1]

@@ -51,8 +51,8 @@ RETIRED_FLAGS = {
 }
 
 
-def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+def parser(argv: list[str]) -> argparse.ArgumentParser:
+    """train's flags (a retired one given in `argv` stops it at once, naming its replacement)."""
     ap = argparse.ArgumentParser(prog="train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     refuse_retired_flags(ap, argv, RETIRED_FLAGS)
     ap.add_argument("--model", choices=("sam", "cnn"), default="sam")
@@ -120,6 +120,12 @@ def main(argv=None) -> int:
         help=f"at the end, fly each weights file the run wrote N steps in each validation world and name the one with "
         f"the fewest crashes (default: {VALIDATION_STEPS}; 0: name the final weights without choosing)",
     )
+    return ap
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = parser(argv)
     a = ap.parse_args(argv)
     if a.validation_steps < 0:
         ap.error("--validation-steps must be >= 0 (0: no choice, the final weights)")
@@ -163,6 +169,25 @@ def main(argv=None) -> int:
     except OSError as e:
         ap.error(f"--log-dir {logs}: cannot write there ({e.strerror or e})")
     procs = Processes(log_dir=logs)
+    trainer, actors = start_nodes(procs, a, recipe, params, key, run_dir, size, frames, teach)
+    many = f" from {a.actors} actors (asynchronous)" if a.actors > 1 else ""
+    print(
+        f"training D3QN-{a.model.upper()} with recipe {recipe.path} ({recipe.summary()}) for {a.steps} steps{many} -> "
+        f"{run_dir} (node logs in {logs})",
+        flush=True,
+    )
+    interrupted = stop_signals()
+    code = 0
+    try:
+        code = follow(trainer, run_dir, a.steps, interrupted, procs, actors)
+    finally:
+        procs.stop("trainer", timeout_s=120)
+        procs.stop_all([f"policy{n}" for n in actors] + [f"sim{n}" for n in actors])
+    return report(a, trainer, run_dir, logs, snapshot_at, started, sim_values, code, interrupted)
+
+
+def start_nodes(procs: Processes, a, recipe, params, key, run_dir: Path, size: list, frames: list, teach: list):
+    """Start each actor's sim_node and policy_node and the trainer_node: (the trainer's process, the actors' names)."""
     p = lambda items: [x for kv in items for x in ("-p", kv)]  # noqa: E731
     node_args = lambda name: params_args(params, name) + recipe.ros_args(f"{name}_node")  # noqa: E731
     world = [f"world:={a.world}"] if a.world else []
@@ -207,19 +232,11 @@ def main(argv=None) -> int:
             ]
         ),
     )
-    many = f" from {a.actors} actors (asynchronous)" if a.actors > 1 else ""
-    print(
-        f"training D3QN-{a.model.upper()} with recipe {recipe.path} ({recipe.summary()}) for {a.steps} steps{many} -> "
-        f"{run_dir} (node logs in {logs})",
-        flush=True,
-    )
-    interrupted = stop_signals()
-    code = 0
-    try:
-        code = follow(trainer, run_dir, a.steps, interrupted, procs, actors)
-    finally:
-        procs.stop("trainer", timeout_s=120)
-        procs.stop_all([f"policy{n}" for n in actors] + [f"sim{n}" for n in actors])
+    return trainer, actors
+
+
+def report(a, trainer, run_dir: Path, logs: Path, snapshot_at, started: float, sim_values: dict, code: int, interrupted) -> int:
+    """What the run wrote and the command that flies the weights chosen (or why it stopped); the exit code."""
     trainer_code = trainer.returncode
     failed = trainer_code not in (0, None, -signal.SIGINT)
     # Only files this run wrote: an earlier run's (or a crashed run's) files are not this run's result.
