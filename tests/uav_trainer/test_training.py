@@ -439,6 +439,10 @@ def test_the_crash_log_says_where_when_and_from_which_start(tmp_path):
     assert [row["step"] for row in fixed] == [fixed[0]["step"] * (i + 1) for i in range(len(fixed))]
     assert len({(row["x_m"], row["y_m"]) for row in fixed}) == 1 and {row["start_yaw_deg"] for row in fixed} == {0.0}
     assert {row["action"] for row in fixed} == {"a3_forward_2mps"}
+    # The map teacher steers clear of the wall it flies into: it disagreed shortly before each crash, not always.
+    assert all(0 <= row["steps_since_teacher_disagreed"] <= row["episode_step"] for row in fixed)
+    assert 0.0 < r.teacher_agreement < 1.0, r.teacher_agreement
+    assert evaluate_inprocess(FlightSpec("cnn", "", SMALL_WORLD, 300), Straight()).teacher_agreement == -1.0  # no log
     r = fly(varied, start_yaw_jitter_deg=180.0)
     assert len(varied) == r.crashes and len({row["start_yaw_deg"] for row in varied}) > 1
     assert sum(row["episode_step"] for row in varied) <= 300

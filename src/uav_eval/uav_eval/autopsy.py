@@ -1,7 +1,9 @@
 """A crash autopsy for `evaluate --crash-log` (no ROS): beside the flight, the map planner (the teacher the student
 could follow: uav_sim.planner with knowledge `map`) labels every frame, so that each crash says how many steps
 before it the flown action last differed from the teacher's, what was hit, and whether that was in the frame the
-decision was made on, only in the local map (seen in an earlier frame), or never seen."""
+decision was made on, only in the local map (seen in an earlier frame), or never seen; and over the flight, how often
+the student flew the teacher's action on its own frames (an action the teacher scores as high as its best, a tie, is
+the teacher's too)."""
 
 from __future__ import annotations
 
@@ -28,18 +30,27 @@ class Autopsy:
         self.geometry = _geometry(sim)
         self._world = sim.world
         self.last_disagreed: int | None = None
-        self._label, self._visible = -1, frozenset()
+        self.agreed = self.labelled = 0  # steps flown the teacher's way (ties counted), steps labelled
+        self._scores, self._visible = np.zeros(0), frozenset()
 
     def before(self) -> None:
         """The frame about to be decided on: the teacher's label and what it shows."""
         if self.sim.world is not self._world:
             self.geometry, self._world = _geometry(self.sim), self.sim.world
-        self._label = self.teacher.label().action
+        self._scores = np.asarray(self.teacher.label().scores, dtype=np.float64)
         self._visible = self.sim.visible
 
     def after(self, step: int, action: int) -> None:
-        if action != self._label:
+        self.labelled += 1
+        if self._scores[action] < self._scores.max():
             self.last_disagreed = step
+        else:
+            self.agreed += 1
+
+    @property
+    def agreement(self) -> float:
+        """The share of the steps flown the teacher's way (a tie with its best counts), -1 before any."""
+        return self.agreed / self.labelled if self.labelled else -1.0
 
     def crash(self, step: int, pose: Pose, action) -> dict:
         """The autopsy of a crash on `step`, flown with `action` (uav_common.actions.Action) from `pose`."""

@@ -401,6 +401,10 @@ def main(argv=None) -> int:
             w.writerows(crash_rows)
         seen = Counter(r["hit_seen"] for r in crash_rows if r.get("hit_seen"))
         autopsy = ", ".join(f"{n} hit what {SEEN_WORDS[k]}" for k, n in seen.items())
+        labelled = [r for r in results if r.teacher_agreement >= 0]
+        if labelled:
+            share = sum(r.teacher_agreement * r.steps for r in labelled) / sum(r.steps for r in labelled)
+            autopsy += f"{'; ' if autopsy else ''}the map teacher's action flown on {100 * share:.1f} % of the steps (ties count)"
         print(f"written: {Path(a.out) / 'crashes.csv'} ({len(crash_rows)} crashes{'; ' + autopsy if autopsy else ''})")
     return 0
 

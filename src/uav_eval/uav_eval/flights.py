@@ -33,6 +33,7 @@ class EvalResult:
     interventions: int = -1  # commands policy_node's safety layer changed (-1: flown without it)
     insight: InsightSummary | None = None  # what the decisions looked at, measured on every step (None: not measured)
     shield_overrides: int = -1  # decisions the shield changed (-1: flown without one)
+    teacher_agreement: float = -1.0  # with a crash log: the share of steps flown the map teacher's way, ties counted
 
     @property
     def distance_between_crashes_m(self) -> float:
@@ -273,6 +274,7 @@ def evaluate_inprocess(spec: FlightSpec, net=None, net_cfg=None, crash_log: list
         layer.counts.total if layer is not None else -1,
         insight=insight.summary() if insight is not None else None,
         shield_overrides=guard.counts.overridden if guard is not None else -1,
+        teacher_agreement=autopsy.agreement if autopsy is not None else -1.0,
     )
 
 

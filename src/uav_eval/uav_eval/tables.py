@@ -49,6 +49,7 @@ def pool(runs: list[EvalResult]) -> EvalResult:
         ),
         InsightSummary.pool([r.insight for r in runs]),
         sum(r.shield_overrides for r in runs) if all(r.shield_overrides >= 0 for r in runs) else -1,
+        sum(r.teacher_agreement * r.steps for r in runs) / steps if all(r.teacher_agreement >= 0 for r in runs) else -1.0,
     )
 
 
