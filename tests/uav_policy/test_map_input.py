@@ -9,7 +9,7 @@ import torch
 
 from uav_common.local_map import LocalMap, PinholeCamera
 from uav_policy import weights as wio
-from uav_policy.attention import attention_map
+from uav_policy.attention import attention_map, map_overlay
 from uav_policy.insight import Insight, explanation
 from uav_policy.masking import masked_states
 from uav_policy.networks import NetConfig, build_network, forward_flops
@@ -138,3 +138,19 @@ def test_explanations_of_a_map_network_remove_map_cells_as_free_and_draw_the_ima
     insight = Insight((8, 8))
     insight.observe(net, state, int(q.argmax()), rows)
     assert insight.summary().frames == 1
+
+
+def test_the_map_half_of_the_attention_is_drawn_top_down_with_its_share():
+    grid = np.zeros((64, 64), np.float32)
+    grid[10:14, 40:44] = 1.0  # an obstacle ahead and to the right
+    weights = np.zeros((3, 5, 128))
+    weights[..., :64] = 0.5 / 64  # half of the mass on the image, spread
+    weights[..., 64 + 1 * 8 + 5] = 0.5  # half on the map cell that holds the obstacle (row 1, column 5)
+    img = map_overlay(grid, weights, (8, 8), "a1")
+    assert img.shape == (256 + 40, 256, 3) and img.dtype == np.uint8
+    cell = img[8 * 4 : 16 * 4, 40 * 4 : 48 * 4]
+    elsewhere = img[40 * 4 : 48 * 4, 0 : 8 * 4]
+    assert cell[..., 1].mean() > elsewhere[..., 1].mean() + 50, "the weighed cell is green"
+    assert (img[10 * 4 + 2, 41 * 4 + 2] > 100).all() or img[10 * 4 + 2, 41 * 4 + 2, 1] > 100, "the obstacle shows"
+    with pytest.raises(ValueError, match="image cells and as many map cells"):
+        map_overlay(grid, weights[..., :64], (8, 8))

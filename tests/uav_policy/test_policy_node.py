@@ -782,3 +782,67 @@ def test_the_packaged_default_explains_a_camera_stream_by_where_the_obstacle_is(
         a[right_half].mean(),
         b[right_half].mean(),
     )
+
+
+def test_a_network_with_the_local_map_flies_a_camera_with_odometry_shows_its_map_and_stops_without(ros, tmp_path):
+    """A network that takes the local map (its weights file says so), behind a camera with no shield: each frame is
+    mapped with the odometry of its time, the map's attention is drawn top-down on attention/local_map; frames without
+    odometry are answered with no forward flight, and the log says why."""
+    import math
+
+    import numpy as np
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import CameraInfo
+
+    from uav_policy import weights as wio
+    from uav_policy.networks import NetConfig, build_network
+
+    w = tmp_path / "map.safetensors"
+    cfg = NetConfig(sam_readout="query", local_map=True)
+    wio.save_file(build_network(cfg, seed=1), cfg, w, camera_hfov_deg=90.0)
+    cmds, pictures, diag = [], [], []
+    ros.node.create_subscription(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, cmds.append, deep_qos())
+    ros.node.create_subscription(Image, contract.ATTENTION_LOCAL_MAP_TOPIC, pictures.append, deep_qos())
+    ros.node.create_subscription(
+        DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
+    )
+    pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.SENSOR_QOS)
+    pub_info = ros.node.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, contract.SENSOR_QOS)
+    pub_odom = ros.node.create_publisher(Odometry, contract.ODOM_TOPIC, contract.SENSOR_QOS)
+    args = ("-p", f"weights:={w}", "-p", "publish_stamped:=true", "-p", "shield:=never", "-p", "safety:=false")
+    proc = ros.start("uav_policy", "policy_node", *args)
+    subscribed = lambda: all(p.get_subscription_count() for p in (pub_img, pub_info, pub_odom))  # noqa: E731
+    assert ros.spin_until(lambda: subscribed() and diag, 30), ros.log_of(proc)[-2000:]
+    values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
+    assert values(diag[-1])["local_map_input"] == "on"
+    f = 32 / math.tan(math.radians(45))
+    info = CameraInfo(width=64, height=64, k=[f, 0.0, 32.0, 0.0, f, 32.0, 0.0, 0.0, 1.0])
+    frame = np.full((64, 64), 6.0, np.float32)
+    frame[:, 20:30] = 2.0  # a pillar 2 m ahead, left of centre
+    clock = ros.node.get_clock()
+
+    def stream(answers: int, odometry: bool) -> list:
+        stamps, deadline = set(), time.monotonic() + 30
+        answered = lambda: [c for c in cmds if contract.stamp_ns(c.header.stamp) in stamps]  # noqa: E731
+        while len(answered()) < answers and time.monotonic() < deadline:
+            stamp = clock.now().to_msg()
+            if odometry:
+                odom = Odometry()
+                odom.header.stamp, odom.pose.pose.position.z, odom.pose.pose.orientation.w = stamp, 1.0, 1.0
+                pub_odom.publish(odom)
+            info.header.stamp = stamp
+            pub_info.publish(info)
+            pub_img.publish(contract.depth_to_image(frame, stamp, "camera_depth_optical_frame"))
+            stamps.add(contract.stamp_ns(stamp))
+            ros.spin_for(0.1)
+        return answered()
+
+    mapped = stream(5, odometry=True)
+    assert len(mapped) >= 5, ros.log_of(proc)[-3000:]
+    assert ros.spin_until(lambda: pictures, 5), "attention/local_map drawn for its subscriber"
+    assert pictures[-1].encoding == "rgb8" and pictures[-1].width == 256
+    ros.spin_for(0.6)  # the last odometry is older than odom_timeout_s from now on
+    blind = stream(5, odometry=False)
+    assert len(blind) >= 5 and all(c.twist.linear.x == 0.0 for c in blind), [c.twist.linear.x for c in blind]
+    assert "the network's local map: no odometry within odom_timeout_s of the frame" in ros.log_of(proc)

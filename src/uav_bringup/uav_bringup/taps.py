@@ -20,6 +20,7 @@ STACK_TOPICS = {
     contract.CAMERA_INFO_TOPIC: "sensor_msgs/msg/CameraInfo",
     contract.ATTENTION_TOPIC: "sensor_msgs/msg/Image",
     contract.ATTENTION_OVERLAY_TOPIC: "sensor_msgs/msg/Image",
+    contract.ATTENTION_LOCAL_MAP_TOPIC: "sensor_msgs/msg/Image",
     contract.SALIENCY_TOPIC: "sensor_msgs/msg/Image",
     contract.SALIENCY_OVERLAY_TOPIC: "sensor_msgs/msg/Image",
     contract.ODOM_TOPIC: "nav_msgs/msg/Odometry",

@@ -39,6 +39,7 @@ Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
 ATTENTION_OVERLAY_TOPIC = "attention/overlay"
 ATTENTION_WEIGHTS_TOPIC = "attention/weights"
+ATTENTION_LOCAL_MAP_TOPIC = "attention/local_map"  # a network with the local map: what it weighs there, top-down
 SALIENCY_TOPIC = "saliency"  # the CNN's Grad-CAM: never called attention
 SALIENCY_OVERLAY_TOPIC = "saliency/overlay"
 WORLD_MARKERS_TOPIC = "world/markers"

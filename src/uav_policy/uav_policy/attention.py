@@ -1,5 +1,6 @@
 """Turning an explanation (SAM's attention, the CNN's saliency) into pictures on an absolute scale: a per-pixel
-map of each region's mass relative to its uniform share, and an rgb overlay with its legend."""
+map of each region's mass relative to its uniform share, and an rgb overlay with its legend; for a network with the
+local map, the top-down picture of what it weighs there (`map_overlay`)."""
 
 from __future__ import annotations
 
@@ -86,3 +87,28 @@ def legend(width: int, label: str, kind: str) -> np.ndarray:
     strip[24:34, x0:x1] = np.repeat((green * ramp).astype(np.uint8), 10, axis=0)
     cv2.putText(strip, text, (x1 + 4, 33), font, 0.35, white, 1, cv2.LINE_AA)
     return strip
+
+
+def map_overlay(grid: np.ndarray, weights: np.ndarray, grid_hw: tuple[int, int], label: str = "") -> np.ndarray:
+    """rgb8 top-down picture for a network with the local map: its egocentric grid (obstacle cells white, the vehicle
+    a red mark at the bottom centre, looking up) with the attention on the map's cells (the second half of the nodes)
+    in green on the overlay's absolute scale; the legend says the share of the attention the map gets."""
+    gh, gw = grid_hw
+    dist = received(weights)
+    if dist.size != 2 * gh * gw:
+        raise ValueError(f"{dist.size} nodes are not the {gh}x{gw} image cells and as many map cells")
+    on_map = float(dist[gh * gw :].sum())
+    rel = received(dist[gh * gw :]) * gh * gw
+    h, w = grid.shape
+    amap = cv2.resize(rel.reshape(gh, gw).astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+    base = np.where(np.asarray(grid)[:, :, None] > 0.5, 255.0, 40.0) * np.ones(3, np.float32)
+    a = strength(amap)[:, :, None] * 0.8
+    green = np.zeros_like(base)
+    green[:, :, 1] = 255.0
+    img = (base * (1.0 - a) + green * a).astype(np.uint8)
+    k = max(1, -(-OVERLAY_MIN_PX // min(h, w)))
+    img = cv2.resize(img, (w * k, h * k), interpolation=cv2.INTER_NEAREST)
+    cx, cy = (w // 2) * k, (h - h // 4) * k  # the camera: a quarter of the grid lies behind it
+    cv2.drawMarker(img, (cx, cy), (255, 0, 0), cv2.MARKER_TRIANGLE_UP, 3 * k, 2)
+    text = f"{label}; " if label else ""
+    return np.concatenate([img, legend(img.shape[1], f"{text}map {100 * on_map:.0f} % of the attention", "attention")])

@@ -15,7 +15,7 @@ from std_msgs.msg import Float32MultiArray
 from uav_common import contract
 from uav_common.actions import Action
 
-from .attention import attention_map, overlay
+from .attention import attention_map, map_overlay, overlay
 from .pilot import Decision
 
 
@@ -33,6 +33,7 @@ class Outputs:
         self.attention = (pub(Image, contract.ATTENTION_TOPIC, q), pub(Image, contract.ATTENTION_OVERLAY_TOPIC, big))
         self.weights = pub(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, q)
         self.saliency = (pub(Image, contract.SALIENCY_TOPIC, q), pub(Image, contract.SALIENCY_OVERLAY_TOPIC, big))
+        self.local_map = pub(Image, contract.ATTENTION_LOCAL_MAP_TOPIC, big)  # a network with the local map, top-down
         self.q_label = "action:" + ",".join(a.name for a in actions)
         self.last_cmd, self.last_cmd_unheard = None, False
 
@@ -78,15 +79,19 @@ class Outputs:
             self.last_cmd_unheard = self.cmd.get_subscription_count() == 0
             self.cmd.publish(self.last_cmd)
 
-    def explained(self, img: Image, depth: np.ndarray, d: Decision, grid_hw, view) -> Callable | None:
-        """q_values and SAM's attention maps; for the CNN, the saliency publisher `publish(rows)` when someone
-        subscribes (its Grad-CAM costs a backward pass), else None."""
+    def explained(self, img: Image, depth: np.ndarray, d: Decision, grid_hw, view, grid=None) -> Callable | None:
+        """q_values and SAM's attention maps (with the local map's `grid`, the picture of what it weighs there); for the
+        CNN, the saliency publisher `publish(rows)` when someone subscribes (its Grad-CAM costs a backward pass), else
+        None."""
         self.q_values.publish(contract.q_values_msg(d.q, self.q_label))
         maps = lambda rows, kind, pubs: self._map(img, depth, d, rows, grid_hw, view, kind, pubs)  # noqa: E731
         if d.attention is not None:  # SAM: the attention is at hand
             maps(d.attention, "attention", self.attention)
             if self.weights.get_subscription_count() > 0:
                 self.weights.publish(contract.attention_weights_msg(d.attention, grid_hw))
+            if grid is not None and self.local_map.get_subscription_count() > 0:
+                label = self.actions[d.action].name.split("_", 1)[0]
+                self.local_map.publish(contract.rgb_image(img.header, map_overlay(grid, d.attention, grid_hw, label)))
             return None
         if any(p.get_subscription_count() > 0 for p in self.saliency):
             return lambda rows: maps(rows, "saliency", self.saliency)

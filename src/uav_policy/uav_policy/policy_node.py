@@ -206,7 +206,8 @@ class PolicyNode(Node):
         t_out = time.perf_counter()
         self.link.last_stamp = contract.stamp_ns(img.header.stamp)
         net = self.agent.net
-        saliency = self.out.explained(img, depth, d, net.grid_hw, self.camera.view)
+        grid = state[-1] if self.cfg.local_map else None  # the map channel: drawn top-down with its attention
+        saliency = self.out.explained(img, depth, d, net.grid_hw, self.camera.view, grid)
         inline = not self.control.active  # a simulator waits for our answer: measure now
         self.explainer.explain(net, state, d.q, d.attention, self.stats.answered, saliency, inline)
         self.stats.answer(t_in, t0, t_out)
