@@ -49,7 +49,10 @@ def generate_launch_description():
                 package="uav_policy",
                 executable="policy_node",
                 namespace=ns,
-                parameters=[PathJoinSubstitution([params, "policy.yaml"]), {"model": LaunchConfiguration("model")}],
+                parameters=[
+                    PathJoinSubstitution([params, "policy.yaml"]),
+                    {"model": LaunchConfiguration("model"), "source": "simulator"},
+                ],
                 output="screen",
             ),
         ]

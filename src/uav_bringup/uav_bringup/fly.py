@@ -128,7 +128,7 @@ def main(argv=None) -> int:
     if a.live_view:
         procs.start("live_view", "uav_bringup", "live_view", ns, args=["--port", str(a.port)])
     # The policy before the simulator: loading its networks takes longer than the real-time watchdog.
-    policy_values = [f"model:={a.model}"] + ([f"weights:={a.weights}"] if a.weights else [])
+    policy_values = [f"model:={a.model}", "source:=simulator"] + ([f"weights:={a.weights}"] if a.weights else [])
     policy_values += ["shield:=always"] if a.shield else []
     procs.start("policy", "uav_policy", "policy_node", node_args(params, "policy", policy_values + a.policy_arg, a.namespace))
     if a.mavlink:

@@ -224,6 +224,7 @@ def nodes_args(spec: FlightSpec, params_dir: Path | None) -> tuple[list[str], li
         f"model:={model}",
         f"epsilon:={spec.epsilon}",
         f"seed:={spec.seed}",
+        "source:=simulator",  # the first frames wait for their outcome, whenever the policy discovers sim_node
         "publish_overlay:=false",
         f"safety:={str(spec.safety).lower()}",
         f"shield:={'always' if spec.shield else 'never'}",

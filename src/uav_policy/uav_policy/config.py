@@ -95,6 +95,13 @@ class PolicySettings:
         "accept_pushes: the run's key (hex, mode 0600; train writes it, trainer_node creates it when missing); only "
         "pushes signed with it are taken. Read at the first push",
     )
+    source: str = setting(
+        "auto",
+        "Where frames come from: auto (a camera until a simulator's step_outcome publisher is discovered: a frame "
+        "that comes first is answered as a camera's); simulator (every frame waits for its step outcome: fly, evaluate "
+        "and train set it, so the first frames of a lockstep flight are answered as in process)",
+        choices=("auto", "simulator"),
+    )
     wait_for_trainer: bool = setting(
         False,
         "Lockstep learning (train sets true): answer a frame only once trainer_node releases it over ~/push_weights "

@@ -51,7 +51,7 @@ class PolicyNode(Node):
         self.epsilon = st.epsilon
         why = "is set by the trainer's pushes" if st.accept_pushes else "is fixed at start-up while flying (-p epsilon:=X)"
         self.epsilon_param = NodeOwned(self, "epsilon", why)
-        self.wait_for_trainer = st.wait_for_trainer
+        self.wait_for_trainer, self.simulator = st.wait_for_trainer, st.source == "simulator"
         torch.set_num_threads(st.torch_threads)
         try:
             self.actions = st.actions.table()
@@ -132,7 +132,7 @@ class PolicyNode(Node):
             if self.camera.should_wait(msg.height, msg.width, time.monotonic(), offered):
                 self.frame_awaiting_info = msg  # answered when its CameraInfo comes (a lockstep sim waits for it)
                 return
-            if not self.wait_for_trainer and self.count_publishers(self.outcome_topic) == 0:
+            if not (self.wait_for_trainer or self.simulator) and self.count_publishers(self.outcome_topic) == 0:
                 self._on_camera_frame(msg, stamp, t_in)
                 return
             if self.control.active:
