@@ -98,8 +98,8 @@ class PolicySettings:
     source: str = setting(
         "auto",
         "Where frames come from: auto (a camera until a simulator's step_outcome publisher is discovered: a frame "
-        "that comes first is answered as a camera's); simulator (every frame waits for its step outcome: fly, evaluate "
-        "and train set it, so the first frames of a lockstep flight are answered as in process)",
+        "that comes first is answered as a camera's); simulator (every frame waits for its step outcome: fly and evaluate "
+        "set it, train's wait_for_trainer implies it; the first frames of a lockstep flight are answered as in process)",
         choices=("auto", "simulator"),
     )
     wait_for_trainer: bool = setting(
