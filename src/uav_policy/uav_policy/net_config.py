@@ -71,6 +71,7 @@ class NetConfig:
         # must not make CNN weights look like another architecture.
         if self.model == "cnn" and self.sam_readout in SAM_READOUTS:
             object.__setattr__(self, "sam_readout", "max")
+        self.validate()  # once, where it is made: every NetConfig in use is a valid one
 
     def validate(self) -> None:
         for name in ("feature_norm", "local_map"):

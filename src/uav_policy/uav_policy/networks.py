@@ -219,7 +219,6 @@ def grid_coordinates(h: int, w: int) -> torch.Tensor:
 class D3QNSam(nn.Module):
     def __init__(self, cfg: NetConfig):
         super().__init__()
-        cfg.validate()
         self.cfg = cfg
         self.trunk = ConvTrunk(cfg)
         self.map_trunk = ConvTrunk(cfg, 1, depth=False) if cfg.local_map else None
@@ -295,7 +294,6 @@ class D3QNSam(nn.Module):
 class D3QNCnn(nn.Module):
     def __init__(self, cfg: NetConfig):
         super().__init__()
-        cfg.validate()
         self.cfg = cfg
         self.trunk = ConvTrunk(cfg)
         self.map_trunk = ConvTrunk(cfg, 1, depth=False) if cfg.local_map else None
@@ -349,7 +347,6 @@ class QEnsemble(nn.Module):
 
 def build_network(cfg: NetConfig, seed: int | None = None) -> nn.Module:
     """A freshly initialised network; with a seed, the same seed gives the same weights."""
-    cfg.validate()
     if seed is not None:
         gen_state = torch.random.get_rng_state()
         torch.manual_seed(seed)
@@ -366,7 +363,6 @@ def forward_flops(cfg: NetConfig) -> int:
     the network is allocated, so an architecture is priced before it is built (a pushed one, say)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    cfg.validate()
     with torch.device("meta"):
         net = D3QNSam(cfg) if cfg.model == "sam" else D3QNCnn(cfg)
         with FlopCounterMode(display=False) as counter:

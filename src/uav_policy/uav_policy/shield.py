@@ -183,9 +183,16 @@ class ShieldFeed:
         if pose is None or intrinsics is None:
             self.stale += 1
             self.shield.forget_pose()
-            why = "no odometry within odom_timeout_s of the frame" if intrinsics is not None else "no depth/camera_info"
             who = "shield" if self.on(camera) else "the network's local map"
-            self.log.warning(f"{who}: {why}: nothing is vouched for, forward flight stops", throttle_duration_sec=2.0)
+            if intrinsics is None:  # each cause throttled on its own (a throttle is per call site)
+                self.log.warning(
+                    f"{who}: no depth/camera_info: nothing is vouched for, forward flight stops", throttle_duration_sec=2.0
+                )
+            else:
+                self.log.warning(
+                    f"{who}: no odometry within odom_timeout_s of the frame: nothing is vouched for, forward flight stops",
+                    throttle_duration_sec=2.0,
+                )
             return self.shield
         fx, fy, cx, cy, width, height = intrinsics
         if (height, width) != depth_m.shape:

@@ -165,9 +165,7 @@ def _entry_of(meta: dict, key: str, check) -> float | None:
 
 def _config_of(meta: dict) -> NetConfig:
     try:
-        cfg = NetConfig.from_json(meta.get("config", ""))
-        cfg.validate()  # loaders build what a file says (config_for): out-of-range sizes stop here
-        return cfg
+        return NetConfig.from_json(meta.get("config", ""))  # validated as made: out-of-range sizes stop here
     except (ValueError, TypeError) as e:
         raise WeightsError(f"weights metadata 'config' is invalid: {e}") from None
 

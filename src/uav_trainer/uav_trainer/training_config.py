@@ -175,7 +175,7 @@ class TrainerConfig:
         """ValueError naming the settings that cannot go together."""
         px = self.input_size_px
         try:
-            NetConfig(conv_channels=tuple(self.conv_channels), height=px, width=px).validate()
+            NetConfig(conv_channels=tuple(self.conv_channels), height=px, width=px)
         except ValueError as e:
             raise ValueError(f"'conv_channels'={list(self.conv_channels)}: {e}") from None
         if self.d_model % self.heads:
