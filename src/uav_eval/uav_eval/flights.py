@@ -302,9 +302,7 @@ def network_flight(spec: FlightSpec, net=None, net_cfg=None):
     from uav_policy import weights as wio
     from uav_policy.agent import Agent
     from uav_policy.safety import SafetyLayer, SafetySettings
-    from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.stacked_sim import StackedSim
-    from uav_sim.world import load_world
 
     model, weights, hfov_deg, window = spec.model, spec.weights, spec.hfov_deg, spec.reward_window_fraction
     if net is None:
@@ -317,33 +315,33 @@ def network_flight(spec: FlightSpec, net=None, net_cfg=None):
         hfov_deg = wio.camera_for(weights, wio.UNRECORDED_HFOV_DEG)
     if window is None:
         window = wio.window_for(weights, CENTER_WINDOW_FRACTION)
-    sensor, scale = camera_preset(spec, hfov_deg)
-    sim_cfg = SimConfig(
-        seed=spec.seed,
-        start_yaw_jitter_deg=spec.start_yaw_jitter_deg,
-        hfov_deg=hfov_deg,
-        image_width=cfg.width,
-        image_height=cfg.height,
-        reward_window_fraction=window,
-        sensor=sensor,
-        sensor_scale=scale,
-    )
-    sim = Simulator(load_world(spec.world), sim_cfg)
+    sim = flight_simulator(spec, hfov_deg, window, hfov_deg=hfov_deg, image_width=cfg.width, image_height=cfg.height)
     layer = SafetyLayer(SafetySettings(), cfg.height, cfg.width, hfov_deg) if spec.safety else None
     env = StackedSim(sim, cfg.frames, input_hw=(cfg.height, cfg.width), trained_hfov_deg=hfov_deg, map_grid=cfg.map_grid)
     return sim, env, Agent(net, cfg, seed=spec.seed), layer, net
 
 
-def camera_preset(spec: FlightSpec, hfov_deg: float) -> tuple[str, float]:
-    """(sensor preset, scale) a flight renders: the spec's, else the preset of a camera of `hfov_deg` at the recipes'
-    scale (uav_sim.sensor.preset_for_camera)."""
+def flight_simulator(spec: FlightSpec, camera_hfov_deg: float, window: float, **image):
+    """The simulator a flight flies: the spec's world, seed and headings, the reward `window`, and the spec's sensor
+    preset, else the preset of a camera of `camera_hfov_deg` at the recipes' scale (uav_sim.sensor.preset_for_camera);
+    `image`: SimConfig's camera fields (hfov_deg, image size)."""
     from uav_sim.sensor import TRAINING_SCALE, preset_for_camera
+    from uav_sim.simulator import SimConfig, Simulator
+    from uav_sim.world import load_world
 
     sensor, scale = spec.sensor, spec.sensor_scale
     if sensor is None:
-        sensor = preset_for_camera(hfov_deg)
+        sensor = preset_for_camera(camera_hfov_deg)
         scale = TRAINING_SCALE if sensor != "ideal" and scale is None else scale
-    return sensor, 1.0 if scale is None else scale
+    cfg = SimConfig(
+        seed=spec.seed,
+        start_yaw_jitter_deg=spec.start_yaw_jitter_deg,
+        reward_window_fraction=window,
+        sensor=sensor,
+        sensor_scale=1.0 if scale is None else scale,
+        **image,
+    )
+    return Simulator(load_world(spec.world), cfg)
 
 
 def reason_pixels(reasons, env) -> np.ndarray | None:
@@ -359,22 +357,12 @@ def planner_flight(spec: FlightSpec):
     packaged networks were trained behind (sensor None), measured with their reward window."""
     from uav_policy.net_config import NetConfig
     from uav_sim.planner import PlannerAgent, PlannerConfig, SimPlanner
-    from uav_sim.simulator import SimConfig, Simulator
     from uav_sim.stacked_sim import StackedSim
-    from uav_sim.world import load_world
 
     for flag, what in (("safety", "safety layer"), ("shield", "shield")):
         if getattr(spec, flag):
             raise ValueError(f"--{flag}: the {spec.model} flies no network, so there is no {what} to measure")
-    sensor, scale = camera_preset(spec, flown_hfov_deg("sam", ""))
     window = flown_window("sam", "") if spec.reward_window_fraction is None else spec.reward_window_fraction
-    sim_cfg = SimConfig(
-        seed=spec.seed,
-        start_yaw_jitter_deg=spec.start_yaw_jitter_deg,
-        reward_window_fraction=window,
-        sensor=sensor,
-        sensor_scale=scale,
-    )
-    sim = Simulator(load_world(spec.world), sim_cfg)
+    sim = flight_simulator(spec, flown_hfov_deg("sam", ""), window)
     config = PlannerConfig(knowledge=PLANNERS[spec.model], memory_frames=NetConfig.frames)
     return sim, StackedSim(sim, NetConfig.frames), PlannerAgent(SimPlanner(sim, config)), None

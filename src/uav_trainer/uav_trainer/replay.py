@@ -274,23 +274,12 @@ class LanedReplay:
     i's chain, and a batch is drawn uniformly over the transitions of all lanes. Not journaled: a run with
     several actors that resumes refills its memory."""
 
-    def __init__(
-        self,
-        lanes: int,
-        capacity: int,
-        frame_shape: tuple[int, int],
-        frames: int = 5,
-        seed: int = 0,
-        reason_nodes: int = 0,
-        local_map: bool = False,
-    ):
+    def __init__(self, lanes: int, capacity: int, frame_shape: tuple[int, int], frames: int = 5, seed: int = 0, *slots):
+        """`slots`: each lane's ReplayMemory reason_nodes and local_map."""
         if lanes < 2:
             raise ValueError(f"a laned memory needs at least 2 lanes, got {lanes} (one actor: ReplayMemory)")
         share = capacity // lanes
-        self.lanes = [
-            ReplayMemory(share, frame_shape, frames, seed=seed + 1 + i, reason_nodes=reason_nodes, local_map=local_map)
-            for i in range(lanes)
-        ]
+        self.lanes = [ReplayMemory(share, frame_shape, frames, seed + 1 + i, *slots) for i in range(lanes)]
         self.capacity = share * lanes
         self.rng = np.random.default_rng(seed)  # which lane each sample comes from
 
