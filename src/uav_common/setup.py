@@ -6,6 +6,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={"uav_common": ["fastdds_large_frames.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/uav_common"]),
         ("share/uav_common", ["package.xml"]),

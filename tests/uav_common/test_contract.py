@@ -202,3 +202,19 @@ def test_the_sampled_stack_holds_frames_one_step_period_apart_whatever_the_camer
     carried.restore(s.state())  # policy_node: a simulator found after its first frames were answered
     assert carried.push(np.full((2, 2), 60, np.float32))[:, 0, 0].tolist() == [29, 39, 49, 59, 60]
     assert s.add(1.0, np.zeros((2, 2), np.float32)) is False and s.state()[:, 0, 0].tolist() == [0] * 5
+
+
+def test_the_large_frames_dds_profile_gives_a_shared_memory_segment_an_848x480_frame_fits_in():
+    """docs/REAL_CAMERA.md's opt-in Fast DDS profile: a shared-memory segment several full-size frames deep, read as XML
+    and shipped beside the code (package_data)."""
+    import xml.etree.ElementTree as ET
+    from pathlib import Path
+
+    import uav_common
+
+    path = Path(uav_common.__file__).parent / "fastdds_large_frames.xml"
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.parse(path).getroot()
+    shm = [t for t in root.iterfind(".//f:transport_descriptor", ns) if t.findtext("f:type", namespaces=ns) == "SHM"]
+    assert shm and int(shm[0].findtext("f:segment_size", namespaces=ns)) >= 10 * 848 * 480 * 2
+    assert root.find(".//f:participant[@is_default_profile='true']", ns) is not None
