@@ -55,11 +55,16 @@ class Accounting:
     def __init__(self):
         self.topics: dict[str, TopicCount] = {}
 
+    def track(self, topic: str) -> None:
+        """Count `topic` from now on (written 0 until its first message)."""
+        self.topics.setdefault(topic, TopicCount())
+
     def add(self, topic: str, seq: int | None) -> int:
         return self.topics.setdefault(topic, TopicCount()).add(seq)
 
     @property
     def written(self) -> dict[str, int]:
+        """{topic: messages written} of every topic tracked."""
         return {t: c.written for t, c in self.topics.items()}
 
     @property

@@ -67,7 +67,6 @@ class Recorder(Node):
         self.quiet = quiet
         self.writer = open_bag(out)
         self.connections = {}
-        self.counts: dict[str, int] = {}
         self.accounting = Accounting()  # what each topic's publishers sent, written or lost
         self.bytes = 0
         self.started = time.monotonic()
@@ -84,8 +83,13 @@ class Recorder(Node):
             self.get_logger().warning(f"skipping {topic}: {msgtype} has no definition in the ROS 2 Jazzy type store")
             return False
         self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=ts)
-        self.counts[topic] = 0
+        self.accounting.track(topic)
         return True
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """{topic: messages written} of every topic recorded."""
+        return self.accounting.written
 
     @property
     def lost(self) -> dict[str, int]:
@@ -97,7 +101,6 @@ class Recorder(Node):
             return
         with self.hold:
             self.writer.write(self.connections[topic], receive_ns, data)
-        self.counts[topic] += 1
         self.bytes += len(data)
         n = self.accounting.add(topic, seq)
         if n > 0:
