@@ -10,6 +10,7 @@ Run: source .venv/bin/activate && source install/setup.bash && python benchmarks
 from __future__ import annotations
 
 import argparse
+import array
 import os
 import tempfile
 import time
@@ -86,7 +87,7 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
     import rclpy
 
     from uav_common import contract
-    from uav_policy.push import PushService, load_key, push_request, push_text, write_key
+    from uav_policy.push import PushService, load_key, push_request, write_key
 
     nodes = private_nodes(domain)
     key_dir = tempfile.TemporaryDirectory()
@@ -129,8 +130,8 @@ def ros_loop_and_pushes(model: str, seconds: float, pushes: int, domain: int) ->
             rclpy.spin_until_future_complete(node, fut, timeout_sec=10)
             assert fut.result().success, fut.result().message
             lat.append((time.perf_counter() - t) * 1e3)
-        # A hostile push of 200 MB: refused by its length once rclpy has converted the string.
-        huge = PushService.Request(load_namespace=push_text(None, 0.5) + "A" * (200 << 20))
+        # A hostile push of 200 MB: refused by its length once rclpy has handed the array over.
+        huge = PushService.Request(weights=array.array("B", bytes(200 << 20)))
         t0, s0 = read()
         t = time.perf_counter()
         fut = client.call_async(huge)

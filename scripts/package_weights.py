@@ -41,7 +41,7 @@ def package(src: str, model: str, camera: float, out: Path) -> str:
     """Write `src` to `out` with `camera` and its reward window; a line saying what was written."""
     cfg = wio.config_for(model, src)
     net = wio.load_file(src, cfg)
-    notes = wio.read_file_notes(src)  # e.g. a distilled network's teachers
+    notes = wio.read_file_notes(src)  # e.g. the ensemble a distilled network was distilled from
     wio.save_file(net, cfg, out, camera_hfov_deg=camera, reward_window_fraction=wio.read_file_window(src), notes=notes)
     before, after = load_file(src), load_file(str(out))
     if before.keys() != after.keys() or any(not before[k].equal(after[k]) for k in before):

@@ -85,7 +85,7 @@ def test_a_foxglove_client_lists_the_channels_and_receives_odometry(ros):
 
 def test_the_foxglove_layout_shows_only_topics_the_live_view_serves_and_every_panel_is_placed():
     from conftest import ROOT
-    from uav_bringup.taps import DEFAULT_TOPICS
+    from uav_bringup.taps import DEFAULT_TOPICS, STACK_TOPICS, typestore
 
     layout = json.loads((ROOT / "src/uav_bringup/foxglove/uav_stack.json").read_text())
     panels = layout["configById"]
@@ -99,6 +99,13 @@ def test_the_foxglove_layout_shows_only_topics_the_live_view_serves_and_every_pa
         used |= {cfg[k].split(".")[0] for k in ("topicPath", "topicToRender") if k in cfg}
     assert used and used <= served, f"the layout shows topics nobody serves: {sorted(used - served)}"
     assert {"/world/markers", "/odom", "/trajectory", "/attention/overlay", "/depth/image_raw", "/q_values"} <= used
+    # Every plotted path names a field of its topic's message type (the stack's own types included).
+    types = {"/" + t.lstrip("/"): m for t, m in STACK_TOPICS.items()}
+    for cfg in panels.values():
+        for path in cfg.get("paths", []):
+            topic, _, field = path["value"].partition(".")
+            names = {name for name, _ in typestore().fielddefs[types[topic]][1]}
+            assert field.split("[")[0].split(".")[0] in names, f"{path['value']}: no such field of {types[topic]}"
 
     def placed(node):
         return {node} if isinstance(node, str) else placed(node["first"]) | placed(node["second"])

@@ -5,6 +5,7 @@ import pytest
 from sensor_msgs.msg import Image
 
 from uav_common import contract
+from uav_interfaces.msg import StepOutcome
 
 
 def test_depth_image_round_trip_keeps_rep117_values():
@@ -107,11 +108,21 @@ def test_step_outcome_marks_how_an_episode_began():
     def outcome(**kw):
         return contract.make_outcome(2.5, stamp=stamp, frame_id="cam", min_range_m=0.1, max_range_m=10.0, fov_rad=0.4, **kw)
 
-    flying, crash, cut = outcome(collided=False), outcome(collided=True), outcome(collided=False, truncated=True)
-    assert flying.range == 2.5 and crash.range == -math.inf and math.isnan(cut.range)
-    assert [contract.outcome_collided(m) for m in (flying, crash, cut)] == [False, True, False]
-    assert [contract.outcome_truncated(m) for m in (flying, crash, cut)] == [False, False, True]
-    assert [contract.outcome_new_episode(m) for m in (flying, crash, cut)] == [False, True, True]
+    flying, crash = outcome(collided=False), outcome(collided=True)
+    cut, reset = outcome(collided=False, truncated=True), outcome(collided=False, truncated=True, reset=True)
+    assert [m.event for m in (flying, crash, cut, reset)] == [
+        StepOutcome.CONTINUES,
+        StepOutcome.COLLIDED,
+        StepOutcome.TIME_LIMIT,
+        StepOutcome.RESET,
+    ]
+    assert [contract.outcome_beta(m) for m in (flying, crash, cut)] == [2.5, 0.0, 0.0], "a depth only when it continued"
+    assert [contract.outcome_collided(m) for m in (flying, crash, cut, reset)] == [False, True, False, False]
+    assert [contract.outcome_truncated(m) for m in (flying, crash, cut, reset)] == [False, False, True, True]
+    assert [contract.outcome_new_episode(m) for m in (flying, crash, cut, reset)] == [False, True, True, True]
+    # A publisher's faulty depth is clipped into the camera's range, NaN to 0.
+    odd = [StepOutcome(beta_m=v, max_range_m=10.0) for v in (math.nan, math.inf, -1.0, 4.0)]
+    assert [contract.outcome_beta(m) for m in odd] == [0.0, 10.0, 0.0, 4.0]
 
 
 def test_a_real_cameras_16uc1_millimetres_read_as_metres_in_either_byte_order():

@@ -5,6 +5,7 @@ imports measuring (train runs its `choose` as a program)."""
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -174,3 +175,33 @@ def test_no_function_takes_more_than_ten_parameters_or_runs_over_120_lines(tmp_p
     (tmp_path / "uav_x" / "uav_x" / "m.py").write_text("def f(a, b, c, d, e, f, g, h, i, j, k):\n    pass\n")
     assert long_functions(tmp_path) == ["uav_x/uav_x/m.py:f (11 parameters, 2 lines)"]  # the check can fail
     assert long_functions() == []
+
+
+def ros_packages_imported(pkg: str) -> set[str]:
+    """The ROS packages (those with a package.xml in the venv's prefix or the workspace) `pkg`'s modules import."""
+    import ast
+
+    names = set()
+    for path in (ROOT / "src" / pkg / pkg).glob("*.py"):
+        tree = ast.parse(path.read_text())
+        typing = {
+            id(n) for t in ast.walk(tree) if isinstance(t, ast.If) and "TYPE_CHECKING" in ast.unparse(t.test) for n in ast.walk(t)
+        }
+        for node in ast.walk(tree):
+            if id(node) in typing:
+                continue
+            if isinstance(node, ast.Import):
+                names |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                names.add(node.module.split(".")[0])
+    prefixes = (Path(sys.prefix) / "share", ROOT / "src")
+    return {n for n in names - {pkg} if any((p / n / "package.xml").exists() for p in prefixes)}
+
+
+def test_every_package_declares_the_ros_packages_it_imports():
+    """colcon orders the build and a ROS install resolves dependencies by package.xml: what a package imports is in it."""
+    assert {"rclpy", "uav_interfaces", "sensor_msgs"} <= ros_packages_imported("uav_trainer")  # the check sees them
+    for pkg in PACKAGES:
+        declared = set(re.findall(r"<(?:exec_)?depend>([\w]+)</", (ROOT / "src" / pkg / "package.xml").read_text()))
+        missing = ros_packages_imported(pkg) - declared
+        assert not missing, f"src/{pkg}/package.xml does not declare {sorted(missing)}"

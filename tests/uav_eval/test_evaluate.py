@@ -13,6 +13,7 @@ from conftest import ROOT, executable, read_bag
 from uav_eval.flights import Behaviour, FlightSpec
 from uav_eval.ros_flights import evaluate_once
 from uav_eval.tables import INSIGHT_COLUMNS
+from uav_interfaces.msg import StepOutcome
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 
@@ -67,9 +68,10 @@ def test_evaluate_on_a_tiny_budget_writes_well_formed_tables(tmp_path):
     # --record kept each flight, from its first frame: the bag's outcomes give the row's crashes.
     for group, row in enumerate(rows):
         got = read_bag(tmp_path / "bags" / f"sam_basic_w{group}_seed0")
-        outcomes = {(m.header.stamp.sec, m.header.stamp.nanosec): m.range for m in got["/step_outcome"][1]}
+        assert got["/step_outcome"][0] == "uav_interfaces/msg/StepOutcome", "the bag names the stack's own type"
+        outcomes = {(m.header.stamp.sec, m.header.stamp.nanosec): m.event for m in got["/step_outcome"][1]}
         steps = [outcomes[s] for s in sorted(outcomes)][1:51]  # the first frame is no step
-        assert len(steps) == 50 and sum(x == float("-inf") for x in steps) == int(row["crashes"])
+        assert len(steps) == 50 and sum(x == StepOutcome.COLLIDED for x in steps) == int(row["crashes"])
         assert len(got["/action"][1]) >= 50 and "/attention" in got
 
 

@@ -123,7 +123,7 @@ def test_a_map_that_follows_what_the_decision_reads_is_faithful_against_random_a
         meter.observe(net, state, 1, rows)
     s = meter.summary()
     assert s.deletion_top == 1.0 and s.faithfulness > 4 and s.faithfulness_vs_mean_map > 4, s
-    # RISE curves on the margin (+1 turning, -1 not): removing the map's first eighth ends the decision, restoring it
+    # RISE curves on the lead (+1 turning, -1 not): removing the map's first eighth ends the decision, restoring it
     # brings it back; in the mean map's or a random order that takes half the curve on average.
     assert s.deletion_area == pytest.approx(-0.875) and s.insertion_area == pytest.approx(0.875), s
     for other in (s.deletion_area_mean_map, s.deletion_area_random):

@@ -127,7 +127,7 @@ def test_attention_map_is_on_an_absolute_scale_and_the_overlay_is_readable():
     assert amap.shape == (8, 8) and (amap[4:, :4] == 4.0).all(), "all the mass on 1 of 4 nodes: 4x its uniform share"
     assert amap[:4].sum() == 0 and amap[4:, 4:].sum() == 0
     assert (attention_map(np.full((3, 4, 4), 0.25), (2, 2), (8, 8)) == 1.0).all(), "uniform reads 1, not a stretch"
-    rgb = overlay(np.full((8, 8), 2.0, np.float32), amap, 10.0, label="a1 Q 2.00, margin +0.10")
+    rgb = overlay(np.full((8, 8), 2.0, np.float32), amap, 10.0, label="a1 Q 2.00, lead +0.10")
     k = 256 // 8
     assert rgb.dtype == np.uint8 and rgb.shape == (8 * k + 40, 8 * k, 3), "upscaled to 256 px, a 40 px legend below"
     assert rgb[6 * k, 1 * k, 1] > rgb[6 * k, 1 * k, 0] and rgb[1 * k, 6 * k, 1] == rgb[1 * k, 6 * k, 0]

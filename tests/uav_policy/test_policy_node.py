@@ -1,5 +1,6 @@
 """Integration: installed sim_node + policy_node in lockstep, observed and pushed to with rclpy."""
 
+import array
 import itertools
 import signal
 import time
@@ -14,14 +15,14 @@ from rcl_interfaces.srv import SetParameters
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from sensor_msgs.msg import Image
-from std_msgs.msg import Float32MultiArray
 
 from conftest import deep_qos, run_to_exit, start_up_error
 from uav_common import contract
+from uav_interfaces.msg import ActionValues, AttentionWeights
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_policy.policy_node import PolicyNode
-from uav_policy.push import PushService, load_key, push_request, push_text, write_key
+from uav_policy.push import PushService, load_key, push_request, write_key
 
 SAM = NetConfig(model="sam")
 
@@ -36,7 +37,7 @@ class Watch:
             return
         n.create_subscription(Image, contract.DEPTH_TOPIC, self.frames.append, qos)
         n.create_subscription(Image, contract.ATTENTION_TOPIC, self.att.append, 10)
-        n.create_subscription(Float32MultiArray, contract.Q_VALUES_TOPIC, self.q.append, 10)
+        n.create_subscription(ActionValues, contract.Q_VALUES_TOPIC, self.q.append, 10)
 
     def frame_stamps(self):
         return [contract.stamp_ns(m.header.stamp) for m in self.frames]
@@ -110,7 +111,8 @@ def test_policy_answers_each_frame_once_and_explains_it(ros):
         # The mass each region receives relative to a uniform share: no per-frame stretch, so it averages 1.
         assert amap.min() >= 0.0 and abs(float(amap.mean()) - 1.0) < 1e-3
     q = w.q[-1]
-    assert len(q.data) == 4 and "a3_forward_2mps" in q.layout.dim[0].label
+    assert len(q.values) == 4 and q.actions[3] == "a3_forward_2mps" and q.header.stamp in [f.header.stamp for f in w.frames]
+    assert 0 <= q.action < 4
     assert ros.spin_until(lambda: said and int(said[-1].get("insight_frames", 0)) >= 50, 10), said[-1:]
     last = said[-1]
     assert last["explained_by"] == "attention" and int(last["insight_frames"]) >= 50
@@ -193,14 +195,14 @@ def send_push(ros, request, timeout_s=30.0):
 HEAVY = NetConfig(model="sam", conv_channels=(16,), d_model=384, heads=6, relational_blocks=2, mlp_hidden=96)
 
 
-def forcing_action(index: int, camera_hfov_deg: float | None = None, cfg: NetConfig = SAM, margin: float = 5.0) -> bytes:
-    """Weights whose advantage stream always prefers `index` (by `margin` over the other actions)."""
+def forcing_action(index: int, camera_hfov_deg: float | None = None, cfg: NetConfig = SAM, lead: float = 5.0) -> bytes:
+    """Weights whose advantage stream always prefers `index` (by `lead` over the other actions)."""
     net = build_network(cfg, seed=0)
     with torch.no_grad():
         last = net.dueling_head.advantage[-1]
         last.weight.zero_()
         last.bias.zero_()
-        last.bias[index] = margin
+        last.bias[index] = lead
     return wio.to_bytes(net, cfg, camera_hfov_deg)
 
 
@@ -212,11 +214,11 @@ def test_layer_sizes_come_from_the_weights_file_and_from_pushes(ros, tmp_path):
     path.write_bytes(forcing_action(0, cfg=other))
     w = Watch(ros, actions_only=True)
     weights = []
-    ros.node.create_subscription(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, weights.append, 10)
+    ros.node.create_subscription(AttentionWeights, contract.ATTENTION_WEIGHTS_TOPIC, weights.append, 10)
     proc = start_pair(ros, "-p", f"weights:={path}")
     assert ros.spin_until(lambda: len(w.actions) >= 20 and weights, 60), ros.log_of(proc)
     assert all((m.twist.linear.x, m.twist.angular.z) == (1.0, 0.0) for m in w.actions[-10:]), "the file forces a0"
-    assert weights[-1].layout.dim[0].size == 2, "two attention heads"
+    assert weights[-1].heads == 2, "two attention heads"
     n = sum(p.numel() for p in build_network(other).parameters())
     assert f"model sam ({n} parameters, weights from {path}" in ros.log_of(proc)
     r = call_push(ros, forcing_action(3))  # the default sizes
@@ -224,7 +226,7 @@ def test_layer_sizes_come_from_the_weights_file_and_from_pushes(ros, tmp_path):
     all_a3 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 2.0 for m in w.actions[-20:])  # noqa: E731
     assert ros.spin_until(all_a3, 20), "after the push every action should be a3 (forward 2 m/s)"
     # Messages from before the push may still be queued here: wait for a three-head one.
-    assert ros.spin_until(lambda: weights[-1].layout.dim[0].size == 3, 10), "three heads again"
+    assert ros.spin_until(lambda: weights[-1].heads == 3, 10), "three heads again"
 
 
 def test_a_list_of_weights_files_flies_as_one_policy_on_the_mean_q_values(ros, tmp_path):
@@ -232,20 +234,20 @@ def test_a_list_of_weights_files_flies_as_one_policy_on_the_mean_q_values(ros, t
     attention carries both members' heads; a push replaces the ensemble."""
     a, b = tmp_path / "a3.safetensors", tmp_path / "a0.safetensors"
     a.write_bytes(forcing_action(3, camera_hfov_deg=120.0))
-    b.write_bytes(forcing_action(0, camera_hfov_deg=120.0, margin=2.0))
+    b.write_bytes(forcing_action(0, camera_hfov_deg=120.0, lead=2.0))
     w = Watch(ros, actions_only=True)
     heads = []
-    ros.node.create_subscription(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, heads.append, 10)
+    ros.node.create_subscription(AttentionWeights, contract.ATTENTION_WEIGHTS_TOPIC, heads.append, 10)
     proc = start_pair(ros, "-p", f"weights:={b},{a}")
     assert ros.spin_until(lambda: len(w.actions) >= 20 and heads, 60), ros.log_of(proc)
     assert all(m.twist.linear.x == 2.0 for m in w.actions[-10:]), "the mean Q-values prefer a3 (forward 2 m/s)"
-    assert heads[-1].layout.dim[0].size == 2 * SAM.heads, "each member's heads"
+    assert heads[-1].heads == 2 * SAM.heads, "each member's heads"
     assert f"an ensemble of 2 weights files acting on their mean Q-values: {b.name}, {a.name} in {tmp_path}" in ros.log_of(proc)
     r = call_push(ros, forcing_action(0))
     assert r.success, r.message
     all_a0 = lambda: len(w.actions) >= 20 and all(m.twist.linear.x == 1.0 for m in w.actions[-20:])  # noqa: E731
     assert ros.spin_until(all_a0, 20), "after the push every action should be a0 (forward 1 m/s)"
-    assert ros.spin_until(lambda: heads[-1].layout.dim[0].size == SAM.heads, 10), "one network's heads again"
+    assert ros.spin_until(lambda: heads[-1].heads == SAM.heads, 10), "one network's heads again"
     assert "pushed weights replace the ensemble of 2 networks" in ros.log_of(proc)
 
 
@@ -275,15 +277,15 @@ def test_bad_pushes_are_rejected_while_control_continues_and_a_good_push_changes
         reasons[label] = r.message
         assert ros.spin_until(lambda b=before: len(w.actions) > b + 5, 10), f"control stalled after the {label} push"
     assert "control period (control_rate_hz)" in reasons["over the control period"], reasons
-    # Refused by its length or its first line before anything is decoded: text over the weights limit
-    # (64 MiB in base64, 86 MiB of text), and text that is no push.
+    # Refused by its length before anything of the weights is read (over the 64 MiB limit), or by a field no
+    # trainer sends.
     hostile = {
-        "oversize": (push_text(None, 0.5) + "A" * (4 * wio.MAX_BYTES // 3 + 8), "more than the 67108864 bytes"),
-        "not a push": ('{"epsilon": 1.0}', "not a push"),
+        "oversize": (PushService.Request(weights=array.array("B", bytes(wio.MAX_BYTES + 8))), "more than the 67108864"),
+        "malformed": (PushService.Request(epsilon=float("nan")), "'epsilon' must lie in [0, 1]"),
     }
-    for label, (text, why) in hostile.items():
+    for label, (request, why) in hostile.items():
         before = len(w.actions)
-        r = send_push(ros, PushService.Request(load_namespace=text), timeout_s=60)
+        r = send_push(ros, request, timeout_s=60)
         assert not r.success and why in r.message, (label, r.message)
         assert ros.spin_until(lambda b=before: len(w.actions) > b + 5, 10), f"control stalled after the {label} push"
     assert proc.poll() is None
@@ -355,7 +357,8 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
     before and after it are answered."""
     import numpy as np
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from sensor_msgs.msg import Range
+
+    from uav_interfaces.msg import StepOutcome
 
     w = Watch(ros, actions_only=True)
     diag = []
@@ -363,7 +366,7 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
         DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
     )
     pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.STREAM_QOS)
-    pub_out = ros.node.create_publisher(Range, contract.OUTCOME_TOPIC, contract.STREAM_QOS)
+    pub_out = ros.node.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, contract.STREAM_QOS)
     proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
     assert ros.spin_until(lambda: pub_img.get_subscription_count() and pub_out.get_subscription_count() and diag, 30), ros.log_of(
         proc
@@ -372,7 +375,7 @@ def test_malformed_frames_are_ignored_counted_and_shown_on_diagnostics(ros):
 
     def send(sec: int, img: Image) -> None:
         img.header.stamp.sec = sec
-        pub_out.publish(Range(header=img.header, range=5.0))
+        pub_out.publish(StepOutcome(header=img.header, beta_m=5.0, max_range_m=10.0))
         pub_img.publish(img)
 
     good = lambda: contract.depth_to_image(np.full((64, 64), 4.0, np.float32), Time(), "cam")  # noqa: E731
@@ -527,7 +530,8 @@ def test_stamps_going_back_or_from_the_future_restart_the_join_and_frames_withou
     past, counted on /diagnostics; frames that are never answered turn /diagnostics to WARN."""
     import numpy as np
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from sensor_msgs.msg import Range
+
+    from uav_interfaces.msg import StepOutcome
 
     w = Watch(ros, actions_only=True)
     diag = []
@@ -535,14 +539,14 @@ def test_stamps_going_back_or_from_the_future_restart_the_join_and_frames_withou
         DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
     )
     pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, deep_qos())
-    pub_out = ros.node.create_publisher(Range, contract.OUTCOME_TOPIC, deep_qos())
+    pub_out = ros.node.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, deep_qos())
     proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn")
     assert ros.spin_until(lambda: pub_img.get_subscription_count() and pub_out.get_subscription_count() and diag, 30)
 
     def send(sec: int, outcome: bool = True) -> None:
         img = contract.depth_to_image(np.full((64, 64), 4.0, np.float32), Time(sec=sec), "cam")
         if outcome:
-            pub_out.publish(Range(header=img.header, range=5.0))
+            pub_out.publish(StepOutcome(header=img.header, beta_m=5.0, max_range_m=10.0))
         pub_img.publish(img)
 
     sent = [10, 11, 12, 0, 1, 1_000_000, 2, 3]  # a restart at 0, a glitch from the future at 1e6 s
@@ -580,7 +584,8 @@ def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
     /diagnostics: the network input after them is the first camera's alone. Once the first camera has been silent
     for camera_switch_s, the second is taken with a new stack."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from sensor_msgs.msg import Range
+
+    from uav_interfaces.msg import StepOutcome
 
     w = Watch(ros)
     diag = []
@@ -588,7 +593,7 @@ def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
         DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: diag.extend(s for s in m.status if s.name == "uav_policy"), 10
     )
     pub_img = ros.node.create_publisher(Image, contract.DEPTH_TOPIC, contract.STREAM_QOS)
-    pub_out = ros.node.create_publisher(Range, contract.OUTCOME_TOPIC, contract.STREAM_QOS)
+    pub_out = ros.node.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, contract.STREAM_QOS)
     proc = ros.start("uav_policy", "policy_node", "-p", "model:=cnn", "-p", "camera_switch_s:=1.0")
     ready = lambda: pub_img.get_subscription_count() and pub_out.get_subscription_count() and diag  # noqa: E731
     assert ros.spin_until(ready, 30), ros.log_of(proc)
@@ -596,7 +601,7 @@ def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
     def send(sec: int, camera: str, depth_m: float, outcome: bool = True) -> None:
         img = contract.depth_to_image(np.full((64, 64), depth_m, np.float32), Time(sec=sec), camera)
         if outcome:
-            pub_out.publish(Range(header=img.header, range=5.0))
+            pub_out.publish(StepOutcome(header=img.header, beta_m=5.0, max_range_m=10.0))
         pub_img.publish(img)
 
     values = lambda s: {kv.key: kv.value for kv in s.values}  # noqa: E731
@@ -609,7 +614,7 @@ def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
         send(sec + 2, "cam_a", 4.0)
         assert ros.spin_until(lambda n=sec: len(w.q) == n, 10), ros.log_of(proc)
     assert w.action_stamps() == [s * 10**9 for s in (1, 2, 5, 6)], "the other camera's frames are not answered"
-    assert list(w.q[2].data) == list(w.q[3].data) == list(w.q[1].data), "the stack holds the first camera alone"
+    assert list(w.q[2].values) == list(w.q[3].values) == list(w.q[1].values), "the stack holds the first camera alone"
     assert ros.spin_until(lambda: values(diag[-1])["other_camera_frames_dropped"] == "2", 5), [values(d) for d in diag]
     last = diag[-1]
     assert last.level == DiagnosticStatus.ERROR and "another camera (cam_b)" in last.message, last.message
@@ -620,7 +625,7 @@ def test_two_cameras_on_one_topic_are_never_stacked_together(ros):
     for sec in (7, 8):
         send(sec, "cam_b", 0.6)
         assert ros.spin_until(lambda n=sec - 2: len(w.q) == n, 10), ros.log_of(proc)
-    assert list(w.q[4].data) == list(w.q[5].data) != list(w.q[3].data), "a new stack: the second camera's frames alone"
+    assert list(w.q[4].values) == list(w.q[5].values) != list(w.q[3].values), "a new stack: the second camera's frames alone"
     assert ros.spin_until(lambda: values(diag[-1])["camera_switches"] == "1", 5)
     assert values(diag[-1])["camera_frame_id"] == "cam_b" and "taking it, with a new frame stack" in ros.log_of(proc)
     assert ros.spin_until(lambda: diag[-1].level != DiagnosticStatus.ERROR, 5), "the ERROR lasts while foreign frames come"

@@ -15,7 +15,7 @@ from uav_policy.camera_control import CameraControl
 from uav_policy.camera_input import CAMERA_INFO_WAIT_S, CameraInput
 from uav_policy.networks import NetConfig, QEnsemble, build_network
 from uav_policy.pilot import Pilot
-from uav_policy.push import push_text, write_key
+from uav_policy.push import PushService, push_request, write_key
 from uav_policy.push_receiver import PushReceiver, Refused
 from uav_policy.safety import SafetyLayer, SafetySettings
 from uav_policy.simulator_link import SimulatorLink
@@ -138,31 +138,30 @@ def test_pushes_are_taken_only_signed_in_sequence_releasing_nothing_too_far_and_
     link = SimulatorLink(5, hold=True, wait_timeout_s=10.0, log=Log())
     r = PushReceiver(str(key_file), link.gate, 5.0, Log(), 4)  # a period no loaded machine's pass comes near
     with pytest.raises(Refused, match="signature does not match"):
-        r.authenticate(push_text(None, 0.5, key=b"k" * 32, seq=1))
-    assert r.authenticate(push_text(None, 0.5, key=key, seq=1)).epsilon == 0.5
+        r.authenticate(push_request(None, 0.5, key=b"k" * 32, seq=1))
+    assert r.authenticate(push_request(None, 0.5, key=key, seq=1)).epsilon == 0.5
     with pytest.raises(Refused):  # played again
-        r.authenticate(push_text(None, 0.5, key=key, seq=1))
+        r.authenticate(push_request(None, 0.5, key=key, seq=1))
     link.add("frame", 1_000, "f", 0.0)
     link.add("outcome", 1_000, "o", 0.0)
     with pytest.raises(Refused, match="beyond the newest frame"):
-        r.authenticate(push_text(None, None, release_stamp_ns=20_000_000_000, key=key, seq=2))
-    with pytest.raises(ValueError, match="push"):
-        r.authenticate("not a push")
+        r.authenticate(push_request(None, None, release_stamp_ns=20_000_000_000, key=key, seq=2))
+    with pytest.raises(ValueError, match="an empty push"):
+        r.authenticate(PushService.Request())
     assert (r.unauthenticated, r.releases_refused) == (2, 1)
     # A release may say that a teacher answers its frame: an action of the table, signed with the rest.
     with pytest.raises(ValueError, match="'fly_action' 4 is not an action"):
-        r.authenticate(push_text(None, None, release_stamp_ns=1_000, key=key, seq=3, fly_action=4))
-    forged = push_text(None, None, release_stamp_ns=1_000, key=key, seq=4, fly_action=1).replace(
-        '"fly_action": 1', '"fly_action": 2'
-    )
+        r.authenticate(push_request(None, None, release_stamp_ns=1_000, key=key, seq=3, fly_action=4))
+    forged = push_request(None, None, release_stamp_ns=1_000, key=key, seq=4, fly_action=1)
+    forged.fly_action = 2
     with pytest.raises(Refused, match="signature"):
         r.authenticate(forged)
-    push = r.authenticate(push_text(None, None, release_stamp_ns=1_000, key=key, seq=5, fly_action=2))
+    push = r.authenticate(push_request(None, None, release_stamp_ns=1_000, key=key, seq=5, fly_action=2))
     assert push.fly_action == 2 and link.gate.fly_action_for(1_000) is None, "not before it is released"
     link.gate.release(push.release_stamp_ns, push.fly_action)
     assert link.gate.fly_action_for(1_000) == 2 and link.gate.fly_action_for(2_000) is None, "its own frame only"
     with pytest.raises(ValueError, match="come with 'release_stamp_ns'"):
-        r.authenticate(push_text(None, 0.5, key=key, seq=6, fly_action=1))
+        r.authenticate(push_request(None, 0.5, key=key, seq=6, fly_action=1))
     r.time_inference(Agent(build_network(NetConfig(), seed=0), NetConfig()))
     assert r.seconds_per_flop > 0
     blob = wio.to_bytes(build_network(NetConfig(), seed=0), NetConfig())

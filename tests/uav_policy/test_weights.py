@@ -274,68 +274,52 @@ def test_the_reward_window_is_recorded_when_given_and_hostile_entries_are_refuse
 
 
 def test_a_push_reads_back_and_bad_pushes_are_named():
-    from uav_policy.push import push_request, push_text, read_push
+    from uav_policy.push import PushService, push_request, read_push
 
-    def read(text):
-        return read_push(text, wio.MAX_BYTES)
+    def read(request):
+        return read_push(request, wio.MAX_BYTES)
 
-    p = read(push_text(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000))
+    def raw(**fields):
+        return PushService.Request(**fields)
+
+    p = read(push_request(b"abc", epsilon=0.25, release_stamp_ns=1_500_000_000))
     assert (p.weights, p.epsilon, p.release_stamp_ns) == (b"abc", 0.25, 1_500_000_000)
-    assert read(push_text(b"abc")) == type(p)(b"abc", None, None)  # a plain weights push
+    assert read(push_request(b"abc")) == type(p)(b"abc", None, None)  # a plain weights push
     blob = wio.to_bytes(build_network(SAM, seed=0), SAM)
-    assert read(push_request(blob, 0.5, 7).load_namespace) == type(p)(blob, 0.5, 7), "the request carries the same push"
-    assert read(push_text(None, epsilon=1)).epsilon == 1.0
-    with pytest.raises(ValueError, match="weights are not base64"):
-        read(push_text(None, 0.5) + "ab$c")
-    # Refused by the length of the text, before anything of it is read.
-    with pytest.raises(ValueError, match="would hold more than the 3 bytes of weights allowed"):
-        read_push(push_text(b"abcdefgh") + "=" * 2000, 3)
-    with pytest.raises(ValueError, match="weights would hold more than the 3 bytes allowed"):
-        read_push(push_text(b"abcdefgh"), 3)
-    for text in ("", "weights", '{"epsilon": 0.5}\n', "uav_push/2 {}", "uav_push/1 " + " " * 2000 + "{}"):
-        with pytest.raises(ValueError, match="not a push"):
-            read(text)
-    with pytest.raises(ValueError, match="a push is text"):
-        read(b"uav_push/1 {}")
-    with pytest.raises(ValueError, match="not JSON"):
-        read("uav_push/1 {epsilon: 1}")
-    with pytest.raises(ValueError, match="must be a JSON object"):
-        read("uav_push/1 [1]")
+    assert read(push_request(blob, 0.5, 7)) == type(p)(blob, 0.5, 7), "the request carries the same push"
+    assert read(push_request(None, epsilon=1)).epsilon == 1.0
+    assert read(push_request(None, epsilon=0)).epsilon == 0.0, "0 is a rate; only KEEP_EPSILON means unchanged"
+    # Refused by the weights' length, before anything of them is read.
+    with pytest.raises(ValueError, match=r"weights \(8 bytes\) are more than the 3 bytes allowed"):
+        read_push(push_request(b"abcdefgh"), 3)
     with pytest.raises(ValueError, match="an empty push"):
-        read("uav_push/1 {}")
-    with pytest.raises(ValueError, match="'epsilon' must lie in"):
-        read(push_text(None, epsilon=float("nan")))
-    with pytest.raises(ValueError, match="'epsilon' must lie in"):
-        read("uav_push/1 " + '{"epsilon": Infinity}')
+        read(raw())
+    for eps in (float("nan"), float("inf"), 1.5, -0.5):
+        with pytest.raises(ValueError, match="'epsilon' must lie in"):
+            read(raw(epsilon=eps))
     with pytest.raises(ValueError, match="'release_stamp_ns' must be >= 0"):
-        read(push_text(None, release_stamp_ns=-1))
-    for fields, why in (
-        ('{"release_stamp_ns": 1.5}', "'release_stamp_ns' must be an integer"),
-        ('{"epsilon": true}', "'epsilon' must be a number"),
-        ('{"epsilon": "0.5"}', "'epsilon' must be a number"),
-        ('{"epsilon": 0.5, "signature": 7}', "'signature' must be a string"),
-        ('{"gamma": 0.9}', "unknown push field 'gamma'"),
-        ('{"epsilon": 0.1, "epsilon": 0.2}', "'epsilon' given twice"),
-    ):
-        with pytest.raises(ValueError, match=why):
-            read("uav_push/1 " + fields)
+        read(raw(release_stamp_ns=-2))
+    with pytest.raises(ValueError, match="'fly_action' must be an action index >= 0 and come with 'release_stamp_ns'"):
+        read(raw(epsilon=0.5, fly_action=1))
+    with pytest.raises(ValueError, match="'fly_action' must be an action index >= 0"):
+        read(raw(release_stamp_ns=5, fly_action=-3))
 
 
 def test_a_push_is_taken_only_signed_with_the_runs_key_and_newer_than_the_last(tmp_path):
     import os
     import stat
 
-    from uav_policy.push import load_key, push_text, read_push, verify, write_key
+    from uav_policy.push import load_key, push_request, read_push, verify, write_key
 
     key = load_key(write_key(tmp_path / "push.key"))
     assert stat.S_IMODE(os.stat(tmp_path / "push.key").st_mode) == 0o600 and len(key) == 32
     blob = wio.to_bytes(build_network(SAM, seed=0), SAM)
-    good = read_push(push_text(blob, 0.5, 7, key=key, seq=5), wio.MAX_BYTES)
+    good = read_push(push_request(blob, 0.5, 7, key=key, seq=5), wio.MAX_BYTES)
     verify(key, good, last_seq=4)  # no error
     with pytest.raises(ValueError, match="not newer than 5"):
         verify(key, good, last_seq=5)
     with pytest.raises(ValueError, match="unsigned push refused"):
-        verify(key, read_push(push_text(blob, 0.5, 7), wio.MAX_BYTES), last_seq=0)
+        verify(key, read_push(push_request(blob, 0.5, 7), wio.MAX_BYTES), last_seq=0)
     with pytest.raises(ValueError, match="signature does not match"):
         verify(b"x" * 32, good, last_seq=0)
     # Every field is covered: the same signature over other weights, epsilon, release or number fails.

@@ -42,7 +42,7 @@ def test_window_fov_is_the_arc_of_the_window_columns():
     expect = math.atan((38 - 32) / fx) - math.atan((25 - 32) / fx)
     assert window_fov_rad(64, 120.0) == pytest.approx(expect) and math.degrees(expect) == pytest.approx(38.74, abs=0.01)
     assert math.degrees(window_fov_rad(64, 150.0, 0.078)) == pytest.approx(32.41, abs=0.01)  # 5 columns at 150 deg
-    # Read back (trainer_node, from step_outcome's field_of_view): the same window, in whole pixels.
+    # Read back (trainer_node, from step_outcome's window_fov_rad): the same window, in whole pixels.
     for width, hfov, fraction in ((64, 120.0, 0.2), (64, 150.0, 0.078), (84, 90.0, 0.5), (64, 100.0, 1.0), (48, 120.0, 0.01)):
         back = window_fraction_for_fov(width, hfov, float(np.float32(window_fov_rad(width, hfov, fraction))))  # Range: float32
         assert center_window_slices(width, width, back) == center_window_slices(width, width, fraction)

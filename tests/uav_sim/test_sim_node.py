@@ -8,10 +8,11 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image, Range
+from sensor_msgs.msg import CameraInfo, Image
 
 from conftest import deep_qos, run_to_exit, start_up_error
 from uav_common import contract
+from uav_interfaces.msg import StepOutcome
 from uav_sim.sim_node import SimNode
 
 
@@ -25,7 +26,7 @@ class Recorder:
             ("depth", Image, contract.DEPTH_TOPIC),
             ("info", CameraInfo, contract.CAMERA_INFO_TOPIC),
             ("odom", Odometry, contract.ODOM_TOPIC),
-            ("outcome", Range, contract.OUTCOME_TOPIC),
+            ("outcome", StepOutcome, contract.OUTCOME_TOPIC),
         ):
             n.create_subscription(typ, topic, lambda m, k=key: self.by_topic[k].append(m), q)
         n.create_subscription(Clock, "/clock", lambda m: self.by_topic["clock"].append(m), q)
@@ -81,13 +82,15 @@ def test_lockstep_topics_encodings_and_shared_stamps(ros):
     # A window of 0.078 of each side: beta is read over columns 29-33 (5 of 64, edges 3 px left
     # and 2 px right of the centre): atan(3 / fx) + atan(2 / fx) = 32.41 deg of arc.
     fov = math.atan(3 / info.k[0]) + math.atan(2 / info.k[0])
-    assert rec.by_topic["outcome"][-1].field_of_view == pytest.approx(fov) and math.degrees(fov) == pytest.approx(32.41, abs=0.01)
+    assert rec.by_topic["outcome"][-1].window_fov_rad == pytest.approx(fov) and math.degrees(fov) == pytest.approx(
+        32.41, abs=0.01
+    )
     odom = rec.by_topic["odom"][-1]
     assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_link"
     assert abs(odom.pose.pose.position.x - (-6.0 + 5.0)) < 1e-3, "10 steps at 1 m/s x 0.5 s from x=-6"
     assert odom.twist.twist.linear.x == 1.0, "odom twist is the body velocity flown in the step"
     outcome = rec.by_topic["outcome"][-1]
-    assert math.isfinite(outcome.range) and 0.0 < outcome.range <= outcome.max_range
+    assert outcome.event == StepOutcome.CONTINUES and 0.0 < outcome.beta_m <= outcome.max_range_m
 
 
 def test_the_first_frame_waits_for_the_subscribers_asked_for(ros):
@@ -106,7 +109,7 @@ def test_the_first_frame_waits_for_the_subscribers_asked_for(ros):
     assert not rec.by_topic["depth"] and not rec.by_topic["odom"], "a frame was published before 2 subscribers listened"
     second = []
     ros.node.create_subscription(Image, contract.DEPTH_TOPIC, second.append, deep_qos())
-    ros.node.create_subscription(Range, contract.OUTCOME_TOPIC, second.append, deep_qos())
+    ros.node.create_subscription(StepOutcome, contract.OUTCOME_TOPIC, second.append, deep_qos())
     assert ros.spin_until(lambda: len(second) >= 2 and rec.by_topic["depth"], 20), ros.log_of(sim)
     assert ros.spin_until(lambda: "2 subscribers on depth and outcome: publishing the first frame" in ros.log_of(sim), 10)
     assert contract.stamp_ns(rec.by_topic["depth"][0].header.stamp) == 0, "the held command did not step the sim"
@@ -132,7 +135,7 @@ def test_collision_is_reported_and_the_vehicle_returns_to_start(ros):
     assert abs(odom.pose.pose.position.x - (-6.0)) < 1e-6 and abs(odom.pose.pose.position.y) < 1e-6
 
 
-def test_time_limit_ends_episodes_with_a_nan_outcome_and_the_step_budget_sends_no_frame_after_the_last_step(ros):
+def test_time_limit_ends_episodes_with_its_outcome_and_the_step_budget_sends_no_frame_after_the_last_step(ros):
     rec = Recorder(ros)
     budget = ("-p", "step_budget:=7")
     proc = ros.start("uav_sim", "sim_node", "-p", "max_episode_steps:=3", "-p", "lockstep_republish_s:=0.3", *budget)
@@ -145,7 +148,8 @@ def test_time_limit_ends_episodes_with_a_nan_outcome_and_the_step_budget_sends_n
     by_stamp = {contract.stamp_ns(m.header.stamp): m for m in rec.by_topic["outcome"]}
     odom = {contract.stamp_ns(m.header.stamp): m.pose.pose.position.x for m in rec.by_topic["odom"]}
     stamps = sorted(by_stamp)[:8]
-    assert [contract.outcome_truncated(by_stamp[s]) for s in stamps] == [False, False, False, True] + [False] * 2 + [True, False]
+    limit = StepOutcome.TIME_LIMIT
+    assert [by_stamp[s].event for s in stamps] == [0, 0, 0, limit, 0, 0, limit, 0], "the time limit named as the cause"
     assert not any(contract.outcome_collided(by_stamp[s]) for s in stamps)
     assert [odom[s] for s in stamps] == pytest.approx([-6.0, -5.5, -5.0, -6.0, -5.5, -5.0, -6.0, -5.5])
     assert "time limit: episode 0 ended after 3 steps" in ros.log_of(proc)

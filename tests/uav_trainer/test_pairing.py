@@ -6,6 +6,7 @@ from geometry_msgs.msg import TwistStamped
 from uav_common import contract
 from uav_common.actions import PAPER_ACTIONS
 from uav_common.kinematics import BodyTwist
+from uav_interfaces.msg import TeacherLabel
 from uav_sim.reward import step_reward
 from uav_sim.simulator import SimConfig, Simulator
 from uav_sim.world import load_world
@@ -86,21 +87,26 @@ def test_thousands_of_steps_pair_exactly_in_any_interleaving():
     assert all(v == 0 for v in asm.report().values())
 
 
+def teacher_label(stamp, action: int, scores=None, mask=None) -> TeacherLabel:
+    """sim_node's label for the frame at `stamp` (scores: the action's best by default, no reason by default)."""
+    label = TeacherLabel(action=action, scores=list(scores) if scores is not None else [1e7 * (a == action) for a in range(4)])
+    label.header.stamp = stamp
+    label.reason = contract.mask_to_image(np.zeros((64, 64), bool) if mask is None else mask, stamp, "cam")
+    return label
+
+
 def test_teacher_labels_pair_exactly_and_each_release_knows_its_frames_label():
-    """With a teacher (sim_node's teacher_action, stamped as its frame), every stored transition carries the teacher's
+    """With a teacher (sim_node's teacher_label, stamped as its frame), every stored transition carries the teacher's
     action for the frame it left, in any interleaving, and the release of a frame can tell the trainer that label."""
     msgs, truth = simulate(600, seed=5)
     rng = np.random.default_rng(6)
     labels, with_teacher = [], []
     for stream, m in msgs:
         with_teacher.append((stream, m))
-        if stream == "outcome":  # one teacher action per frame, a label that is not the action flown
+        if stream == "outcome":  # one label per frame, an action that is not the action flown
             a = int(rng.integers(4))
             labels.append(a)
-            ts = TwistStamped()
-            ts.header.stamp = m.header.stamp
-            ts.twist.linear.x, ts.twist.angular.z = PAPER_ACTIONS[a].linear_x_mps, PAPER_ACTIONS[a].yaw_rate_radps(0.5)
-            with_teacher.append(("teacher", ts))
+            with_teacher.append(("teacher", teacher_label(m.header.stamp, a)))
 
     class LabelSink(Sink):
         def add_step(self, action, beta, collided, frame, teacher=-1):
@@ -118,18 +124,28 @@ def test_teacher_labels_pair_exactly_and_each_release_knows_its_frames_label():
     assert [e[1] for e in steps] == [t[0] for t in truth], "the action flown is still the policy's"
     assert released == labels, "every frame released with its own label"
     assert all(v == 0 for v in asm.report().values()), asm.report()
-    # Without its teacher action a frame is not an observation yet: nothing stored, nothing released.
+    # Without its teacher label a frame is not an observation yet: nothing stored, nothing released.
     sink, released = LabelSink(), []
     asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), on_ready=released.append, teacher=True)
     for stream, m in msgs[:30]:
         asm.add(stream, m)
     assert sink.events == [] and released == []
+    # A label naming no action of the table, or scoring another number of actions, labels nothing (counted).
+    at = [k for k, (s, _) in enumerate(with_teacher) if s == "teacher"]
+    bad = list(with_teacher)
+    bad[at[5]] = ("teacher", teacher_label(bad[at[5]][1].header.stamp, 9))
+    bad[at[12]] = ("teacher", teacher_label(bad[at[12]][1].header.stamp, 1, [1.0]))
+    sink = LabelSink()
+    asm = TransitionAssembler(sink, PAPER_ACTIONS, STEP_NS, (64, 64), teacher=True)
+    for stream, m in bad[:200]:
+        asm.add(stream, m)
+    assert asm.report()["bad_teacher_labels"] == 2 and sum(e[5] == -1 for e in sink.events if e[0] == "step") == 2
 
 
 def test_teacher_reasons_pair_with_their_frames_as_cell_shares():
-    """With a reason grid, sim_node's teacher_reason (the pixels the planner's decision is about, mono8, stamped as its
-    frame) completes an observation too: each stored transition carries the shares of the grid's cells that the mask
-    of the frame it left covers, in any interleaving; a malformed mask is counted and gives no share."""
+    """With a reason grid, the teacher label's reason (the pixels the planner's decision is about, mono8) is mapped
+    with its frame: each stored transition carries the shares of the grid's cells that the mask of the frame it left
+    covers, in any interleaving; a malformed mask is counted and gives no share."""
     from uav_common.frame_stack import node_shares
 
     msgs, _ = simulate(120, seed=8)
@@ -138,17 +154,15 @@ def test_teacher_reasons_pair_with_their_frames_as_cell_shares():
     for stream, m in msgs:
         full.append((stream, m))
         if stream == "outcome":
-            ts = TwistStamped()
-            ts.header.stamp = m.header.stamp
             mask = np.zeros((64, 64), bool)
             r, c = rng.integers(0, 48, 2)
             mask[r : r + 16, c : c + int(rng.integers(1, 16))] = True
             shares.append(node_shares(mask, (8, 8)))
-            image = contract.mask_to_image(mask, m.header.stamp, "cam")
+            label = teacher_label(m.header.stamp, 0, mask=mask)
             if len(shares) == 60:
-                image.encoding = "rgb8"  # malformed
+                label.reason.encoding = "rgb8"  # malformed
                 shares[-1] = np.zeros(64, np.float32)
-            full += [("teacher", ts), ("reason", image)]
+            full.append(("teacher", label))
 
     class ReasonSink(Sink):
         def add_step(self, action, beta, collided, frame, teacher=-1, reason=None):
@@ -162,7 +176,7 @@ def test_teacher_reasons_pair_with_their_frames_as_cell_shares():
             asm.add(stream, m)
         steps = [e for e in sink.events if e[0] == "step"]
         assert len(steps) == 120 and all(np.array_equal(e[-1], want) for e, want in zip(steps, shares, strict=False))
-        assert asm.report()["bad_reasons"] == 1 and asm.report()["frames_without_teacher_reason"] == 0
+        assert asm.report()["bad_reasons"] == 1 and asm.report()["frames_without_teacher_label"] == 0
 
 
 def test_faults_are_counted_and_never_paired_wrongly():

@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
-from sensor_msgs.msg import Range
 
 from conftest import ROOT, SMALL_WORLD, deep_qos, executable, start_up_error
 from uav_common import contract
 from uav_eval import selection
 from uav_eval.flights import FlightSpec
 from uav_eval.ros_flights import evaluate_once
+from uav_interfaces.msg import StepOutcome
 from uav_policy import weights as wio
 from uav_policy.networks import NetConfig, build_network
 from uav_policy.push import PushService, push_request
@@ -192,8 +192,8 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
         waits = ("-p", "wait_for_trainer:=true", "-p", "wait_for_trainer_timeout_s:=60.0", "-p", f"seed:={i}")
         return ros.start("uav_policy", "policy_node", "-r", f"__ns:={ns}", *waits, *pushes_signed_in(run_dir), name=f"policy{i}")
 
-    stray = ros.node.create_publisher(Range, "/stray/step_outcome", 10)  # a simulator no one named
-    ros.node.create_timer(0.1, lambda: stray.publish(Range()))
+    stray = ros.node.create_publisher(StepOutcome, "/stray/step_outcome", 10)  # a simulator no one named
+    ros.node.create_timer(0.1, lambda: stray.publish(StepOutcome()))
     actors = ("-p", "actors:=[/actor0, /actor1, /ghost]", "-p", "actor_timeout_s:=8.0")
     trainer_args = ("-p", f"run_dir:={run_dir}", "-p", "learning_starts:=100000", "-p", "log_interval_s:=0.5", *actors)
     trainer = ros.start("uav_trainer", "trainer_node", *trainer_args)
@@ -344,7 +344,8 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     )
     ros_dir, ip_dir = tmp_path / "ros", tmp_path / "inprocess"
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
-    extra += ["--recipe", recipe] + (["--trainer-arg", "teacher:=map", "--trainer-arg", "local_map:=true"] if teacher_map else [])
+    mapped = ["teacher:=map", "local_map:=true"] if teacher_map else []
+    extra += ["--recipe", recipe] + [x for a in mapped for x in ("--trainer-arg", a)]
     domain = "88" if teacher_map else str(80 + (recipe != "rl"))
     r, logs = run_train(ros_dir, domain, "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert f"recipes/{recipe}.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
@@ -375,7 +376,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     if recipe == "shipped":  # both runs learnt from the planner's labels, flying its actions at first
         knowledge = "map" if teacher_map else "stack"
         assert f"teacher: the planner ({knowledge})" in capsys.readouterr().out
-        assert f"teacher_action: the planner ({knowledge})" in logs["sim"]
+        assert f"teacher_label: the planner ({knowledge})" in logs["sim"]
 
 
 def stopped(ros, trainer, what: str) -> tuple[int, str]:
@@ -388,13 +389,13 @@ def stopped(ros, trainer, what: str) -> tuple[int, str]:
 
 
 def test_a_trainer_with_a_teacher_beside_a_simulator_without_one_stops_naming_why(ros, tmp_path):
-    """A teacher is sim_node's planner: frames without its teacher_action (a sim_node without teacher:=..., or a camera)
+    """A teacher is sim_node's planner: frames without its teacher_label (a sim_node without teacher:=..., or a camera)
     would never be learnt from, so the trainer stops at once (exit code 2), naming the parameter and the fix."""
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.1")  # no policy: the first frame, said again
     trainer = ros.start("uav_trainer", "trainer_node", "-p", f"run_dir:={tmp_path / 'run'}", "-p", "teacher:=stack")
     code, log = stopped(ros, trainer, "waiting for teacher actions")
     assert code == 2, log[-2000:]
-    assert "parameter 'teacher'='stack'" in log and "no teacher_action" in log and "sim_node teacher:=stack" in log
+    assert "parameter 'teacher'='stack'" in log and "no teacher_label" in log and "sim_node teacher:=stack" in log
 
 
 def test_a_lockstep_trainer_beside_a_policy_that_does_not_wait_says_so(ros, tmp_path):
@@ -534,11 +535,11 @@ def test_trainer_rejects_bad_parameters():
 def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     """trainer_node builds SAM with its size parameters; policy_node (packaged default weights)
     takes the pushed network of other sizes and flies it."""
-    from std_msgs.msg import Float32MultiArray
+    from uav_interfaces.msg import AttentionWeights
 
     diag = diagnostics(ros)
     att = []
-    ros.node.create_subscription(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, att.append, 10)
+    ros.node.create_subscription(AttentionWeights, contract.ATTENTION_WEIGHTS_TOPIC, att.append, 10)
     ros.start("uav_sim", "sim_node")
     ros.start("uav_policy", "policy_node", *pushes_signed_in(tmp_path))
     sizes = ("-p", "d_model:=24", "-p", "heads:=2", "-p", "relational_blocks:=2", "-p", "mlp_hidden:=32")
@@ -546,7 +547,7 @@ def test_the_trainers_sam_sizes_reach_the_policy_by_push(ros, tmp_path):
     pushed = lambda: int(diag.get("uav_trainer", {}).get("pushes_ok", 0)) >= 1  # noqa: E731
     assert ros.spin_until(pushed, 120), ros.log_of(trainer)[-2000:]
     # Messages from before the push may still be queued here: wait for a two-head one.
-    assert ros.spin_until(lambda: att and att[-1].layout.dim[0].size == 2, 30), "the policy flies 2 heads"
+    assert ros.spin_until(lambda: att and att[-1].heads == 2, 30), "the policy flies 2 heads"
     assert ros.spin_until(lambda: "uav_policy" in diag, 10)
     assert diag["uav_trainer"]["pushes_rejected"] == "0" and diag["uav_policy"]["pushes_rejected"] == "0"
     assert ros.stop(trainer) == 0, ros.log_of(trainer)[-3000:]

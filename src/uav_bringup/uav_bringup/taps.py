@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from pathlib import Path
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -26,8 +27,8 @@ STACK_TOPICS = {
     contract.ODOM_TOPIC: "nav_msgs/msg/Odometry",
     contract.CMD_VEL_TOPIC: "geometry_msgs/msg/Twist",
     contract.ACTION_TOPIC: "geometry_msgs/msg/TwistStamped",
-    contract.Q_VALUES_TOPIC: "std_msgs/msg/Float32MultiArray",
-    contract.OUTCOME_TOPIC: "sensor_msgs/msg/Range",
+    contract.Q_VALUES_TOPIC: "uav_interfaces/msg/ActionValues",
+    contract.OUTCOME_TOPIC: "uav_interfaces/msg/StepOutcome",
     contract.WORLD_MARKERS_TOPIC: "visualization_msgs/msg/MarkerArray",
     contract.TRAJECTORY_TOPIC: "nav_msgs/msg/Path",
     contract.DIAGNOSTICS_TOPIC: "diagnostic_msgs/msg/DiagnosticArray",
@@ -39,12 +40,18 @@ DEPTH = 1000  # per-topic reader queue: a recorder that falls behind for a momen
 
 
 def typestore():
-    """The ROS 2 Jazzy message definitions (loaded once; rosbags builds them without a ROS install)."""
-    from rosbags.typesys import Stores, get_typestore
+    """The ROS 2 Jazzy message definitions and the stack's own (uav_interfaces, from its installed .msg files), loaded
+    once: rosbags serializes with them and writes them into a bag as its schemas."""
+    from ament_index_python.packages import get_package_share_directory
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     global _TYPESTORE
     if _TYPESTORE is None:
-        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+        store, types = get_typestore(Stores.ROS2_JAZZY), {}
+        for path in sorted((Path(get_package_share_directory("uav_interfaces")) / "msg").glob("*.msg")):
+            types |= get_types_from_msg(path.read_text(), f"uav_interfaces/msg/{path.stem}")
+        store.register(types)
+        _TYPESTORE = store
     return _TYPESTORE
 
 

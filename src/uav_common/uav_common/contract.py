@@ -1,12 +1,12 @@
 """The ROS contract shared by every node: topic names, QoS, message conversions, stamp joins.
 
-Pairing without custom messages: every message of one simulator step carries the same `header.stamp` (the sim time
-of the frame). The policy's `action` (TwistStamped) carries the stamp of the frame it answered, and so does a teacher's
-(`teacher_action`, sim_node's planner). `step_outcome` (sensor_msgs/Range) carries, with the frame's stamp, beta (the
-centre-window minimum depth, m) or -Inf when the step that produced this frame ended in a collision (REP 117 "too
-close"), which also means the frame is the first of a new episode. NaN (no valid reading) marks the first frame of a
-new episode that began without a collision: the time limit (`max_episode_steps`) or `~/reset`; the step that led to it
-has no outcome to learn from.
+Pairing by stamp: every message of one simulator step carries the same `header.stamp` (the sim time of the frame).
+The policy's `action` (TwistStamped) carries the stamp of the frame it answered, and so does a teacher's label
+(`teacher_label`, uav_interfaces/TeacherLabel: sim_node's planner's action, its score for every action and the
+pixels its decision is about). `step_outcome` (uav_interfaces/StepOutcome) carries, with the frame's stamp, what the
+step that produced the frame ended in: it continued the episode (beta_m: the reward's depth, the centre window's
+minimum depth), it collided (the frame is the first of a new episode), or a new episode began without a collision
+(the time limit `max_episode_steps`, or `~/reset`): the step that led to it has no outcome to learn from.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import Image, Range
-from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+from sensor_msgs.msg import Image
+
+from uav_interfaces.msg import ActionValues, AttentionWeights, StepOutcome
 
 DEPTH_TOPIC = "depth/image_raw"
 CAMERA_INFO_TOPIC = "depth/camera_info"
@@ -28,12 +29,10 @@ OUTCOME_TOPIC = "step_outcome"
 CMD_VEL_TOPIC = "cmd_vel"
 CMD_VEL_STAMPED_TOPIC = "cmd_vel_stamped"
 ACTION_TOPIC = "action"
-# Training with a teacher: sim_node's planner's action for a frame (TwistStamped, the frame's stamp), paired by
-# trainer_node like the policy's `action`. Its knowledge: none (no teacher), or uav_sim.planner's stack, all or map.
-TEACHER_TOPIC = "teacher_action"
-# With it, what the planner's decision on the frame is about (uav_sim.planner: its reason) as the frame's pixels that
-# show it: a mono8 Image at the frame's size and stamp, 255 on the reason; for a trainer whose loss pulls attention there.
-TEACHER_REASON_TOPIC = "teacher_reason"
+# Training with a teacher: sim_node's planner's label for a frame (uav_interfaces/TeacherLabel, the frame's stamp: its
+# action, its score for each action, the frame's pixels its decision is about), paired by trainer_node like the
+# policy's `action`. Its knowledge: none (no teacher), or uav_sim.planner's stack, all or map.
+TEACHER_TOPIC = "teacher_label"
 TEACHERS = ("none", "stack", "all", "map")
 Q_VALUES_TOPIC = "q_values"
 ATTENTION_TOPIC = "attention"
@@ -171,27 +170,19 @@ def rgb_image(header, rgb: np.ndarray) -> Image:
     return Image(header=header, height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w, data=rgb.tobytes())
 
 
-def q_values_msg(q: np.ndarray, label: str) -> Float32MultiArray:
-    """Q per action, `layout.dim[0].label` naming the actions."""
-    msg = Float32MultiArray(data=q.astype(np.float32).tolist())
-    msg.layout.dim = [MultiArrayDimension(label=label, size=len(q), stride=len(q))]
-    return msg
+def action_values_msg(header, q: np.ndarray, names: tuple[str, ...], action: int) -> ActionValues:
+    """The network's value of each action (named) for the frame of `header`, and the action it chose."""
+    return ActionValues(header=header, actions=list(names), values=q.astype(np.float32).tolist(), action=int(action))
 
 
-def attention_weights_msg(w: np.ndarray, grid_hw: tuple[int, int]) -> Float32MultiArray:
-    """SAM's raw attention the decision uses [heads, queries, key_nodes], nodes row-major on the grid: the relational
-    block's (queries = the nodes) or the attention readout's (one query per head); a network with the local map has
-    the map's cells after the image's."""
+def attention_weights_msg(header, w: np.ndarray, grid_hw: tuple[int, int]) -> AttentionWeights:
+    """SAM's raw attention the decision uses [heads, queries, key_nodes] for the frame of `header`, nodes row-major
+    on the grid: the relational block's (queries = the nodes) or the attention readout's (one query per head); a
+    network with the local map has the map's cells after the image's."""
     h, n, k = w.shape
-    cells = grid_hw[0] * grid_hw[1]
-    label = f"key_nodes(grid {grid_hw[0]}x{grid_hw[1]} row-major" + (", then the local map's)" if k == 2 * cells else ")")
-    msg = Float32MultiArray()
-    msg.layout.dim = [
-        MultiArrayDimension(label="heads", size=h, stride=h * n * k),
-        MultiArrayDimension(label="queries", size=n, stride=n * k),
-        MultiArrayDimension(label=label, size=k, stride=k),
-    ]
-    msg.data = w.astype(np.float32).ravel().tolist()
+    rows, cols = grid_hw
+    msg = AttentionWeights(header=header, heads=h, queries=n, grid_rows=rows, grid_cols=cols, map_cells=k - rows * cols)
+    msg.weights = w.astype(np.float32).ravel().tolist()
     return msg
 
 
@@ -204,29 +195,41 @@ def make_outcome(
     max_range_m: float,
     fov_rad: float,
     truncated: bool = False,
-) -> Range:
-    msg = Range()
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.radiation_type = Range.INFRARED
-    msg.field_of_view = float(fov_rad)
-    msg.min_range = float(min_range_m)
-    msg.max_range = float(max_range_m)
-    msg.range = -math.inf if collided else math.nan if truncated else float(beta_m)
+    reset: bool = False,
+) -> StepOutcome:
+    """The outcome of the step that produced the frame at `stamp`: a collision, a new episode without one (`truncated`:
+    the time limit, or with `reset` too sim_node's ~/reset), or a step that continued the episode with depth beta_m."""
+    event = (
+        StepOutcome.COLLIDED
+        if collided
+        else (StepOutcome.RESET if reset else StepOutcome.TIME_LIMIT)
+        if truncated
+        else StepOutcome.CONTINUES
+    )
+    msg = StepOutcome(event=event, beta_m=0.0 if event != StepOutcome.CONTINUES else float(beta_m))
+    msg.header.stamp, msg.header.frame_id = stamp, frame_id
+    msg.min_range_m, msg.max_range_m, msg.window_fov_rad = float(min_range_m), float(max_range_m), float(fov_rad)
     return msg
 
 
-def outcome_collided(msg: Range) -> bool:
-    return math.isinf(msg.range) and msg.range < 0
+def outcome_collided(msg: StepOutcome) -> bool:
+    return msg.event == StepOutcome.COLLIDED
 
 
-def outcome_truncated(msg: Range) -> bool:
+def outcome_truncated(msg: StepOutcome) -> bool:
     """The frame starts a new episode that began without a collision (time limit or reset)."""
-    return math.isnan(msg.range)
+    return msg.event in (StepOutcome.TIME_LIMIT, StepOutcome.RESET)
 
 
-def outcome_new_episode(msg: Range) -> bool:
-    return outcome_collided(msg) or outcome_truncated(msg)
+def outcome_new_episode(msg: StepOutcome) -> bool:
+    return msg.event != StepOutcome.CONTINUES
+
+
+def outcome_beta(msg: StepOutcome) -> float:
+    """The reward's depth of a step (0 after a collision), within the camera's range (a faulty publisher's NaN: 0)."""
+    if outcome_collided(msg) or math.isnan(msg.beta_m):
+        return 0.0
+    return min(max(float(msg.beta_m), 0.0), float(msg.max_range_m))
 
 
 def camera_info_intrinsics(msg) -> tuple[float, float, float, float, int, int] | None:

@@ -2,7 +2,7 @@
 
 At every step it expands every sequence of `horizon` actions (4^5 = 1024 over 2.5 s) with the vehicle's own
 kinematics (uav_common.kinematics.integrate, at the physics sub-steps), measures each plan's clearance to what it
-knows (minus `margin_m`), and keeps the first action of the best plan, ranked by
+knows (minus `body_radius_m`), and keeps the first action of the best plan, ranked by
 
 1. surviving the whole horizon and ending where a turning circle (either way, 1 m/s at 30 deg a step) is free, so
    the vehicle could circle there for ever: no plan is accepted that only postpones a crash;
@@ -41,7 +41,7 @@ NO_REASON = -1
 @dataclasses.dataclass(frozen=True)
 class PlannerConfig:
     horizon: int = 5  # actions a plan looks ahead (4^horizon plans)
-    margin_m: float = 0.3  # subtracted from every footprint distance (the body's half diagonal 0.28 m, and a little)
+    body_radius_m: float = 0.3  # subtracted from every footprint distance (the body's half diagonal 0.28 m, and a little)
     clearance_cap_m: float = 0.5  # clearances above it rank alike
     progress_discount: float = 0.9  # a metre flown one step later counts this much
     knowledge: str = "stack"  # one of KNOWLEDGE
@@ -130,7 +130,7 @@ class Planner:
             d, code = known.clearance(xs, ys)  # (plans, sub-steps)
             at = d.argmin(axis=1)
             rows = np.arange(len(d))
-            step_clear = d[rows, at] - cfg.margin_m
+            step_clear = d[rows, at] - cfg.body_radius_m
             nearer = step_clear < clear
             clear = np.where(nearer, step_clear, clear)
             bound = np.where(nearer, code[rows, at], bound)
@@ -160,7 +160,7 @@ class Planner:
         free = np.zeros(len(x), dtype=bool)
         for side in (1.0, -1.0):  # left, right
             cx, cy = x - side * r * np.sin(yaw), y + side * r * np.cos(yaw)
-            free |= known.clearance(cx, cy)[0] - self.config.margin_m >= r
+            free |= known.clearance(cx, cy)[0] - self.config.body_radius_m >= r
         return free
 
     def _reason(self, action: int, safety: np.ndarray, clear: np.ndarray, bound: np.ndarray) -> tuple[int, ...]:

@@ -154,7 +154,7 @@ def parse_bar(text: str) -> dict[str, float]:
 
 def fisher_exact(k1: int, n1: int, k2: int, n2: int) -> float:
     """Two-sided Fisher exact p for k1 of n1 against k2 of n2: the probabilities of the tables with the
-    same margins (hypergeometric) that are no more likely than the observed one, summed."""
+    same marginal totals (hypergeometric) that are no more likely than the observed one, summed."""
     k = k1 + k2
 
     def prob(x: int) -> float:

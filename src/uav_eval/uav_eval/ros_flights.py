@@ -69,7 +69,7 @@ class StepMonitor:
         out = j["outcome"]
         collided, truncated = contract.outcome_collided(out), contract.outcome_truncated(out)
         if not truncated:  # a time limit's step has no outcome (evaluation sets none)
-            beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
+            beta = contract.outcome_beta(out)
             self.reward += step_reward(beta, collided)
         self.steps += 1
         if collided:
@@ -106,7 +106,9 @@ def evaluate_once(
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Image, Range
+    from sensor_msgs.msg import Image
+
+    from uav_interfaces.msg import StepOutcome
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -115,7 +117,7 @@ def evaluate_once(
     executor.add_node(node)
     mon = StepMonitor(steps)
     deep = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10000)
-    node.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: mon.add("outcome", m), deep)
+    node.create_subscription(StepOutcome, contract.OUTCOME_TOPIC, lambda m: mon.add("outcome", m), deep)
     node.create_subscription(Odometry, contract.ODOM_TOPIC, lambda m: mon.add("odom", m), deep)
     said = {}  # the policy's latest /diagnostics values, and when they came
     node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: policy_said(said, m), 10)

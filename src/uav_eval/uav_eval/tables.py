@@ -334,7 +334,7 @@ def insight_table(results: list[EvalResult], models: list[str], worlds: list[str
         "of nodes, as many random ones, or the top 10 % of the mean of the maps before it read 'no return'; "
         "faithfulness = top / random, and top / mean map (a fixed prior scores about 1 against the mean map). Near: the "
         "mass on pixels nearer than 3 m over their share of the image (1 = no preference). Curves (RISE): the mean "
-        "margin of the chosen action's Q over the best other as the nodes are removed (deletion: lower is more "
+        "lead of the chosen action's Q over the best other as the nodes are removed (deletion: lower is more "
         "faithful) or restored into an image of no return (insertion: higher is), in the map's / the mean map's / a "
         "random order.",
         "",

@@ -62,7 +62,7 @@ def strength(att_map: np.ndarray) -> np.ndarray:
 def overlay(depth_m: np.ndarray, att_map: np.ndarray, max_range_m: float, label: str = "", kind: str = "attention") -> np.ndarray:
     """rgb8 picture: the depth in grey with `kind` (attention or saliency) in green on top, upscaled so its shorter
     side is at least OVERLAY_MIN_PX, a legend bar of the absolute scale (x uniform share) and `label` (e.g. the
-    chosen action and its Q margin) in a strip below."""
+    chosen action and its Q lead over the next best) in a strip below."""
     base = colourise_depth(depth_m, max_range_m).astype(np.float32)
     a = strength(att_map)[:, :, None] * 0.8
     green = np.zeros_like(base)

@@ -15,11 +15,11 @@ Measured per frame and summarised by `Insight` (policy_node's /diagnostics, eval
 - faithfulness against the mean map: the same, against masking the top-k nodes of the mean of the maps seen
   before (a position-only baseline: a fixed prior, the same band on every frame, scores about 1 here however
   it scores against random nodes);
-- deletion and insertion curves (RISE, Petsiuk et al. 2018) on the decision's margin, Q of the chosen action over the
+- deletion and insertion curves (RISE, Petsiuk et al. 2018) on the decision's lead, Q of the chosen action over the
   best other: the nodes are removed ("no return") in the map's order, an eighth of the grid at a time, from the whole
   image (deletion; the lower its area, the sooner the decision goes), or restored into an image of no return
   (insertion; the higher, the sooner it comes back); each against the same curves in the mean map's order and in a
-  random order. The areas are the curve's mean margin (Q units);
+  random order. The areas are the curve's mean lead (Q units);
 - grounding: the explanation's mass on pixels nearer than NEAR_M against their share of the image (1 = no
   preference; above 1 = looks at what is near); `mass_ratio` and `increase_on` measure it on an object placed in a
   scene (uav_eval.grounding's counterfactual test).
@@ -116,7 +116,7 @@ def deletion_test(
     return bool(changed[0]), float(changed[1 : 1 + RANDOM_DRAWS].mean()), None if prior is None else bool(changed[-1])
 
 
-def margin(q: torch.Tensor, action: int) -> torch.Tensor:
+def q_lead(q: torch.Tensor, action: int) -> torch.Tensor:
     """(batch,) Q of `action` over the best other action: positive while `action` is chosen."""
     others = torch.cat([q[:, :action], q[:, action + 1 :]], dim=1)
     return q[:, action] - others.max(dim=1).values
@@ -124,7 +124,7 @@ def margin(q: torch.Tensor, action: int) -> torch.Tensor:
 
 @torch.no_grad()
 def curve_areas(net: torch.nn.Module, state: np.ndarray, orders: list[np.ndarray], action: int, grid_hw) -> np.ndarray:
-    """(len(orders), 2): the deletion and the insertion curve's area (mean margin, trapezoids over CURVE_LEVELS + 1
+    """(len(orders), 2): the deletion and the insertion curve's area (mean lead, trapezoids over CURVE_LEVELS + 1
     points) of the decision `action` on `state` (channels, H, W), the nodes removed or restored in each order."""
     nodes = len(orders[0])
     k = np.array([round(i * nodes / CURVE_LEVELS) for i in range(CURVE_LEVELS + 1)])[:, None, None, None]
@@ -139,15 +139,15 @@ def curve_areas(net: torch.nn.Module, state: np.ndarray, orders: list[np.ndarray
         gone = np.concatenate([pixel_rank < k, pixel_rank >= k])  # deletion levels, then insertion levels
         x = np.where(gone, fill[None], x0)  # (2 * levels, channels, H, W)
         q, _ = net(torch.from_numpy(x).to(device))
-        m = margin(q, action).cpu().numpy().reshape(2, CURVE_LEVELS + 1)
+        m = q_lead(q, action).cpu().numpy().reshape(2, CURVE_LEVELS + 1)
         out[i] = ((m[:, :-1] + m[:, 1:]) / 2).mean(axis=1)
     return out
 
 
 def grad_cam(net: torch.nn.Module, state: np.ndarray, action: int) -> np.ndarray:
     """Grad-CAM (Selvaraju et al. 2017) on the conv trunk's last layer for the decision: the target is `action`'s
-    margin over the best other action (Q_a - max Q_b), what makes it win; Q_a alone gave all-negative maps with the
-    packaged CNN. (nodes,) summing to 1, uniform when no cell raises the margin. A QEnsemble: the mean of its
+    lead over the best other action (Q_a - max Q_b), what makes it win; Q_a alone gave all-negative maps with the
+    packaged CNN. (nodes,) summing to 1, uniform when no cell raises the lead. A QEnsemble: the mean of its
     members' maps."""
     members = list(getattr(net, "members", [net]))
     device = next(net.parameters()).device
@@ -183,7 +183,7 @@ class InsightSummary:
     deletion_random: float  # ... with k random nodes masked
     near_ratio: float  # mass on near pixels over their share (mean over frames with something near); nan if none
     deletion_mean_map: float = math.nan  # ... with the top-k nodes of the mean map so far masked (nan: not measured)
-    # The deletion and insertion curves' areas (mean margin) in the map's, the mean map's and a random order.
+    # The deletion and insertion curves' areas (mean lead) in the map's, the mean map's and a random order.
     deletion_area: float = math.nan
     deletion_area_mean_map: float = math.nan
     deletion_area_random: float = math.nan

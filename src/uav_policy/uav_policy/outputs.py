@@ -10,10 +10,10 @@ import numpy as np
 from geometry_msgs.msg import Twist, TwistStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import Float32MultiArray
 
 from uav_common import contract
 from uav_common.actions import Action
+from uav_interfaces.msg import ActionValues, AttentionWeights
 
 from .attention import attention_map, map_overlay, overlay
 from .pilot import Decision
@@ -29,12 +29,12 @@ class Outputs:
         self.stamped = pub(TwistStamped, contract.CMD_VEL_STAMPED_TOPIC, q) if stamped else None
         self.base_frame = contract.vehicle_frame(node.get_namespace(), "base_link")  # what action commands move
         self.action = pub(TwistStamped, contract.ACTION_TOPIC, q)
-        self.q_values = pub(Float32MultiArray, contract.Q_VALUES_TOPIC, q)
+        self.q_values = pub(ActionValues, contract.Q_VALUES_TOPIC, q)
         self.attention = (pub(Image, contract.ATTENTION_TOPIC, q), pub(Image, contract.ATTENTION_OVERLAY_TOPIC, big))
-        self.weights = pub(Float32MultiArray, contract.ATTENTION_WEIGHTS_TOPIC, q)
+        self.weights = pub(AttentionWeights, contract.ATTENTION_WEIGHTS_TOPIC, q)
         self.saliency = (pub(Image, contract.SALIENCY_TOPIC, q), pub(Image, contract.SALIENCY_OVERLAY_TOPIC, big))
         self.local_map = pub(Image, contract.ATTENTION_LOCAL_MAP_TOPIC, big)  # a network with the local map, top-down
-        self.q_label = "action:" + ",".join(a.name for a in actions)
+        self.action_names = tuple(a.name for a in actions)
         self.last_cmd, self.last_cmd_unheard = None, False
 
     def listeners(self) -> dict[str, int]:
@@ -83,12 +83,12 @@ class Outputs:
         """q_values and SAM's attention maps (with the local map's `grid`, the picture of what it weighs there); for the
         CNN, the saliency publisher `publish(rows)` when someone subscribes (its Grad-CAM costs a backward pass), else
         None."""
-        self.q_values.publish(contract.q_values_msg(d.q, self.q_label))
+        self.q_values.publish(contract.action_values_msg(img.header, d.q, self.action_names, d.action))
         maps = lambda rows, kind, pubs: self._map(img, depth, d, rows, grid_hw, view, kind, pubs)  # noqa: E731
         if d.attention is not None:  # SAM: the attention is at hand
             maps(d.attention, "attention", self.attention)
             if self.weights.get_subscription_count() > 0:
-                self.weights.publish(contract.attention_weights_msg(d.attention, grid_hw))
+                self.weights.publish(contract.attention_weights_msg(img.header, d.attention, grid_hw))
             if grid is not None and self.local_map.get_subscription_count() > 0:
                 label = self.actions[d.action].name.split("_", 1)[0]
                 self.local_map.publish(contract.rgb_image(img.header, map_overlay(grid, d.attention, grid_hw, label)))
@@ -99,7 +99,7 @@ class Outputs:
 
     def _map(self, img: Image, depth: np.ndarray, d: Decision, rows, grid_hw, view, kind: str, pubs) -> None:
         """The map (32FC1, relative to a uniform share) and, when subscribed, its overlay with the network's action and Q
-        margin (and, where the shield overrode it, the action flown)."""
+        lead over the next best (and, where the shield overrode it, the action flown)."""
         pub_map, pub_overlay = pubs
         to_overlay = self.overlays and pub_overlay.get_subscription_count() > 0
         if pub_map.get_subscription_count() == 0 and not to_overlay:
@@ -110,6 +110,6 @@ class Outputs:
             q, action = d.q, d.unshielded if d.unshielded >= 0 else d.action
             second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]
             name = lambda a: self.actions[a].name.split("_", 1)[0]  # noqa: E731
-            label = f"{name(action)} Q {q[action]:.2f}, margin {q[action] - second:+.2f}"
+            label = f"{name(action)} Q {q[action]:.2f}, lead {q[action] - second:+.2f}"
             label += f"; shield: {name(d.action)}" if d.shield else ""
             pub_overlay.publish(contract.rgb_image(img.header, overlay(depth, amap, self.max_range_m, label, kind)))

@@ -17,12 +17,13 @@ from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, Range
+from sensor_msgs.msg import CameraInfo, Image
 
 from uav_common import contract
 from uav_common.node_runner import in_thread, run
 from uav_common.ros_params import NodeOwned, ParameterError
 from uav_common.settings import declare_settings
+from uav_interfaces.msg import StepOutcome
 
 from . import weights as wio
 from .agent import Agent, resolve_device
@@ -91,7 +92,7 @@ class PolicyNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         # Camera drivers publish best effort; a best-effort reader takes sim_node's reliable frames too.
         self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), contract.SENSOR_QOS)
-        self.create_subscription(Range, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), contract.STREAM_QOS)
+        self.create_subscription(StepOutcome, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), contract.STREAM_QOS)
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, contract.SENSOR_QOS)
         if self.shield:
             self.create_subscription(Odometry, contract.ODOM_TOPIC, self._on_odom, contract.SENSOR_QOS)
@@ -216,7 +217,7 @@ class PolicyNode(Node):
         t0 = time.perf_counter()
         response.success = False
         try:
-            push = self.receiver.authenticate(request.load_namespace)
+            push = self.receiver.authenticate(request)
         except Refused as e:  # nothing of it is taken, no frame is released
             response.message = str(e)
             return response

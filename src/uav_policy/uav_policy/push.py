@@ -1,19 +1,14 @@
-"""Building and reading a weights push: diagnostic_msgs/srv/AddDiagnostics on policy_node/push_weights.
+"""Building and reading a weights push: uav_interfaces/srv/PushWeights on policy_node/push_weights.
 
-The request's one string is the push: `uav_push/1 ` and a JSON object of its small fields on the first
-line, then, when the push carries weights, the safetensors blob in base64. The fields: `epsilon` (the
-exploration rate to act with from now on), `release_stamp_ns` (with policy_node's wait_for_trainer,
-answer the frames stamped up to this sim time, ns), `fly_action` (with a release: answer the released frame
-with this action of the table, not the network's choice: a teacher flies the step) and, to be accepted,
-`push_seq` (larger than any sequence number accepted before: a recorded push cannot be played again) and `signature` (HMAC-SHA256,
-in hex, of the weights and every field under the run's key, `push_key_file`). The answer's `success`
-and `message` say whether it was taken, and why not.
-
-Why this service type: it is the standard one whose request is a single string, which rclpy converts in
-one copy (200 MB: under a second), so an oversize push is refused by its length before anything is
-decoded (benchmarks/bench_policy.py). Every SetParameters request carries a BYTE_ARRAY field, which rclpy
-converts byte by byte before any callback can look at it (200 MB: 61 s with the executor stalled, 2.6 GB of
-memory, measured once when the service was chosen).
+A request carries, each in its own field: `weights` (a safetensors blob; empty: none), `epsilon` (the exploration rate
+to act with from now on; KEEP_EPSILON: unchanged), `release_stamp_ns` (with policy_node's wait_for_trainer, answer
+the frames stamped up to this sim time, ns; NO_RELEASE: none), `fly_action` (with a release: answer the released frame
+with this action of the table, not the network's choice: a teacher flies the step) and, to be accepted, `push_seq`
+(larger than any sequence number accepted before: a recorded push cannot be played again) and `signature`
+(HMAC-SHA256, in hex, of the weights and every field under the run's key, `push_key_file`). The answer's `success`
+and `message` say whether it was taken, and why not. An oversize push is refused by its length before anything of
+the weights is read (rclpy hands a `uint8[]` over as one array: 200 MB in well under a second, benchmarks/
+bench_policy.py; a SetParameters BYTE_ARRAY is converted byte by byte: 61 s with the executor stalled).
 
 The Fast DDS in the PyPI wheels has no security plugins, so anyone on the domain can call the service:
 the key, which `train` writes for each run (mode 0600) and hands to both nodes, is what keeps them out.
@@ -23,41 +18,26 @@ at the release before, then makes that step's updates while the policy acts, as 
 
 from __future__ import annotations
 
-import base64
-import binascii
+import array
 import dataclasses
 import hashlib
 import hmac
-import json
 import math
 import os
 import secrets
 import stat
 from pathlib import Path
 
-from diagnostic_msgs.srv import AddDiagnostics as PushService  # noqa: N814 (the standard type pushes travel on)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-PREFIX = "uav_push/1 "
-MAX_HEADER_CHARS = 1024  # the first line: prefix and JSON fields
-EPSILON_FIELD = "epsilon"
-RELEASE_FIELD = "release_stamp_ns"
-FLY_FIELD = "fly_action"
-SEQUENCE_FIELD = "push_seq"
-SIGNATURE_FIELD = "signature"
+from uav_interfaces.srv import PushWeights as PushService  # noqa: N814 (the push service's type)
+
 KEY_BYTES = 32
 # The push service's request queue. rclpy's services keep the last 10 requests: under load, a burst of
 # forged pushes overwrote queued ones (10 of 50 never answered), the trainer's among them.
 PUSH_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST, depth=100
 )
-_FIELDS = {
-    EPSILON_FIELD: "a number",
-    RELEASE_FIELD: "an integer",
-    FLY_FIELD: "an integer",
-    SEQUENCE_FIELD: "an integer",
-    SIGNATURE_FIELD: "a string",
-}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +68,7 @@ def sign(
 def verify(key: bytes, push: Push, last_seq: int) -> None:
     """ValueError unless `push` is signed with `key` and newer than `last_seq`."""
     if push.signature is None or push.seq is None:
-        raise ValueError(f"unsigned push refused: a push must carry '{SEQUENCE_FIELD}' and '{SIGNATURE_FIELD}'")
+        raise ValueError("unsigned push refused: a push must carry 'push_seq' and 'signature'")
     good = sign(key, push.weights, push.epsilon, push.release_stamp_ns, push.seq, push.fly_action)
     if not hmac.compare_digest(good, push.signature):
         raise ValueError("push refused: its signature does not match this run's key (push_key_file)")
@@ -130,100 +110,58 @@ def load_key(path: str | os.PathLike) -> bytes:
     return key
 
 
-def push_text(
+def push_request(
     blob: bytes | None,
     epsilon: float | None = None,
     release_stamp_ns: int | None = None,
     key: bytes | None = None,
     seq: int | None = None,
     fly_action: int | None = None,
-) -> str:
+) -> PushService.Request:
     """A push of weights (None: none), and optionally an exploration rate, a release stamp and the action the released
     frame is answered with; with `key`, signed as push `seq`."""
-    fields: dict[str, object] = {}
+    epsilon = None if epsilon is None else float(epsilon)  # signed as the receiver reads them
+    release_stamp_ns = None if release_stamp_ns is None else int(release_stamp_ns)
+    fly_action = None if fly_action is None else int(fly_action)
+    req = PushService.Request()
+    if blob is not None:
+        req.weights = array.array("B", blob)
     if epsilon is not None:
-        fields[EPSILON_FIELD] = float(epsilon)
+        req.epsilon = epsilon
     if release_stamp_ns is not None:
-        fields[RELEASE_FIELD] = int(release_stamp_ns)
+        req.release_stamp_ns = release_stamp_ns
     if fly_action is not None:
-        fields[FLY_FIELD] = int(fly_action)
+        req.fly_action = fly_action
     if key is not None:
         if seq is None:
             raise ValueError("a signed push needs its sequence number")
-        fields[SEQUENCE_FIELD] = int(seq)
-        fields[SIGNATURE_FIELD] = sign(
-            key,
-            None if blob is None else bytes(blob),
-            fields.get(EPSILON_FIELD),
-            fields.get(RELEASE_FIELD),
-            int(seq),
-            fields.get(FLY_FIELD),
-        )
-    body = base64.b64encode(blob).decode("ascii") if blob is not None else ""
-    return f"{PREFIX}{json.dumps(fields)}\n{body}"
+        req.push_seq = int(seq)
+        req.signature = sign(key, None if blob is None else bytes(blob), epsilon, release_stamp_ns, int(seq), fly_action)
+    return req
 
 
-def push_request(*args, **kwargs) -> PushService.Request:
-    """push_text's push as a request of the push service."""
-    return PushService.Request(load_namespace=push_text(*args, **kwargs))
-
-
-def _unique(pairs):
-    out = {}
-    for name, value in pairs:
-        if name in out:
-            raise ValueError(f"push field '{name}' given twice")
-        out[name] = value
-    return out
-
-
-def read_push(text, max_bytes: int) -> Push:
-    """The push in a request's text; ValueError names what is wrong (no push header, unknown or repeated
-    fields, wrong types, base64 that is malformed or would decode to over `max_bytes`, an epsilon outside
-    [0, 1], a negative stamp, or nothing at all). The length is checked before anything is decoded."""
-    if not isinstance(text, str):
-        raise ValueError("a push is text")
-    if len(text) > MAX_HEADER_CHARS + 1 + 4 * (max_bytes // 3 + 1):
-        raise ValueError(f"the push ({len(text)} characters) would hold more than the {max_bytes} bytes of weights allowed")
-    head, _, body = text.partition("\n")
-    if len(head) > MAX_HEADER_CHARS or not head.startswith(PREFIX):
-        raise ValueError(f"not a push: expected '{PREFIX}{{fields as JSON}}', a newline and the weights in base64")
-    try:
-        fields = json.loads(head[len(PREFIX) :], object_pairs_hook=_unique)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"the push's fields are not JSON: {e}") from None
-    if not isinstance(fields, dict):
-        raise ValueError("the push's fields must be a JSON object")
-    for name, value in fields.items():
-        if name not in _FIELDS:
-            raise ValueError(f"unknown push field '{name}'; expected any of {', '.join(_FIELDS)}")
-        ok = {
-            "a number": isinstance(value, (int, float)),
-            "an integer": isinstance(value, int),
-            "a string": isinstance(value, str),
-        }[_FIELDS[name]]
-        if not ok or isinstance(value, bool):
-            raise ValueError(f"push field '{name}' must be {_FIELDS[name]}")
-    blob = None
-    if body:
-        if len(body) > 4 * (max_bytes // 3 + 1):
-            raise ValueError(f"the push's weights would hold more than the {max_bytes} bytes allowed")
-        try:
-            blob = base64.b64decode(body, validate=True)
-        except (binascii.Error, ValueError) as e:
-            raise ValueError(f"the push's weights are not base64: {e}") from None
-    if blob is None and not fields.keys() & {EPSILON_FIELD, RELEASE_FIELD}:
-        raise ValueError("an empty push: expected weights, epsilon or release_stamp_ns")
-    eps = float(fields[EPSILON_FIELD]) if EPSILON_FIELD in fields else None
+def read_push(request, max_bytes: int) -> Push:
+    """The push in a request; ValueError names what is wrong (weights over `max_bytes`, an epsilon outside [0, 1], a
+    negative stamp or action that is not the field's 'none', an action without a release, or nothing at all). The
+    length is checked before anything of the weights is read."""
+    n = len(request.weights)
+    if n > max_bytes:
+        raise ValueError(f"the push's weights ({n} bytes) are more than the {max_bytes} bytes allowed")
+    blob = bytes(request.weights) if n else None
+    keep, none = PushService.Request.KEEP_EPSILON, PushService.Request.NO_RELEASE
+    eps = None if request.epsilon == keep else float(request.epsilon)
     if eps is not None and not (math.isfinite(eps) and 0.0 <= eps <= 1.0):
-        raise ValueError(f"push field 'epsilon' must lie in [0, 1], got {eps}")
-    stamp = fields.get(RELEASE_FIELD)
+        raise ValueError(f"push field 'epsilon' must lie in [0, 1] (or be KEEP_EPSILON), got {eps}")
+    stamp = None if request.release_stamp_ns == none else int(request.release_stamp_ns)
     if stamp is not None and stamp < 0:
-        raise ValueError(f"push field 'release_stamp_ns' must be >= 0, got {stamp}")
-    fly = fields.get(FLY_FIELD)
+        raise ValueError(f"push field 'release_stamp_ns' must be >= 0 (or NO_RELEASE), got {stamp}")
+    fly = None if request.fly_action == PushService.Request.NETWORK_ANSWERS else int(request.fly_action)
     if fly is not None and (stamp is None or fly < 0):
-        raise ValueError(f"push field '{FLY_FIELD}' must be an action index >= 0 and come with '{RELEASE_FIELD}', got {fly}")
-    return Push(blob, eps, stamp, fields.get(SEQUENCE_FIELD), fields.get(SIGNATURE_FIELD), fly)
+        raise ValueError(f"push field 'fly_action' must be an action index >= 0 and come with 'release_stamp_ns', got {fly}")
+    if blob is None and eps is None and stamp is None:
+        raise ValueError("an empty push: expected weights, epsilon or release_stamp_ns")
+    signed = bool(request.signature)
+    return Push(blob, eps, stamp, int(request.push_seq) if signed else None, request.signature or None, fly)
 
 
 # How far a release may lead the newest frame the policy has seen: trainer_node releases frames it has

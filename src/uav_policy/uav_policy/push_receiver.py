@@ -45,9 +45,9 @@ class PushReceiver:
             best = min(best, time.perf_counter() - t0)
         self.seconds_per_flop = best / (members * forward_flops(net.cfg))
 
-    def authenticate(self, text: str) -> Push:
+    def authenticate(self, request) -> Push:
         """The request's push: Refused (counted) when nothing of it may be taken, ValueError when malformed."""
-        push = read_push(text, wio.MAX_BYTES)
+        push = read_push(request, wio.MAX_BYTES)
         try:
             if self.key is None:
                 self.key = load_key(self.key_file)

@@ -30,7 +30,7 @@ class SafetySettings:
         0.6, "Safety: an obstacle nearer than this in the flight corridor stops forward motion (turning allowed)", 0.0, 10.0
     )
     corridor_half_width_m: float = setting(
-        0.35, "Safety: half the width and height of the flight corridor ahead (the vehicle's half-size and a margin)", 0.05, 5.0
+        0.35, "Safety: half the width and height of the flight corridor ahead (the vehicle's half-size and some room)", 0.05, 5.0
     )
     max_speed_mps: float = setting(2.0, "Safety: largest forward speed commanded (m/s)", 0.0, 20.0)
     max_yaw_rate_radps: float = setting(1.2, "Safety: largest yaw rate commanded (rad/s)", 0.0, 10.0)

@@ -33,7 +33,7 @@ FORMAT = "uav_policy/1"
 MAX_BYTES = 64 * 1024 * 1024
 CAMERA_KEY = "camera_hfov_deg"
 WINDOW_KEY = "reward_window_fraction"
-DISTILLED_KEY = "distilled_from"  # a distilled network's teachers: JSON [{"file", "sha256"}, ...]
+DISTILLED_KEY = "distilled_from"  # the ensemble a network was distilled from: JSON [{"file", "sha256"}, ...]
 HFOV_RANGE_DEG = (10.0, 170.0)  # sim_node's hfov_deg range
 
 
@@ -50,7 +50,7 @@ def to_bytes(
 ) -> bytes:
     """The safetensors blob; `camera_hfov_deg` (when known) records the camera the net was trained with,
     `reward_window_fraction` (when not None) the reward window it was trained on; `notes` are further metadata
-    entries that loaders pass over (e.g. a distilled network's teachers, DISTILLED_KEY)."""
+    entries that loaders pass over (e.g. the ensemble a network was distilled from, DISTILLED_KEY)."""
     # As numpy arrays (views of the CPU tensors): safetensors writes the same bytes ~5x faster than from torch.
     tensors = {k: v.detach().to("cpu").contiguous().numpy() for k, v in net.state_dict().items()}
     meta = {**(notes or {}), "format": FORMAT, "config": cfg.to_json()}

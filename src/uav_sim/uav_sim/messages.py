@@ -1,25 +1,26 @@
-"""The simulator's state as ROS messages: the vehicle's odometry, the depth camera's CameraInfo and a teacher's action
+"""The simulator's state as ROS messages: the vehicle's odometry, the depth camera's CameraInfo and a teacher's label
 (the world and the path flown are in markers.py, the frames and step outcomes in uav_common.contract)."""
 
 from __future__ import annotations
 
 import math
 
-from geometry_msgs.msg import TwistStamped
+import numpy as np
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo
 
-from uav_common.actions import PAPER_ACTIONS
+from uav_common import contract
 from uav_common.kinematics import BodyTwist
+from uav_common.plan_search import Plan
+from uav_interfaces.msg import TeacherLabel
 
 
-def teacher_msg(action: int, stamp, base_frame: str, step_duration_s: float) -> TwistStamped:
-    """The teacher's action for the frame at `stamp` as the body command it flies (as policy_node's `action`)."""
-    a = PAPER_ACTIONS[action]
-    msg = TwistStamped()
-    msg.header.stamp = stamp
-    msg.header.frame_id = base_frame
-    msg.twist.linear.x, msg.twist.angular.z = a.linear_x_mps, a.yaw_rate_radps(step_duration_s)
+def teacher_label_msg(plan: Plan, reason: np.ndarray, stamp, frame_id: str) -> TeacherLabel:
+    """The teacher's label for the frame at `stamp`: its action, its score for each action, and `reason` (a bool mask
+    of the frame's pixels its decision is about)."""
+    msg = TeacherLabel(action=int(plan.action), scores=[float(v) for v in plan.scores])
+    msg.header.stamp, msg.header.frame_id = stamp, frame_id
+    msg.reason = contract.mask_to_image(reason, stamp, frame_id)
     return msg
 
 

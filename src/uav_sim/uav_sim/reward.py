@@ -23,7 +23,7 @@ def center_window_slices(height: int, width: int, fraction: float = CENTER_WINDO
     """Row and column slices of the central window covering `fraction` of each side.
 
     The window is at least one pixel and is centred (for odd leftovers the extra pixel
-    goes to the bottom/right margin).
+    goes to the bottom/right edge).
     """
     if not 0.0 < fraction <= 1.0:
         raise ValueError(f"fraction must be in (0, 1], got {fraction}")
@@ -60,7 +60,7 @@ def floor_beta_m(
 
 def window_fov_rad(width: int, hfov_deg: float, fraction: float = CENTER_WINDOW_FRACTION) -> float:
     """The horizontal angle (rad) the central window's columns cover behind a pinhole camera: the arc
-    beta is read over (step_outcome's field_of_view). Not `fraction` of the field of view: at 120
+    beta is read over (step_outcome's window_fov_rad). Not `fraction` of the field of view: at 120
     degrees the paper's 20 % window (13 of 64 columns) spans 38.7 degrees, not 24."""
     _, cols = center_window_slices(1, width, fraction)
     t = math.tan(math.radians(hfov_deg) / 2)
@@ -70,7 +70,7 @@ def window_fov_rad(width: int, hfov_deg: float, fraction: float = CENTER_WINDOW_
 
 def window_fraction_for_fov(width: int, hfov_deg: float, fov_rad: float) -> float:
     """The window (share of the image side, whole pixels: n / width) whose arc window_fov_rad is nearest
-    `fov_rad`: reads a reward window back from step_outcome's field_of_view."""
+    `fov_rad`: reads a reward window back from step_outcome's window_fov_rad."""
     n = min(range(1, width + 1), key=lambda k: abs(window_fov_rad(width, hfov_deg, k / width) - fov_rad))
     return n / width
 

@@ -1,9 +1,10 @@
 """sim_node: the pybullet quadrotor simulator on ROS 2.
 
-Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome, world/markers (the
-room and obstacles, latched), trajectory (this episode's path), /clock (unless publish_clock:=false:
+Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome (uav_interfaces/StepOutcome), world/markers
+(the room and obstacles, latched), trajectory (this episode's path), /clock (unless publish_clock:=false:
 several simulators in one graph would each say their own time), /diagnostics and, with a teacher
-(teacher:=stack|all), teacher_action and teacher_reason: the planner's action and reason per frame; consumes cmd_vel.
+(teacher:=stack|all|map), teacher_label (uav_interfaces/TeacherLabel): the planner's action, scores and reason per
+frame; consumes cmd_vel.
 Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
 `lockstep` mode one cmd_vel advances one step; in `realtime` mode the simulator steps at a fixed
 rate with the latest command and a watchdog.
@@ -16,11 +17,11 @@ import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Twist, TwistStamped
+from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image, Range
+from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -29,9 +30,10 @@ from uav_common.kinematics import HOVER, BodyTwist, twist_error
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
+from uav_interfaces.msg import StepOutcome, TeacherLabel
 
 from .markers import path_msg, path_pose, world_markers
-from .messages import camera_info_msg, odometry_msg, teacher_msg
+from .messages import camera_info_msg, odometry_msg, teacher_label_msg
 from .planner import PlannerConfig, SimPlanner
 from .reward import window_fov_rad
 from .sim_settings import REMOVED, SimNodeSettings, describe
@@ -79,9 +81,8 @@ class SimNode(Node):
         self.pub_depth = self.create_publisher(Image, contract.DEPTH_TOPIC, q)
         self.pub_info = self.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, q)
         self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, q)
-        self.pub_outcome = self.create_publisher(Range, contract.OUTCOME_TOPIC, q)
-        self.pub_teacher = self.create_publisher(TwistStamped, contract.TEACHER_TOPIC, q) if self.teacher else None
-        self.pub_reason = self.create_publisher(Image, contract.TEACHER_REASON_TOPIC, q) if self.teacher else None
+        self.pub_outcome = self.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, q)
+        self.pub_teacher = self.create_publisher(TeacherLabel, contract.TEACHER_TOPIC, q) if self.teacher else None
         self.pub_clock = self.create_publisher(Clock, "/clock", q) if st.publish_clock else None
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         self.pub_markers = self.create_publisher(MarkerArray, contract.WORLD_MARKERS_TOPIC, contract.LATCHED_QOS)
@@ -108,6 +109,7 @@ class SimNode(Node):
         self.steps_at_diag = 0
         self.diag_wall = time.monotonic()
         self.current: StepResult = self.sim.observe()
+        self.from_reset = False  # the current frame began an episode at ~/reset (its outcome says so)
         # Closed until wait_for_subscribers peers listen (lockstep): no frame, and commands are ignored.
         self.gate_open, self.gate_ticks = self.mode != "lockstep" or self.wait_for_subscribers == 0, 0
         if self.gate_open:
@@ -123,7 +125,7 @@ class SimNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(describe(world, layouts, st.worlds, self.mode, cfg, self.depth_encoding))
         if self.teacher is not None:
-            self.get_logger().info(f"teacher_action: the planner ({st.teacher}) answers every frame, for a trainer to learn")
+            self.get_logger().info(f"teacher_label: the planner ({st.teacher}) labels every frame, for a trainer to learn")
 
     # -- commands ----------------------------------------------------------------------
     def on_cmd_vel(self, msg: Twist) -> None:
@@ -192,7 +194,7 @@ class SimNode(Node):
             self.publish(self.current)
 
     def on_reset(self, _req, resp):
-        self.current = self.sim.reset()
+        self.current, self.from_reset = self.sim.reset(), True
         if self.gate_open:  # else the frame goes out when the gate opens (an answer now would be ignored)
             self.publish(self.current)
         resp.success = True
@@ -213,7 +215,7 @@ class SimNode(Node):
                 f"time limit: episode {result.episode - 1} ended after {self.cfg.max_episode_steps} steps; vehicle back "
                 f"at the start of '{self.sim.world.name}'"
             )
-        self.current = result
+        self.current, self.from_reset = result, False
         self.publish(result)
 
     # -- output ------------------------------------------------------------------------
@@ -223,8 +225,7 @@ class SimNode(Node):
             self.pub_clock.publish(Clock(clock=stamp))
         cfg = self.cfg
         if self.teacher is not None and not self.budget_flown():  # the teacher's answer and reason before the frame
-            self.pub_teacher.publish(teacher_msg(self.teacher.label().action, stamp, self.base_frame, cfg.step_duration_s))
-            self.pub_reason.publish(contract.mask_to_image(self.teacher.reason_mask(), stamp, self.frame_id))
+            self.pub_teacher.publish(teacher_label_msg(self.teacher.label(), self.teacher.reason_mask(), stamp, self.frame_id))
         self.pub_outcome.publish(
             contract.make_outcome(
                 r.beta_m,
@@ -235,6 +236,7 @@ class SimNode(Node):
                 cfg.max_range_m,
                 window_fov_rad(cfg.image_width, cfg.hfov_deg, cfg.reward_window_fraction),
                 truncated=r.truncated,
+                reset=self.from_reset,
             )
         )
         # The outcome, the camera and the frame first (a frame is mapped through the CameraInfo before it): a

@@ -67,8 +67,8 @@ class SimNodeSettings:
     )
     teacher: str = setting(
         "none",
-        "training with a teacher: publish on teacher_action, stamped as each frame, the action uav_sim.planner flies from "
-        "it, and on teacher_reason the pixels its decision is about (stack: knowing what the last teacher_frames frames "
+        "training with a teacher: publish on teacher_label, stamped as each frame, the action uav_sim.planner flies from "
+        "it, its score for every action and the pixels its decision is about (stack: knowing what the last teacher_frames frames "
         "showed; all: the whole world; map: the local map of the last teacher_frames measured frames and odometry); "
         "train sets it from the trainer's teacher. none: no planning",
         choices=contract.TEACHERS,

@@ -19,8 +19,8 @@ REJECTED_WEIGHTS = (
 )
 
 
-# Frames heard without a single teacher_action before a run with a teacher stops: a lockstep step is released only
-# with its teacher's action, so without them nothing is learnt.
+# Frames heard without a single teacher_label before a run with a teacher stops: a lockstep step is released only
+# with its teacher's label, so without them nothing is learnt.
 TEACHERLESS_FRAMES = 10
 
 
@@ -38,34 +38,22 @@ class ActorState:
         self.last_heard: float | None = None  # its sim's latest message
         self.unanswered_since: float | None = None  # its policy was sent a release not answered since
         self.silent: str | None = None  # reported missing or lost: "sim" (said nothing) or "policy" (answered nothing)
-        self.frames_heard = self.teachers_heard = self.reasons_heard = 0  # frames, teacher actions and reasons heard
+        self.frames_heard = self.teachers_heard = 0  # frames and teacher labels heard
         self.fly_for: tuple[int, int | None] | None = None  # (stamp, the teacher's action flown or None) of the release
 
     def on_teacher(self, msg) -> None:
         self.teachers_heard += 1
         self.pairing.add("teacher", msg)
 
-    def on_reason(self, msg) -> None:
-        self.reasons_heard += 1
-        self.pairing.add("reason", msg)
-
-    def no_teacher(self, teacher: str, reasons: bool = False) -> str | None:
-        """With a teacher, the error that stops the run when its simulator sends frames but no teacher_action (a camera
-        has no world to plan in), or with `reasons` (attention_weight) teacher actions but no teacher_reason; else None."""
-        if teacher == "none" or self.frames_heard < TEACHERLESS_FRAMES:
-            return None
-        if reasons and self.teachers_heard and not self.reasons_heard:
-            return (
-                f"parameter 'attention_weight': {self.frames_heard} depth frames and teacher actions came from {self.label} "
-                "but no teacher_reason, which this trainer pairs with them (a sim_node older than it?); attention_weight:=0.0 "
-                "trains without"
-            )
-        if self.teachers_heard:
+    def no_teacher(self, teacher: str) -> str | None:
+        """With a teacher, the error that stops the run when its simulator sends frames but no teacher_label (a camera
+        has no world to plan in); else None."""
+        if teacher == "none" or self.frames_heard < TEACHERLESS_FRAMES or self.teachers_heard:
             return None
         return (
             f"parameter 'teacher'={teacher!r}: {self.frames_heard} depth frames came from {self.label} but no "
-            "teacher_action. A teacher is sim_node's planner (sim_node teacher:=stack or all; train sets it); a camera "
-            "has no world to plan in, so a run from a camera trains with teacher:=none"
+            "teacher_label. A teacher is sim_node's planner (sim_node teacher:=stack, all or map; train sets it); a "
+            "camera has no world to plan in, so a run from a camera trains with teacher:=none"
         )
 
     def heard(self, now: float) -> str | None:

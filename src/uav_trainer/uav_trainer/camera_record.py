@@ -1,6 +1,6 @@
 """The camera and reward window trainer_node records in every weights file (no ROS): the depth camera's field of
 view from depth/camera_info (policy_node warns when it flies another), and sim_node's reward window, read back from
-step_outcome's field_of_view (recorded when it is not the paper's 20 %). Whichever actor says them."""
+step_outcome's window_fov_rad (recorded when it is not the paper's 20 %). Whichever actor says them."""
 
 from __future__ import annotations
 

@@ -8,19 +8,19 @@ stored as soon as observation k+1 is in, before the policy answers frame k+1: a 
 learns in lockstep (trainer_node) learns from it before the policy acts on
 frame k+1, as the in-process loop does. Anything else - a gap, an action that matches no known
 action, a malformed frame, stamps going back (a restarted simulator) - starts a new chain and is
-counted. A NaN outcome (the episode hit
-the simulator's time limit, or was reset) stores no transition: the frame it comes with starts
-the next episode's chain.
+counted. An outcome that says a new episode began without a collision (the simulator's time limit, or a reset)
+stores no transition: the frame it comes with starts the next episode's chain.
 
 `on_ready(stamp)` (optional) hears of each observation once nothing more will be stored before
 the policy's answer to it: after its transition is stored, or at once when it cannot be chained.
 An observation whose predecessor's answer has not arrived yet waits for it.
 
-With `teacher`, an observation is also sim_node's `teacher_action` for the frame (the planner's action, stamped as
-it): each stored transition carries the teacher's action for the frame it left (-1 when it matches no action, counted),
-and `teacher_of(stamp)` gives it for a frame about to be released. With `reason_grid` too, sim_node's `teacher_reason`
-(the pixels the planner's decision is about): mapped onto the network's input as the frames are, each transition
-carries the share of each cell of that grid it covers in the frame it left (as the in-process loop computes it).
+With `teacher`, an observation is also sim_node's `teacher_label` for the frame (the planner's action, its scores and
+its reason, stamped as the frame): each stored transition carries the teacher's action for the frame it left (-1 for a
+label that names no action of the table or scores another number of actions, counted), and `teacher_of(stamp)` gives
+it for a frame about to be released. With `reason_grid` too, the label's reason (the pixels the planner's decision is about)
+is mapped onto the network's input as the frames are: each transition carries the share of each cell of that grid it
+covers in the frame it left (as the in-process loop computes it).
 
 With `map_grid` (a network with the local map), an observation is also sim_node's `odom` of the frame's stamp: each
 frame goes into a local map in stamp order (a new episode forgets) and is stored with its egocentric grid, as
@@ -61,7 +61,7 @@ class TransitionAssembler:
         net_hw: tuple[int, int],
         max_pending: int = 500,
         on_ready=None,
-        teacher=False,
+        teacher: bool = False,
         reason_grid: tuple[int, int] | None = None,
         map_grid: tuple[int, float] | None = None,
     ):
@@ -70,13 +70,13 @@ class TransitionAssembler:
         self.map = LocalMap() if map_grid is not None else None
         self.camera: PinholeCamera | None = None  # the frames' intrinsics (the local map's)
         # What a step's simulator says.
-        self.observation = ("frame", "outcome") + (("teacher",) if teacher else ()) + (("reason",) if reason_grid else ())
+        self.observation = ("frame", "outcome") + (("teacher",) if teacher else ())
         self.observation += ("odom",) if map_grid is not None else ()
         self.joiner = contract.StampJoiner(self.STREAMS + self.observation[2:], max_pending=max_pending)
         self.prev: _Prev | None = None
         self.early: tuple[int, bool] | None = None  # (stamp, frame usable) stored before its record completed
         self.released = -1  # the newest stamp handed to on_ready
-        self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0, "unmatched_teacher_actions": 0}
+        self.counts = {"chain_breaks": 0, "unmatched_actions": 0, "bad_frames": 0, "bad_teacher_labels": 0}
         self.counts |= {"bad_reasons": 0} if reason_grid else {}
         self.counts |= {"unmapped_frames": 0} if map_grid else {}
         self.to_input = NetworkInput(*net_hw)
@@ -130,12 +130,13 @@ class TransitionAssembler:
         return action
 
     def _teacher(self, slot: dict) -> int:
-        """The teacher's action in an observation (-1: none given, or one that matches no action)."""
+        """The teacher's action in an observation; -1 when none is given, or a label that names no action of the table
+        or scores another number of actions (counted when stored)."""
         if "teacher" not in slot:
             return -1
-        tw = slot["teacher"].twist
-        action = match_action(self.actions, tw.linear.x, tw.angular.z, self.step_ns / 1e9)
-        return -1 if action is None else action
+        label = slot["teacher"]
+        n = len(self.actions)
+        return label.action if label.action < n and len(label.scores) == n else -1
 
     def _reason(self, slot: dict) -> np.ndarray | None:
         """The share of each reason_grid cell that the teacher's reason covers on the network's input (None without a
@@ -143,7 +144,7 @@ class TransitionAssembler:
         if self.reason_grid is None:
             return None
         try:
-            mask = contract.image_to_mask(slot["reason"])
+            mask = contract.image_to_mask(slot["teacher"].reason)
             if mask.shape != (slot["frame"].height, slot["frame"].width):
                 raise ValueError("not the frame's size")
         except ValueError:
@@ -169,9 +170,9 @@ class TransitionAssembler:
             self.sink.add_truncated(frame, **grid)
         else:
             collided = contract.outcome_collided(out)
-            beta = 0.0 if collided else min(max(float(out.range), 0.0), float(out.max_range))
+            beta = contract.outcome_beta(out)
             if "teacher" in self.observation and self.prev.teacher < 0:
-                self.counts["unmatched_teacher_actions"] += 1
+                self.counts["bad_teacher_labels"] += 1
             reason = {"reason": self.prev.reason} if self.reason_grid else {}
             self.sink.add_step(self.prev.action, beta, collided, frame, teacher=self.prev.teacher, **grid, **reason)
 
@@ -237,8 +238,7 @@ class TransitionAssembler:
         return {
             "frames_without_action": j.dropped["action"],
             "frames_without_outcome": j.dropped["outcome"],
-            **({"frames_without_teacher_action": j.dropped["teacher"]} if "teacher" in j.dropped else {}),
-            **({"frames_without_teacher_reason": j.dropped["reason"]} if "reason" in j.dropped else {}),
+            **({"frames_without_teacher_label": j.dropped["teacher"]} if "teacher" in j.dropped else {}),
             **({"frames_without_odometry": j.dropped["odom"]} if "odom" in j.dropped else {}),
             "outcomes_or_actions_without_frame": j.dropped["frame"],
             "duplicates": j.duplicates,

@@ -1,6 +1,6 @@
 """trainer_node: replay memory, learning, weight pushes and checkpoints over ROS 2.
 
-Joins depth/image_raw, step_outcome, the policy's action (with a teacher sim_node's teacher_action, with the local map its
+Joins depth/image_raw, step_outcome, the policy's action (with a teacher sim_node's teacher_label, with the local map its
 odom) by exact stamp into transitions (uav_trainer.pairing; reward: uav_sim.reward); nothing is guessed. Learning
 is in lockstep with acting (policy_node's wait_for_trainer:=true; train sets it): each stored step's frame is released
 on policy_node/push_weights with the exact epsilon, the weights as at the release before (Training.released_weights) and
@@ -27,13 +27,14 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, Range
+from sensor_msgs.msg import CameraInfo, Image
 
 from uav_common import contract
 from uav_common.actions import turning_indices
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
+from uav_interfaces.msg import StepOutcome, TeacherLabel
 from uav_policy.agent import resolve_device
 from uav_policy.networks import parameter_count
 from uav_policy.push import PushService, load_key, push_request, write_key
@@ -57,9 +58,10 @@ class Actor(ActorState):
     def __init__(self, node: TrainerNode, index: int, namespace: str, policy: str, hw: tuple[int, int]):
         topic = lambda name: f"{namespace.rstrip('/')}/{name}" if namespace else name  # noqa: E731 ("/": the root)
         super().__init__(index, namespace, node.resolve_topic_name(topic(contract.OUTCOME_TOPIC)))
-        teacher = node.cfg.teacher != "none"  # sim_node's teacher_action completes each observation
+        # With a teacher, sim_node's teacher_label completes each observation (its action, scores and reason).
+        teacher = node.cfg.teacher != "none"
         on_ready, sink = lambda stamp: node._on_ready(self, stamp), node.training.sink(index)
-        grid = node.training.reason_grid  # with attention_weight: sim_node's teacher_reason completes it too
+        grid = node.training.reason_grid  # with attention_weight: the cells the label's reason is shared over
         maps = node.training.net_cfg.map_grid  # a network with the local map: sim_node's odom completes it too
         self.pairing = TransitionAssembler(
             sink, node.actions, node.step_ns, hw, on_ready=on_ready, teacher=teacher, reason_grid=grid, map_grid=maps
@@ -67,13 +69,11 @@ class Actor(ActorState):
         self.node = node
         q = contract.DEEP_QOS
         if teacher:
-            node.create_subscription(TwistStamped, topic(contract.TEACHER_TOPIC), self.on_teacher, q)
-        if grid:
-            node.create_subscription(Image, topic(contract.TEACHER_REASON_TOPIC), self.on_reason, q)
+            node.create_subscription(TeacherLabel, topic(contract.TEACHER_TOPIC), self.on_teacher, q)
         if maps:
             node.create_subscription(Odometry, topic(contract.ODOM_TOPIC), lambda m: self.pairing.add("odom", m), q)
         node.create_subscription(Image, topic(contract.DEPTH_TOPIC), self.on_frame, q)
-        node.create_subscription(Range, topic(contract.OUTCOME_TOPIC), self.on_outcome, q)
+        node.create_subscription(StepOutcome, topic(contract.OUTCOME_TOPIC), self.on_outcome, q)
         node.create_subscription(TwistStamped, topic(contract.ACTION_TOPIC), lambda m: node._on_action(self, m), q)
         # The camera's field of view goes into every weights file (policy_node warns on a mismatch).
         node.create_subscription(CameraInfo, topic(contract.CAMERA_INFO_TOPIC), node._on_camera_info, 10)
@@ -86,10 +86,10 @@ class Actor(ActorState):
         self.frames_heard += 1
         self.pairing.add("frame", msg)
 
-    def on_outcome(self, msg: Range) -> None:
+    def on_outcome(self, msg: StepOutcome) -> None:
         self._heard()
         self.pairing.add("outcome", msg)
-        self.node.camera.on_outcome_fov(msg.field_of_view)
+        self.node.camera.on_outcome_fov(msg.window_fov_rad)
 
     def _heard(self) -> None:
         said = self.heard(time.monotonic())
@@ -217,9 +217,7 @@ class TrainerNode(Node):
 
     # -- services: pushes and epsilon -----------------------------------------------------
     def _service_tick(self) -> None:
-        why = self.training.failed or next(
-            filter(None, (a.no_teacher(self.cfg.teacher, self.training.reason_grid is not None) for a in self.actors)), None
-        )
+        why = self.training.failed or next(filter(None, (a.no_teacher(self.cfg.teacher) for a in self.actors)), None)
         if why and self.exit_code == 0:  # a failed run (3), or one whose simulator has no teacher (2)
             self.get_logger().error(why)
             self.exit_code = 3 if self.training.failed else 2

@@ -27,7 +27,7 @@ class LearnerConfig:
     attention_weight: float = setting(
         0.0,
         "With a teacher, SAM's query readout: weight of the loss pulling the attention shown onto the cells of the "
-        "teacher's reason in the newest frame (-log of the map's mass there; over ROS sim_node's teacher_reason); "
+        "teacher's reason in the newest frame (-log of the map's mass there; over ROS the reason of sim_node's teacher_label); "
         "0 = none; the CNN has no attention and ignores it",
         0.0,
         100.0,
@@ -88,7 +88,7 @@ class TrainerConfig:
     )
     teacher: str = setting(
         "none",
-        "A teacher for every training frame (uav_sim.planner; over ROS sim_node's teacher_action, which train turns on): "
+        "A teacher for every training frame (uav_sim.planner; over ROS sim_node's teacher_label, which train turns on): "
         "stack, the planner knowing what the last frame_stack frames showed (realizable from the state); all, knowing the "
         "whole world; map, planning on the local map of the measured depth and odometry (what a drone knows); none, pure RL",
         choices=contract.TEACHERS,

@@ -3,9 +3,8 @@ reported once each, counted (the node's `unknown_actor_messages`) and never lear
 
 from __future__ import annotations
 
-from sensor_msgs.msg import Range
-
 from uav_common import contract
+from uav_interfaces.msg import StepOutcome
 
 SCAN_S = 2.0  # how often the graph is searched
 
@@ -28,7 +27,7 @@ class UnknownActors:
                 f"ignoring {topic}: namespace {ns} is not among the actors {[a.ns or '(this namespace)' for a in self.actors]} "
                 "(its messages are counted on /diagnostics as unknown_actor_messages)"
             )
-            self.subscriptions[topic] = self.node.create_subscription(Range, topic, self._count, contract.DEEP_QOS)
+            self.subscriptions[topic] = self.node.create_subscription(StepOutcome, topic, self._count, contract.DEEP_QOS)
 
-    def _count(self, _msg: Range) -> None:
+    def _count(self, _msg: StepOutcome) -> None:
         self.counts["unknown_actor_messages"] += 1
