@@ -15,6 +15,7 @@ from uav_sim.simulator import SimConfig
 from uav_sim.world import WorldChoice
 from uav_trainer import checkpoint
 from uav_trainer.inprocess import run
+from uav_trainer.teacher import TeacherConfig
 from uav_trainer.training import RunDirError, Training
 from uav_trainer.training_config import LearnerConfig, TrainerConfig
 
@@ -730,7 +731,8 @@ def test_a_release_carries_the_weights_the_learner_had_at_the_release_before(tmp
 def test_a_teacher_labels_every_step_flies_a_falling_share_and_the_run_is_reproducible(tmp_path):
     """--teacher stack: the planner's action beside every transition in the replay memory, flown instead of the
     student's at a share falling from teacher_act_start to 0, the large-margin loss learnt; seeded, so reproducible."""
-    cfg = TrainerConfig(model="cnn", seed=2, total_steps=120, learning_starts=40, teacher="stack", teacher_act_start=1.0)
+    teaching = TeacherConfig(teacher="stack", teacher_act_start=1.0)
+    cfg = TrainerConfig(model="cnn", seed=2, total_steps=120, learning_starts=40, teaching=teaching)
     runs = []
     for k in range(2):
         t = run_inprocess(cfg, tmp_path / f"r{k}", log=lambda s: None, world="complex", window=0.2)
@@ -744,17 +746,6 @@ def test_a_teacher_labels_every_step_flies_a_falling_share_and_the_run_is_reprod
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
     for a, b in zip(runs[0][2], runs[1][2], strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-
-
-def test_the_margin_loss_is_zero_once_the_teacher_leads_by_the_margin_and_positive_until_then():
-    from uav_trainer.learner import large_margin_loss
-
-    q = torch.tensor([[1.0, 0.0, 0.1, 0.2], [1.0, 0.5, 0.0, 0.0], [0.0, 3.0, 0.0, 0.0]])
-    teacher = torch.tensor([0, 0, -1])  # the third state has no teacher action
-    assert large_margin_loss(q[:1], teacher[:1], 0.8) == 0.0, "leads by 0.8: nothing to learn"
-    assert large_margin_loss(q[1:2], teacher[1:2], 0.8) == pytest.approx(0.3), "0.5 + 0.8 - 1.0"
-    assert large_margin_loss(q, teacher, 0.8) == pytest.approx(0.15), "the mean over labelled states only"
-    assert large_margin_loss(q[2:], teacher[2:], 0.8) == 0.0, "no label, no loss"
 
 
 def test_a_run_with_a_teacher_whose_frames_come_without_one_is_stopped_naming_why():
@@ -771,23 +762,6 @@ def test_a_run_with_a_teacher_whose_frames_come_without_one_is_stopped_naming_wh
     assert "'teacher'='stack'" in why and "no teacher_label" in why and "a camera has no world" in why
     actor.teachers_heard = 1
     assert actor.no_teacher("stack") is None
-
-
-def test_the_attention_loss_is_zero_on_the_reason_positive_off_it_and_needs_a_reason():
-    """-log of the map's mass on the reason's cells (their shares over the largest): 0 when every head and query attend
-    only to cells the reason fills, log 2 with half the map there, nothing from a state without a reason in view."""
-    import math
-
-    from uav_trainer.learner import reason_attention_loss
-
-    reason = torch.tensor([[0.0, 1.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
-    on = torch.tensor([0.0, 0.5, 0.5, 0.0]).expand(2, 3, 5, 4)  # (batch, heads, queries, cells)
-    half = torch.tensor([0.5, 0.25, 0.25, 0.0]).expand(2, 3, 5, 4)
-    assert reason_attention_loss(on, reason) == pytest.approx(0.0, abs=1e-6)
-    assert reason_attention_loss(half, reason) == pytest.approx(math.log(2.0))
-    assert reason_attention_loss(half, torch.zeros(2, 4)) == 0.0, "no reason in view, no loss"
-    partial = torch.tensor([[0.0, 0.5, 1.0, 0.0]])  # a cell half covered counts half
-    assert reason_attention_loss(on[:1], partial) == pytest.approx(-math.log(0.75))
 
 
 def test_reasons_travel_with_their_frames_through_the_replay_memory_and_its_journal():
@@ -814,12 +788,12 @@ def test_reasons_travel_with_their_frames_through_the_replay_memory_and_its_jour
 
 
 def test_the_attention_loss_needs_a_teacher_and_sams_query_readout_and_the_cnn_ignores_it():
-    pull = LearnerConfig(attention_weight=0.5)
+    pull = dict(attention_weight=0.5)
     for cfg, what in (
-        (TrainerConfig(sam_readout="query", learner=pull), "needs a teacher"),
-        (TrainerConfig(teacher="stack", sam_readout="attend", learner=pull), "sam_readout 'query'"),
+        (TrainerConfig(sam_readout="query", teaching=TeacherConfig(**pull)), "needs a teacher"),
+        (TrainerConfig(sam_readout="attend", teaching=TeacherConfig(teacher="stack", **pull)), "sam_readout 'query'"),
     ):
         with pytest.raises(ValueError, match=what):
             cfg.validate()
-    TrainerConfig(teacher="stack", sam_readout="query", learner=pull).validate()
-    TrainerConfig(model="cnn", learner=pull).validate()  # a recipe for both models: the CNN has no attention
+    TrainerConfig(sam_readout="query", teaching=TeacherConfig(teacher="stack", **pull)).validate()
+    TrainerConfig(model="cnn", teaching=TeacherConfig(**pull)).validate()  # a recipe for both models: the CNN has no attention

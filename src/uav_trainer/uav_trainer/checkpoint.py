@@ -11,6 +11,7 @@ the latest checkpoint has not seen.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import os
@@ -158,7 +159,8 @@ def _write(tmp: Path, learner: Learner, counters: dict, extra_rng: dict, segment
     meta = {
         "format": "uav_trainer_checkpoint/1",
         "net_config": json.loads(learner.net_cfg.to_json()),
-        "learner_config": {k: getattr(learner.cfg, k) for k in learner.cfg.__dataclass_fields__},
+        "learner_config": dataclasses.asdict(learner.cfg),
+        "teacher_config": dataclasses.asdict(learner.teaching),
         "updates": learner.updates,
         "optimizer_param_groups": groups,
         "counters": counters,

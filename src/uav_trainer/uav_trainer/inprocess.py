@@ -18,7 +18,6 @@ import numpy as np
 import torch
 
 from uav_common.actions import PAPER_ACTIONS, turning_indices
-from uav_common.frame_stack import node_shares
 from uav_common.settings import SettingError, add_flags, build, given_flags, refuse_retired_flags, specs
 from uav_policy import weights as wio
 from uav_policy.agent import Agent
@@ -31,6 +30,7 @@ from uav_sim.stacked_sim import StackedSim
 from uav_sim.world import WorldChoice, WorldError
 
 from .recipes import DEFAULT_RECIPE, RecipeError, load_recipe, parse_assignments
+from .teacher import NO_LABEL, reason_shares
 from .training import RunDirError, Training
 from .training_config import TrainerConfig, reward_description
 
@@ -108,7 +108,7 @@ def run(
     teacher = (
         SimPlanner(sim, PlannerConfig(knowledge=cfg.teacher, memory_frames=net_cfg.frames)) if cfg.teacher != "none" else None
     )
-    label, agreed = -1, []  # the teacher's action for the frame decided on; whether the student's greedy choice was it
+    label, agreed = NO_LABEL, []  # the teacher's action for the frame decided on; whether the student's greedy choice was it
     reason = None  # with attention_weight: the share of each attention cell the teacher's reason covers in that frame
 
     def decide():
@@ -118,13 +118,10 @@ def run(
             wio.load_bytes(blob, training.net_cfg, into=acting.net)
             loaded = version
         plan = teacher.label() if teacher is not None else None
-        label = plan.action if plan is not None else -1
+        label = plan.action if plan is not None else NO_LABEL
         if training.reason_grid is not None:
-            mask = teacher.reason_mask()
-            reason = node_shares(flight.env.input_mask(mask), training.reason_grid)
-            if net_cfg.local_map:  # and on the map: the cells its pixels put there
-                grid = flight.env.map.egocentric(*net_cfg.map_grid, near_keys=flight.env.map.keys_at(mask))
-                reason = np.concatenate([reason, node_shares(grid > 0, training.reason_grid)])
+            mask, env = teacher.reason_mask(), flight.env
+            reason = reason_shares(env.input_mask(mask), training.reason_grid, env.map, net_cfg.map_grid, mask)
         decision = flight.decide(training.epsilon(), instead=training.teacher_flies(label))
         training.after_release()
         if teacher is not None:

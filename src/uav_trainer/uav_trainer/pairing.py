@@ -35,8 +35,10 @@ import numpy as np
 
 from uav_common import contract
 from uav_common.actions import match_action
-from uav_common.frame_stack import NetworkInput, node_shares
+from uav_common.frame_stack import NetworkInput
 from uav_common.local_map import LocalMap, PinholeCamera, camera_position
+
+from .teacher import NO_LABEL, label_action, reason_shares
 
 
 @dataclasses.dataclass
@@ -130,16 +132,11 @@ class TransitionAssembler:
         return action
 
     def _teacher(self, slot: dict) -> int:
-        """The teacher's action in an observation; -1 when none is given, or a label that names no action of the table
-        or scores another number of actions (counted when stored)."""
-        if "teacher" not in slot:
-            return -1
-        label = slot["teacher"]
-        n = len(self.actions)
-        return label.action if label.action < n and len(label.scores) == n else -1
+        """The teacher's action in an observation; -1 when none is given, or a malformed label (counted when stored)."""
+        return label_action(slot["teacher"], len(self.actions)) if "teacher" in slot else NO_LABEL
 
     def _reason(self, slot: dict) -> np.ndarray | None:
-        """The share of each reason_grid cell that the teacher's reason covers on the network's input (None without a
+        """The share of each reason_grid node that the teacher's reason covers on the network's input (None without a
         reason grid; no share for a mask that is malformed or not the frame's size, counted)."""
         if self.reason_grid is None:
             return None
@@ -150,11 +147,7 @@ class TransitionAssembler:
         except ValueError:
             self.counts["bad_reasons"] += 1
             return np.zeros(self.reason_grid[0] * self.reason_grid[1] * (1 + (self.map is not None)), np.float32)
-        shares = node_shares(self.to_input.mask(mask), self.reason_grid)
-        if self.map is None:
-            return shares
-        grid = self.map.egocentric(*self.map_grid, near_keys=self.map.keys_at(mask))  # and the cells it put there
-        return np.concatenate([shares, node_shares(grid > 0, self.reason_grid)])
+        return reason_shares(self.to_input.mask(mask), self.reason_grid, self.map, self.map_grid, mask)
 
     def teacher_of(self, stamp: int) -> int:
         """The teacher's action for the observation at `stamp` (-1: none): for its release."""

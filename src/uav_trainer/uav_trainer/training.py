@@ -29,6 +29,7 @@ from .learner import Learner, NonFiniteLoss
 from .pairing import ActorSink
 from .replay import LanedReplay, ReplayMemory
 from .run_logs import METRICS_COLUMNS, plot_curves, record_machine
+from .teacher import DaggerDraw
 from .training_config import SAM_SIZES, TrainerConfig, linear_epsilon, snapshot_file, snapshot_steps
 
 
@@ -50,7 +51,7 @@ class Training:
         self.cfg = cfg
         self.actors = actors
         self.log = log
-        self._who_flies = np.random.default_rng([cfg.seed, 7])  # teacher_flies
+        self._who_flies = DaggerDraw(cfg.seed)  # teacher_flies
         self.dir = Path(run_dir)
         try:  # refused at once, in one line, rather than as a traceback at the first write
             self.dir.mkdir(parents=True, exist_ok=True)
@@ -84,7 +85,9 @@ class Training:
         self._released: tuple[int, bytes] | None = None  # released_weights
         self._released_made = None  # the update count and camera its blob was made with
         torch.manual_seed(cfg.seed)
-        self.learner = Learner(self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device))
+        self.learner = Learner(
+            self.net_cfg, dataclasses.replace(cfg.learner, seed=cfg.seed), resolve_device(cfg.device), cfg.teaching
+        )
         shape = (self.net_cfg.height, self.net_cfg.width)
         # With attention_weight, the cells of the attention shown, on which the teacher's reason is kept per frame.
         self.reason_grid = self.learner.online.grid_hw if cfg.pulls_attention else None
@@ -219,9 +222,7 @@ class Training:
         """The teacher's action `label` (-1: none) when the teacher flies this step instead of the student, else None:
         drawn (one draw a labelled decision, in process as over ROS) with a probability falling from teacher_act_start
         to 0 over the budget."""
-        if label < 0:
-            return None
-        return label if self._who_flies.random() < self.cfg.teacher_act_probability(self.env_steps) else None
+        return self._who_flies(label, self.cfg.teacher_act_probability(self.env_steps))
 
     def _memory(self, actor: int) -> ReplayMemory:
         return self.replay if self.actors == 1 else self.replay.lanes[actor]

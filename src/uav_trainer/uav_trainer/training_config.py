@@ -6,9 +6,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from uav_common import contract
 from uav_common.settings import setting
 from uav_policy.net_config import MAX_FRAMES, SAM_READOUTS, SIZE_LIMITS, NetConfig
+
+from .teacher import TeacherConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,18 +21,6 @@ class LearnerConfig:
     target_update_interval: int = setting(250, "Updates between target-network syncs", 1, 10**7)
     target_tau: float = setting(1.0, "1.0: hard copy at each sync; < 1: Polyak averaging factor", 0.0001, 1.0)
     huber_delta: float = setting(1.0, "Huber loss threshold", 0.01, 100.0)
-    teacher_weight: float = setting(
-        1.0, "With a teacher: weight of the large-margin loss on its actions (DQfD's lambda_2) beside the TD loss", 0.0, 100.0
-    )
-    teacher_margin: float = setting(0.8, "With a teacher: the margin the teacher's action must lead by (DQfD's 0.8)", 0.0, 100.0)
-    attention_weight: float = setting(
-        0.0,
-        "With a teacher, SAM's query readout: weight of the loss pulling the attention shown onto the cells of the "
-        "teacher's reason in the newest frame (-log of the map's mass there; over ROS the reason of sim_node's teacher_label); "
-        "0 = none; the CNN has no attention and ignores it",
-        0.0,
-        100.0,
-    )
     seed: int = 0  # TrainerConfig's seed (not a setting of its own)
 
 
@@ -86,20 +75,6 @@ class TrainerConfig:
         0.0,
         100.0,
     )
-    teacher: str = setting(
-        "none",
-        "A teacher for every training frame (uav_sim.planner; over ROS sim_node's teacher_label, which train turns on): "
-        "stack, the planner knowing what the last frame_stack frames showed (realizable from the state); all, knowing the "
-        "whole world; map, planning on the local map of the measured depth and odometry (what a drone knows); none, pure RL",
-        choices=contract.TEACHERS,
-    )
-    teacher_act_start: float = setting(
-        1.0,
-        "With a teacher: the probability that it flies a step instead of the student at the start, falling linearly "
-        "to 0 at the end of the budget (DAgger: the student's own states are labelled too)",
-        0.0,
-        1.0,
-    )
     snapshots: int = setting(
         0,
         "Weight snapshots policy_<model>_step<N>.safetensors, one every thirtieth of total_steps, the last one a "
@@ -132,6 +107,7 @@ class TrainerConfig:
     relational_blocks: int = setting(NetConfig.relational_blocks, "SAM: relational blocks", 1, SIZE_LIMITS["relational_blocks"])
     mlp_hidden: int = setting(NetConfig.mlp_hidden, "SAM: width of each relational block's MLP", 1, SIZE_LIMITS["mlp_hidden"])
     learner: LearnerConfig = LearnerConfig()
+    teaching: TeacherConfig = TeacherConfig()
     turning_actions: tuple[int, ...] = (1, 2)  # the action indices that yaw (from the action table; not a setting)
 
     @property
@@ -140,15 +116,20 @@ class TrainerConfig:
         return self.learning_starts or max(1, (self.total_steps or NOMINAL_BUDGET) // 30)
 
     @property
+    def teacher(self) -> str:
+        """The teacher's planner (none: pure RL); its settings are `teaching`'s (uav_trainer.teacher)."""
+        return self.teaching.teacher
+
+    @property
     def pulls_attention(self) -> bool:
         """attention_weight acts: SAM's attention is pulled onto the teacher's reason (the CNN has none)."""
-        return self.learner.attention_weight > 0.0 and self.model == "sam"
+        return self.teaching.pulls_attention(self.model)
 
     def teacher_act_probability(self, step: int) -> float:
         """The chance that the teacher flies step `step`: teacher_act_start falling to 0 over the budget."""
-        if self.teacher == "none":
+        if not self.teaching.teaches:
             return 0.0
-        return linear_epsilon(step, self.teacher_act_start, 0.0, self.total_steps or NOMINAL_BUDGET)
+        return linear_epsilon(step, self.teaching.teacher_act_start, 0.0, self.total_steps or NOMINAL_BUDGET)
 
     @property
     def decay_steps(self) -> int:
@@ -186,7 +167,7 @@ class TrainerConfig:
         snapshot_steps(self.snapshots, self.total_steps)
         if self.pulls_attention and (self.teacher == "none" or self.sam_readout != "query"):
             raise ValueError(
-                f"'attention_weight'={self.learner.attention_weight:g} needs a teacher (its reason) and sam_readout "
+                f"'attention_weight'={self.teaching.attention_weight:g} needs a teacher (its reason) and sam_readout "
                 f"'query' (got teacher {self.teacher!r}, sam_readout {self.sam_readout!r})"
             )
 
