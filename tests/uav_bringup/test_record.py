@@ -165,6 +165,44 @@ def test_a_launcher_waits_until_the_recorder_and_the_policy_have_matched_each_ot
     assert reports.ready(topics) and not reports.ready(["/uav5/action"])
 
 
+def test_at_the_end_a_launcher_waits_until_the_recorder_holds_all_the_policy_published():
+    """A reliable message resent after a loss (a busy machine) is lost with its publisher, and at the end of a stream
+    no later message shows the gap (a flight's bag lacked its last 17 actions, none counted lost): fly stops the policy
+    only once the recorder has written (or counted lost) every decision the policy says it published."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    from uav_bringup.record import RecorderReports
+
+    class Node:
+        def create_subscription(self, msgtype, topic, callback, qos):
+            self.callback = callback
+
+    class Executor:  # each spin takes the next report said
+        def __init__(self, said):
+            self.said = list(said)
+
+        def spin_once(self, timeout_sec):
+            if self.said:
+                node.callback(self.said.pop(0))
+
+    def report(name: str, values: dict) -> DiagnosticArray:
+        return DiagnosticArray(
+            status=[DiagnosticStatus(name=name, values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
+        )
+
+    policy = report("uav_policy", {"published /uav2/action": 20, "published /uav2/cmd_vel": 20})
+    short = report("uav_bringup/record", {"/uav2/action": 17, "/uav2/cmd_vel": 20, "lost /uav2/cmd_vel": 0})
+    node = Node()
+    reports = RecorderReports(node)
+    assert not reports.wait_until_idle(Executor([policy, short, policy, short, policy, short]), timeout_s=0.3)
+    assert reports.missing() == {"/uav2/action": 3}, "the recorder idle but 3 actions short: not done, and said"
+    whole = report("uav_bringup/record", {"/uav2/action": 19, "lost /uav2/action": 1, "/uav2/cmd_vel": 20})
+    node = Node()
+    reports = RecorderReports(node)
+    assert reports.wait_until_idle(Executor([policy, short, policy, whole, policy, whole]), timeout_s=5.0)
+    assert reports.missing() == {}, "written or counted lost: every one accounted for"
+
+
 def test_a_flooded_recorder_counts_every_message_it_lost_exactly(ros, tmp_path):
     """A publisher floods a topic while the recorder does not read (a busy machine): its reader queue overflows. Every
     message the publisher sent after the first that reached the recorder is in the bag or counted lost on its topic,

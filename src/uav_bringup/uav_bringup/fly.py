@@ -53,7 +53,9 @@ class RecorderWatch:
 
     def drained(self, timeout_s: float = 20.0) -> None:
         if not self.reports.wait_until_idle(self.executor, timeout_s):
-            print(f"the recorder was still writing after {timeout_s:g} s: the bag may lack the last steps", file=sys.stderr)
+            missing = self.reports.missing()
+            lacks = ", ".join(f"{t} its last {n}" for t, n in missing.items()) or "perhaps the last steps"
+            print(f"the recorder was still writing after {timeout_s:g} s: the bag lacks {lacks}", file=sys.stderr)
 
     def close(self) -> None:
         self.executor.shutdown()

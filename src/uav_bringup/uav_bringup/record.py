@@ -152,12 +152,15 @@ def counts(status, prefix: str) -> dict[str, int]:
 class RecorderReports:
     """What the recorder says on /diagnostics, kept up to date through `node`: `heard` {topic: publishers matched},
     `written` {topic: messages written}, `lost` {topic: messages lost to it}, and `reports`, how many reports came;
-    and what policy_node says: `heard_by_policy` {topic: subscriptions its publishers matched}."""
+    and what policy_node says: `heard_by_policy` {topic: subscriptions its publishers matched}, `published`
+    {topic: messages it sent} of the decision's record, and `policy_reports`."""
 
     def __init__(self, node):
         self.node = node
         self.heard: dict[str, int] = {}
         self.heard_by_policy: dict[str, int] = {}
+        self.published: dict[str, int] = {}
+        self.policy_reports = 0
         self.written: dict[str, int] = {}
         self.lost: dict[str, int] = {}
         self.reports = 0
@@ -172,6 +175,8 @@ class RecorderReports:
                 self.reports += 1
             elif st.name == "uav_policy":
                 self.heard_by_policy.update(counts(st, "subscribers "))
+                self.published.update(counts(st, "published "))
+                self.policy_reports += 1
 
     def ready(self, topics) -> bool:
         """The recorder and policy_node have matched each other on every one of `topics` (resolved names)."""
@@ -198,21 +203,33 @@ class RecorderReports:
                 )
         return True
 
+    def missing(self) -> dict[str, int]:
+        """{topic: messages policy_node published that the recorder has neither written nor counted lost}, where any."""
+        short = {t: n - self.written.get(t, 0) - self.lost.get(t, 0) for t, n in self.published.items()}
+        return {t: n for t, n in short.items() if n > 0}
+
     def wait_until_idle(self, executor, timeout_s: float) -> bool:
-        """Spin `executor` until two reports in a row count the same messages written (/diagnostics aside: the
-        nodes report on): the recorder, whose report timer runs in the loop that writes, had nothing waiting for a
-        whole report period. Call it once the stack has stopped saying anything new (the simulator stopped), before
-        any of its nodes exits: what a recorder had not read yet is lost with its publisher. False if not idle
-        within `timeout_s`."""
+        """Spin `executor` until the recorder holds all policy_node said: two policy reports in a row count the same
+        messages published (it answers nothing more), the recorder has written (or counted lost) every one of them,
+        and two of its reports in a row count the same messages written (/diagnostics aside: the nodes report on).
+        Call it once the simulator has stopped, before any other node exits: a reliable message still on its way
+        (resent after a loss on a busy machine) is lost with its publisher, and at the end of a stream no later
+        message shows the gap. False if not so within `timeout_s` (`missing()` then says what the bag lacks)."""
         end = time.monotonic() + timeout_s
         counts = lambda: {t: n for t, n in self.written.items() if t != contract.DIAGNOSTICS_TOPIC}  # noqa: E731
         seen = (self.reports, counts())
+        said = (self.policy_reports, dict(self.published))
+        idle = settled = False
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
+            if self.policy_reports != said[0]:
+                settled = said[0] > 0 and self.published == said[1]
+                said = (self.policy_reports, dict(self.published))
             if self.reports != seen[0]:
-                if seen[0] > 0 and counts() == seen[1]:
-                    return True
+                idle = seen[0] > 0 and counts() == seen[1]
                 seen = (self.reports, counts())
+            if idle and settled and not self.missing():
+                return True
         return False
 
 

@@ -36,13 +36,20 @@ class Outputs:
         self.local_map = pub(Image, contract.ATTENTION_LOCAL_MAP_TOPIC, big)  # a network with the local map, top-down
         self.action_names = tuple(a.name for a in actions)
         self.last_cmd, self.last_cmd_unheard = None, False
+        self.sent: dict[str, int] = {}  # messages published per topic of the decision's record
 
     def listeners(self) -> dict[str, int]:
-        """{`subscribers TOPIC`: subscriptions matched} of the decision's record (the action, the command, q_values and the
-        attention map), as this node's publishers see them: discovery matches a subscription on each side at its own
-        time, and a recorder that hears us may not be heard yet (fly waits for both before the first frame)."""
+        """Of the decision's record (the action, the command, q_values and the attention map): {`subscribers TOPIC`:
+        subscriptions matched}, as this node's publishers see them (discovery matches a subscription on each side at
+        its own time: fly waits for both before the first frame), and {`published TOPIC`: messages sent} (at the end
+        fly waits until a recorder has them all: a reliable message still on its way is lost when we exit)."""
         pubs = (self.action, self.cmd, self.q_values, self.attention[0])
-        return {f"subscribers {p.topic_name}": p.get_subscription_count() for p in pubs}
+        heard = {f"subscribers {p.topic_name}": p.get_subscription_count() for p in pubs}
+        return heard | {f"published {p.topic_name}": self.sent.get(p.topic_name, 0) for p in pubs}
+
+    def _send(self, pub, msg) -> None:
+        pub.publish(msg)
+        self.sent[pub.topic_name] = self.sent.get(pub.topic_name, 0) + 1
 
     def decision(self, img: Image, d: Decision, command_of) -> None:
         """The network's choice (the record: it goes out before the command, so whatever is flown is on record)
@@ -51,7 +58,7 @@ class Outputs:
         chosen.linear.x, chosen.angular.z = command_of(d.action)
         stamped = TwistStamped(twist=chosen)
         stamped.header.stamp, stamped.header.frame_id = img.header.stamp, self.base_frame
-        self.action.publish(stamped)
+        self._send(self.action, stamped)
         cmd = chosen
         if d.safety:
             cmd = Twist()
@@ -60,7 +67,7 @@ class Outputs:
 
     def command(self, cmd: Twist, stamp) -> None:
         self.last_cmd_unheard = self.cmd.get_subscription_count() == 0
-        self.cmd.publish(cmd)
+        self._send(self.cmd, cmd)
         if self.stamped is not None:
             out = TwistStamped(twist=cmd)
             out.header.stamp, out.header.frame_id = stamp, self.base_frame
@@ -77,13 +84,13 @@ class Outputs:
         advance a lockstep sim two steps."""
         if self.last_cmd_unheard:
             self.last_cmd_unheard = self.cmd.get_subscription_count() == 0
-            self.cmd.publish(self.last_cmd)
+            self._send(self.cmd, self.last_cmd)
 
     def explained(self, img: Image, depth: np.ndarray, d: Decision, grid_hw, view, grid=None) -> Callable | None:
         """q_values and SAM's attention maps (with the local map's `grid`, the picture of what it weighs there); for the
         CNN, the saliency publisher `publish(rows)` when someone subscribes (its Grad-CAM costs a backward pass), else
         None."""
-        self.q_values.publish(contract.action_values_msg(img.header, d.q, self.action_names, d.action))
+        self._send(self.q_values, contract.action_values_msg(img.header, d.q, self.action_names, d.action))
         maps = lambda rows, kind, pubs: self._map(img, depth, d, rows, grid_hw, view, kind, pubs)  # noqa: E731
         if d.attention is not None:  # SAM: the attention is at hand
             maps(d.attention, "attention", self.attention)
@@ -105,7 +112,7 @@ class Outputs:
         if pub_map.get_subscription_count() == 0 and not to_overlay:
             return  # drawn for no one (a training run's policy): not on the per-step path
         amap = attention_map(rows, grid_hw, depth.shape, view)
-        pub_map.publish(contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
+        self._send(pub_map, contract.depth_to_image(amap, img.header.stamp, img.header.frame_id))
         if to_overlay:
             q, action = d.q, d.unshielded if d.unshielded >= 0 else d.action
             second = np.partition(q, -2)[-2] if len(q) > 1 else q[action]
