@@ -17,17 +17,22 @@ for i in $(seq 1 "$runs"); do
   work=$(mktemp -d)
   git clone -q "$repo" "$work/main" && ln -s "$shared" "$work/shared"
   # The main job on a domain of its own (the tests take 1-101), its run folder and logs in the scratch folder.
-  (source .venv/bin/activate && source install/setup.bash && export ROS_DOMAIN_ID=150 \
+  (set +u && source .venv/bin/activate && source install/setup.bash && export ROS_DOMAIN_ID=150 \
      ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST && exec install/uav_trainer/lib/uav_trainer/train --model sam \
      --run-dir "$work/train_run" --log-dir "$work/train_logs" --validation-steps 0) >"$work/train.out" 2>&1 &
   job=$!
   (cd "$work/main" && CI=true bash .ci/run) >"$work/ci.out" 2>&1
   code=$?
+  beside="the main job beside it reached"
+  if ! kill -0 "$job" 2>/dev/null; then  # it ended before the suite did: the run was not under load
+    beside="NOT UNDER LOAD: the main job had exited ($(tail -n 1 "$work/train.out")); it reached"
+    failed=1
+  fi
   kill -INT "$job" 2>/dev/null
   wait "$job" 2>/dev/null
   suite=$(grep -o "main suite took [0-9]* s" "$work/ci.out" || echo "main suite: no time (see $work/ci.out)")
-  steps=$(grep -o "step *[0-9]*" "$work/train_logs"/trainer.log 2>/dev/null | tail -n 1)
+  steps=$(grep -o "progress: [0-9]*/[0-9]* steps" "$work/train.out" 2>/dev/null | tail -n 1)
   if [ "$code" -eq 0 ]; then verdict=green; else verdict="FAILED (code $code)"; failed=1; fi
-  echo "run $i/$runs: $verdict; $suite; the main job beside it reached ${steps:-no step logged} ($work)"
+  echo "run $i/$runs: $verdict; $suite; $beside ${steps:-no step logged} ($work)"
 done
 exit $failed
