@@ -16,11 +16,14 @@ failed=0
 for i in $(seq 1 "$runs"); do
   work=$(mktemp -d)
   git clone -q "$repo" "$work/main" && ln -s "$shared" "$work/shared"
-  # The main job on a domain of its own (the tests take 1-101), its run folder and logs in the scratch folder; a budget
-  # it cannot finish while the suite runs (its default 30 000 steps end mid-suite on a fast machine).
-  (set +u && source .venv/bin/activate && source install/setup.bash && export ROS_DOMAIN_ID=150 \
-     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST && exec install/uav_trainer/lib/uav_trainer/train --model sam --steps 1000000 \
-     --run-dir "$work/train_run" --log-dir "$work/train_logs" --validation-steps 0) >"$work/train.out" 2>&1 &
+  # The main job on a domain of its own (the tests take 1-101), its run folders and logs in the scratch folder, trained
+  # again from the start each time it ends (30 000 steps can end mid-suite), until the suite is done.
+  setsid bash -c 'set +u && source .venv/bin/activate && source install/setup.bash || exit 1
+    export ROS_DOMAIN_ID=150 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+    for k in $(seq 1 100); do
+      install/uav_trainer/lib/uav_trainer/train --model sam --run-dir "$0/train_run$k" --log-dir "$0/train_logs$k" \
+        --validation-steps 0 || exit 1
+    done' "$work" >"$work/train.out" 2>&1 &
   job=$!
   (cd "$work/main" && CI=true bash .ci/run) >"$work/ci.out" 2>&1
   code=$?
@@ -29,7 +32,7 @@ for i in $(seq 1 "$runs"); do
     beside="NOT UNDER LOAD: the main job had exited ($(tail -n 1 "$work/train.out")); it reached"
     failed=1
   fi
-  kill -INT "$job" 2>/dev/null
+  kill -INT -- "-$job" 2>/dev/null  # the loop and the run it is in
   wait "$job" 2>/dev/null
   suite=$(grep -o "main suite took [0-9]* s" "$work/ci.out" || echo "main suite: no time (see $work/ci.out)")
   steps=$(grep -o "progress: [0-9]*/[0-9]* steps" "$work/train.out" 2>/dev/null | tail -n 1)
