@@ -213,8 +213,8 @@ class RecorderReports:
         messages published (it answers nothing more), the recorder has written (or counted lost) every one of them,
         and two of its reports in a row count the same messages written (/diagnostics aside: the nodes report on).
         Call it once the simulator has stopped, before any other node exits: a reliable message still on its way
-        (resent after a loss on a busy machine) is lost with its publisher, and at the end of a stream no later
-        message shows the gap. False if not so within `timeout_s` (`missing()` then says what the bag lacks)."""
+        (one resent after a loss, say) is lost with its publisher, and at the end of a stream no later message shows
+        the gap. False if not so within `timeout_s` (`missing()` then says what the bag lacks)."""
         end = time.monotonic() + timeout_s
         counts = lambda: {t: n for t, n in self.written.items() if t != contract.DIAGNOSTICS_TOPIC}  # noqa: E731
         seen = (self.reports, counts())
