@@ -203,11 +203,16 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
     policies.append(actor(1))  # an actor started later is taken up
     ok = ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 2000 and int(t().get("steps /actor1", 0)) >= 300, 300)
     assert ok, ros.log_of(trainer)[-2000:]
-    for policy in policies:  # both lockstep loops halt; let the trainer drain what is in flight
+    for policy in policies:  # both lockstep loops halt
         ros.stop(policy)
-    ros.spin_for(2.0)
+    sim_of = lambda i: by_node.get(f"/actor{i}/sim_node", {})  # noqa: E731
+
+    def reports_agree() -> bool:  # each node reports at its own time: wait for reports made after the last step
+        return all(t().get(f"steps /actor{i}") == sim_of(i).get("steps") for i in (0, 1))
+
+    ros.spin_until(reports_agree, 30)  # what follows asserts the counts, whatever this wait saw
     status = t()
-    sims = [by_node[f"/actor{i}/sim_node"] for i in (0, 1)]
+    sims = [sim_of(i) for i in (0, 1)]
     for i, sim in enumerate(sims):
         assert int(status[f"steps /actor{i}"]) == int(sim["steps"]) >= 300, (status, sim)
     assert int(status["env_steps"]) == sum(int(sim["steps"]) for sim in sims)
