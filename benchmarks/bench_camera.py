@@ -1,11 +1,13 @@
 """Camera-to-command latency of policy_node flying from a depth camera alone (no simulator): a RealSense-like
 stream (848x480 16UC1 millimetres, 15 Hz, sensor-data QoS, an 87 deg CameraInfo) against, in the same run,
 a simulator-sized stream (64x64 32FC1) as the baseline; each without the shield and with it (odometry published
-with every frame: the vehicle flying on at 1 m/s).
+with every frame: the vehicle flying on at 1 m/s); the RealSense-like stream once more with the packaged Fast DDS
+profile (docs/REAL_CAMERA.md) in both processes. Each stream runs in a process of its own.
 
-Figures, per stream: frames answered; in policy_node, frame arrival to cmd_vel published (p50/p99, its
-/diagnostics: decode, mapping onto the trained field of view, stack, network, safety layer, publishing);
-end to end, this process publishing the frame to it receiving cmd_vel_stamped (p50/p99, DDS both ways).
+Figures, per stream: frames received and lost on the way (policy_node's /diagnostics), frames answered; in
+policy_node, frame arrival to cmd_vel published (p50/p99, its /diagnostics: decode, mapping onto the trained field
+of view, stack, network, safety layer, publishing); end to end, this process publishing the frame to it receiving
+cmd_vel_stamped (p50/p99, DDS both ways).
 
 Run: source .venv/bin/activate && source install/setup.bash && python benchmarks/bench_camera.py [--model sam]
 """
@@ -13,12 +15,18 @@ Run: source .venv/bin/activate && source install/setup.bash && python benchmarks
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from common import private_nodes
 
+import uav_common
 from uav_common import contract
 
 
@@ -113,6 +121,7 @@ def measure(model, weights, width, height, encoding, frames, rate_hz, domain, sh
         "frames": frames,
         "answered": len(e2e_ms),
         "received": diag.get("frames_received", "?"),
+        "lost": diag.get("frames_lost", "?"),
         "node_p50": diag.get("latency_ms_p50"),
         "node_p99": diag.get("latency_ms_p99"),
         "e2e_p50": float(np.percentile(e2e_ms, 50)) if len(e2e_ms) else math.nan,
@@ -122,32 +131,56 @@ def measure(model, weights, width, height, encoding, frames, rate_hz, domain, sh
     }
 
 
+STREAMS = (  # (width, height, encoding, shield, the packaged Fast DDS profile)
+    (848, 480, "16UC1", False, False),
+    (848, 480, "16UC1", True, False),
+    (848, 480, "16UC1", False, True),
+    (64, 64, "32FC1", False, False),
+    (64, 64, "32FC1", True, False),
+)
+
+
+def measure_in_child(a, row: int) -> dict:
+    """One stream in a process of its own: Fast DDS reads its profile once per process, so a stream with the packaged
+    profile (docs/REAL_CAMERA.md) is set up as a user would, the variable exported for this publisher and policy_node."""
+    env = dict(os.environ)
+    env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+    if STREAMS[row][4]:
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(Path(uav_common.__file__).parent / "fastdds_large_frames.xml")
+    cmd = [sys.executable, __file__, "--model", a.model, "--weights", a.weights, "--frames", str(a.frames)]
+    cmd += ["--domain", str(a.domain), "--row", str(row)]
+    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default="sam", choices=("sam", "cnn"))
     ap.add_argument("--weights", default="", help="policy_node weights (default: the packaged ten networks)")
     ap.add_argument("--frames", type=int, default=450, help="frames per stream (15 Hz)")
     ap.add_argument("--domain", type=int, default=173)
+    ap.add_argument("--row", type=int, default=None, help=argparse.SUPPRESS)  # one stream, in a child process
     a = ap.parse_args()
-    rows = [
-        (
-            f"{w}x{h} {enc}{' + shield' if shield else ''}",
-            measure(a.model, a.weights, w, h, enc, a.frames, 15.0, a.domain, shield),
-        )
-        for w, h, enc in ((848, 480, "16UC1"), (64, 64, "32FC1"))
-        for shield in (False, True)
-    ]
+    if a.row is not None:
+        w, h, enc, shield, _profile = STREAMS[a.row]
+        print(json.dumps(measure(a.model, a.weights, w, h, enc, a.frames, 15.0, a.domain, shield)))
+        return 0
+    names = [f"{w}x{h} {enc}{' + shield' if sh else ''}{' + profile' if pr else ''}" for w, h, enc, sh, pr in STREAMS]
+    rows = [(name, measure_in_child(a, i)) for i, name in enumerate(names)]
     print(f"policy_node model {a.model}, weights {a.weights or 'packaged'}, no simulator, 15 Hz, safety layer on")
-    head = f"{'stream':26s} {'received':>9s} {'answered':>9s} {'in node p50/p99 ms':>20s} {'end to end p50/p99 ms':>23s}"
-    print(head + "  shield overrides / frames without odometry")
+    print("+ profile: FASTRTPS_DEFAULT_PROFILES_FILE=src/uav_common/uav_common/fastdds_large_frames.xml, both processes")
+    head = f"{'stream':34s} {'received':>9s} {'lost':>5s} {'answered':>9s} {'in node p50/p99 ms':>20s}"
+    print(head + f" {'end to end p50/p99 ms':>23s}  shield overrides / frames without odometry")
     for name, r in rows:
         print(
-            f"{name:26s} {r['received']:>9s} {r['answered']:4d}/{r['frames']:<4d} {r['node_p50']:>9s} / {r['node_p99']:<8s} "
-            f"{r['e2e_p50']:10.2f} / {r['e2e_p99']:<8.2f}  {r['overridden']} / {r['no_odometry']}"
+            f"{name:34s} {r['received']:>9s} {r['lost']:>5s} {r['answered']:4d}/{r['frames']:<4d} {r['node_p50']:>9s} / "
+            f"{r['node_p99']:<8s} {r['e2e_p50']:10.2f} / {r['e2e_p99']:<8.2f}  {r['overridden']} / {r['no_odometry']}"
         )
-    p99 = [float(r["node_p99"]) for _, r in rows]
+    p99 = {name: float(r["node_p99"]) for name, r in rows}
     print(
-        f"ratio camera / baseline, in node p99: {p99[0] / p99[2]:.2f}; with the shield / without: {p99[1] / p99[0]:.2f} (848x480)"
+        f"ratio camera / baseline, in node p99: {p99[names[0]] / p99[names[3]]:.2f}; with the shield / without: "
+        f"{p99[names[1]] / p99[names[0]]:.2f}; frames received with the profile / without: "
+        f"{int(rows[2][1]['received']) / max(int(rows[0][1]['received']), 1):.2f} (848x480)"
     )
     return 0
 

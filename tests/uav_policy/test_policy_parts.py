@@ -191,3 +191,21 @@ def test_the_answers_are_counted_with_their_latency_and_a_silent_policy_is_a_pro
     assert len(problems) == 2 and "none answered" in problems[1] and values["ms_per_answer"] == "-"
     s.received = 6
     assert s.report(time.monotonic(), waiting=True)[0] == []  # frames held for the trainer on purpose
+
+
+def test_camera_frames_lost_on_the_way_are_counted_from_the_publishers_sequence_numbers():
+    s = AnswerStats()
+    asked = []
+    one = lambda: asked.append(1) or 1  # noqa: E731
+    for seq in (1, 2, 3, 6, 7, 10):  # 4, 5, 8 and 9 lost
+        s.arrived(seq, one)
+    assert s.lost == 4 and len(asked) == 2  # the graph is asked only at a gap
+    problems, values = s.report(time.monotonic(), waiting=False)
+    assert values["frames_lost"] == 4 and any("4 depth frame(s) lost on the way" in p for p in problems)
+    s.arrived(1, one)  # the camera driver restarted: its numbers start again
+    s.arrived(2, one)
+    s.arrived(5, lambda: 2)  # two publishers interleave their numbers: no gap can be told
+    s.arrived(None, one)  # no sequence number (another middleware): nothing counted
+    s.arrived(9, one)
+    problems, values = s.report(time.monotonic(), waiting=False)
+    assert values["frames_lost"] == 4 and not any("lost" in p for p in problems)

@@ -91,13 +91,13 @@ class PolicyNode(Node):
         self.stats = AnswerStats()
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
         # Camera drivers publish best effort; a best-effort reader takes sim_node's reliable frames too.
-        self.create_subscription(Image, contract.DEPTH_TOPIC, lambda m: self._on("frame", m), contract.SENSOR_QOS)
+        self.create_subscription(Image, contract.DEPTH_TOPIC, self._on_frame, contract.SENSOR_QOS)
         self.create_subscription(StepOutcome, contract.OUTCOME_TOPIC, lambda m: self._on("outcome", m), contract.STREAM_QOS)
         self.create_subscription(CameraInfo, contract.CAMERA_INFO_TOPIC, self._on_camera_info, contract.SENSOR_QOS)
         if self.shield:
             self.create_subscription(Odometry, contract.ODOM_TOPIC, self._on_odom, contract.SENSOR_QOS)
-        self.outcome_topic = self.resolve_topic_name(contract.OUTCOME_TOPIC)
-        self.info_topic = self.resolve_topic_name(contract.CAMERA_INFO_TOPIC)
+        topics = (contract.OUTCOME_TOPIC, contract.CAMERA_INFO_TOPIC, contract.DEPTH_TOPIC)
+        self.outcome_topic, self.info_topic, self.depth_topic = map(self.resolve_topic_name, topics)
         self.frame_awaiting_info = None  # the newest frame that waited for depth/camera_info
         # Pushes are validated on a worker thread, in their own callback group (a suspended callback holds its group).
         if st.accept_pushes:
@@ -121,6 +121,10 @@ class PolicyNode(Node):
     def _on_odom(self, msg: Odometry) -> None:
         if self.shield.odometry(msg.header.stamp, contract.odometry_pose(msg)) and self.shield.joins(self.control.active):
             self._on("odom", msg)
+
+    def _on_frame(self, msg: Image, info: dict) -> None:
+        self.stats.arrived(info.get("publication_sequence_number"), lambda: self.count_publishers(self.depth_topic))
+        self._on("frame", msg)
 
     def _on(self, stream: str, msg) -> None:
         t_in = time.perf_counter()
