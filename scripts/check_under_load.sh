@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The suite beside the main job, as users run the two README commands together: N times (default 3), a clean clone
 # of this repository's HEAD runs `CI=true bash .ci/run` while `train --model sam` (from this checkout's install) trains
-# beside it on a ROS domain the tests never take. Prints each run's verdict and main-suite time; exit 1 if any failed.
+# beside it on a ROS domain the tests never take. Prints each run's verdict and main-suite time; exit 1 if any failed or
+# its main suite took over 12 minutes (720 s, the suite's budget).
 #   bash scripts/check_under_load.sh [N]
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -36,7 +37,10 @@ for i in $(seq 1 "$runs"); do
   wait "$job" 2>/dev/null
   suite=$(grep -o "main suite took [0-9]* s" "$work/ci.out" || echo "main suite: no time (see $work/ci.out)")
   steps=$(grep -o "progress: [0-9]*/[0-9]* steps" "$work/train.out" 2>/dev/null | tail -n 1)
-  if [ "$code" -eq 0 ]; then verdict=green; else verdict="FAILED (code $code)"; failed=1; fi
+  secs=$(grep -o "main suite took [0-9]*" "$work/ci.out" 2>/dev/null | grep -o "[0-9]*$" || echo 0)
+  if [ "$code" -ne 0 ]; then verdict="FAILED (code $code)"; failed=1
+  elif [ "${secs:-0}" -gt 720 ]; then verdict="green but OVER the 720 s budget"; failed=1
+  else verdict=green; fi
   echo "run $i/$runs: $verdict; $suite; $beside ${steps:-no step logged} ($work)"
 done
 exit $failed
