@@ -81,7 +81,6 @@ def echo(domain: int) -> None:
         pubs[4].publish(odometry_msg(Pose(0.0, 0.0, 1.0, 0.0), BodyTwist(1.0), stamp, "odom", "base_link"))
 
     node.create_subscription(Twist, contract.CMD_VEL_TOPIC, on_cmd, q)
-    pubs[3].publish(contract.depth_to_image(depth, contract.stamp_from_seconds(0.0), "cam", "32FC1"))
     ex = rclpy.executors.SingleThreadedExecutor()
     ex.add_node(node)
     try:
@@ -158,9 +157,9 @@ def main() -> int:
     sys.path.insert(0, str(ROOT / "src" / "uav_sim"))
     # Two processes on two cores vary from run to run (0.54 to 0.71 in two single runs on one quiet machine): pairs,
     # in process then through ROS, alternate, and the ratio is of the medians, with every pair's ratio beside it.
-    pairs = [(in_process(a.world, a.steps), through_ros(a.world, a.steps, 90 + os.getpid() % 10)) for _ in range(a.repeats)]
-    base, ros = (statistics.median(x) for x in zip(*pairs, strict=True))
     domain = 90 + os.getpid() % 10
+    pairs = [(in_process(a.world, a.steps), through_ros(a.world, a.steps, domain)) for _ in range(a.repeats)]
+    base, ros = (statistics.median(x) for x in zip(*pairs, strict=True))
     floor = statistics.median(
         through_ros(a.world, a.steps, domain, [sys.executable, __file__, "--echo", str(domain)]) for _ in range(a.repeats)
     )
