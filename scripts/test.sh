@@ -8,4 +8,6 @@ set +u  # colcon's setup.bash reads unset variables
 set -u
 ruff check src tests benchmarks scripts
 ruff format --check src tests benchmarks scripts
-python -m pytest tests --durations=15 "$@"
+# Two workers (pytest-xdist): most tests wait on nodes in other processes, so two share 2 cores well; each test has
+# its own ROS domain (tests/conftest.py). `-n 0` after it runs them one at a time.
+python -m pytest tests -n 2 --durations=15 "$@"

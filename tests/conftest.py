@@ -21,9 +21,12 @@ os.environ["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix="uav_tests_roslog_")
 sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_policy", "uav_trainer", "uav_bringup")]
 
 # A private domain per test: tests never hear each other or anything else on the machine. The harness draws
-# 1-60; a test that sets its own uses one of 61-101 that no other test uses (101 is the highest Linux allows
-# without clashing with ephemeral ports).
-_domains = itertools.count(1 + (os.getpid() * 7) % 60)
+# 1-60, each pytest-xdist worker (scripts/test.sh runs two) from its own slice of it; a test that sets its own uses
+# one of 61-101 that no other test uses (101 is the highest Linux allows without clashing with ephemeral ports).
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+_SLICE = 60 // _WORKERS
+_FIRST = 1 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]) * _SLICE
+_domains = itertools.count(os.getpid() * 7)
 
 
 SHARED_DOMAIN = 99  # nodes that exit at once at start-up (run_to_exit, start_up_error): never a node that stays up
@@ -94,7 +97,7 @@ class RosHarness:
     def __init__(self, tmp_path: Path):
         import rclpy
 
-        self.domain_id = 1 + next(_domains) % 60
+        self.domain_id = _FIRST + next(_domains) % _SLICE
         self.env = dict(
             os.environ,
             ROS_DOMAIN_ID=str(self.domain_id),
