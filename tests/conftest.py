@@ -51,6 +51,25 @@ def fixed_domains(root: Path = ROOT / "tests") -> dict[int, set[str]]:
     return out
 
 
+def pytest_collection_modifyitems(config, items):
+    """The cases of a test that sets its own fixed domain share it: under pytest-xdist (scripts/test.sh, `--dist
+    loadgroup`) they run on one worker, one after another; so do a file's tests whose domain a helper or the module
+    sets."""
+    names: dict[str, set[str]] = {}
+    for owners in fixed_domains().values():
+        for owner in owners:
+            file, _, name = owner.partition("::")
+            names.setdefault(file.removesuffix(" (module)"), set()).add(name)
+    for item in items:
+        file, func, cls = item.path.name, getattr(item, "originalname", item.name), getattr(item.cls, "__name__", "")
+        owned = names.get(file, set())
+        group = next((f"{file}::{n}" for n in (func, cls) if n and n in owned), None)
+        if group is None and any(not n.startswith(("test_", "Test")) for n in owned):
+            group = file  # a module-wide or helper's domain: every test of the file may use it
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+
+
 def pytest_collection_finish(session):
     """Each test that starts nodes on a fixed domain has it to itself, outside the harness's 1-60 (below)."""
     problems = []

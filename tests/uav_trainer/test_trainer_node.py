@@ -99,9 +99,11 @@ def test_pairing_over_ros_is_exact_and_ctrl_c_checkpoints_and_resumes(ros, tmp_p
     ros.spin_until(lambda: int(diag["uav_sim"]["steps"]) == stored, 10)
     sim_steps, collisions = int(diag["uav_sim"]["steps"]), int(diag["uav_sim"]["collisions"])
     # Transition k-1 -> k is stored once frame and outcome k are in (action k-1 came before them): every
-    # step the sim made, and so every action but one the policy sent as it stopped (never executed).
+    # step the sim made, and so every action but one the policy sent as it stopped (never executed). Our count of
+    # actions is ours alone: the action sent as the policy stopped can reach the sim and not us (a reliable writer that
+    # has exited repairs nothing; seen once with a second test beside this one), so it may be one short too.
     assert stored == sim_steps, (stored, sim_steps)
-    assert len(actions) - 1 <= sim_steps <= len(actions), (sim_steps, len(actions))
+    assert abs(len(actions) - sim_steps) <= 1, (sim_steps, len(actions))
     episodes = len((run_dir / "episodes.csv").read_text().splitlines()) - 1  # one row per episode, ended by a crash
     assert collisions > 20 and episodes == collisions, (episodes, collisions, sim_steps)
     assert (run_dir / "checkpoints" / "latest").is_file() and (run_dir / "metrics.csv").is_file()
