@@ -24,6 +24,8 @@ sys.path[:0] = [str(ROOT / "src" / p) for p in ("uav_common", "uav_sim", "uav_po
 # 1-60, each pytest-xdist worker (scripts/test.sh runs two) from its own slice of it; a test that sets its own uses
 # one of 61-101 that no other test uses (101 is the highest Linux allows without clashing with ephemeral ports).
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 60:
+    raise pytest.UsageError(f"-n {_WORKERS}: at most 60 test workers, each draws ROS domains of its own from 1-60")
 _SLICE = 60 // _WORKERS
 _FIRST = 1 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]) * _SLICE
 _domains = itertools.count(os.getpid() * 7)
