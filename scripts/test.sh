@@ -9,6 +9,5 @@ set -u
 ruff check src tests benchmarks scripts
 ruff format --check src tests benchmarks scripts
 # Two workers (pytest-xdist): most tests wait on nodes in other processes, so two share 2 cores well; each test has
-# its own ROS domain, the cases of one test sharing a fixed one run on one worker (tests/conftest.py: loadgroup).
-# `-n 0` after it runs them one at a time.
-python -m pytest tests -n 2 --dist loadgroup --durations=15 "$@"
+# a ROS domain of its own (tests/conftest.py). `-n 0` after it runs them one at a time.
+python -m pytest tests -n 2 --durations=15 "$@"

@@ -31,6 +31,18 @@ _FIRST = 1 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]) * _SLICE
 _domains = itertools.count(os.getpid() * 7)
 
 
+def fresh_domain() -> int:
+    """A ROS domain from this worker's slice of 1-60: the harness's, and the `ros_domain` fixture's."""
+    return _FIRST + next(_domains) % _SLICE
+
+
+@pytest.fixture
+def ros_domain() -> str:
+    """A domain of this test's own for the nodes it starts without the harness (a string, for environments). The
+    cases of a parametrized test take this, never a fixed domain: two workers can run two cases at once."""
+    return str(fresh_domain())
+
+
 SHARED_DOMAIN = 99  # nodes that exit at once at start-up (run_to_exit, start_up_error): never a node that stays up
 _DOMAIN_LITERALS = [
     re.compile(r"ROS_DOMAIN_ID['\"]?\s*[=:,]\s*['\"](\d+)['\"]"),  # env dicts, setenv
@@ -53,25 +65,6 @@ def fixed_domains(root: Path = ROOT / "tests") -> dict[int, set[str]]:
     return out
 
 
-def pytest_collection_modifyitems(config, items):
-    """The cases of a test that sets its own fixed domain share it: under pytest-xdist (scripts/test.sh, `--dist
-    loadgroup`) they run on one worker, one after another; so do a file's tests whose domain a helper or the module
-    sets."""
-    names: dict[str, set[str]] = {}
-    for owners in fixed_domains().values():
-        for owner in owners:
-            file, _, name = owner.partition("::")
-            names.setdefault(file.removesuffix(" (module)"), set()).add(name)
-    for item in items:
-        file, func, cls = item.path.name, getattr(item, "originalname", item.name), getattr(item.cls, "__name__", "")
-        owned = names.get(file, set())
-        group = next((f"{file}::{n}" for n in (func, cls) if n and n in owned), None)
-        if group is None and any(not n.startswith(("test_", "Test")) for n in owned):
-            group = file  # a module-wide or helper's domain: every test of the file may use it
-        if group is not None:
-            item.add_marker(pytest.mark.xdist_group(group))
-
-
 def pytest_collection_finish(session):
     """Each test that starts nodes on a fixed domain has it to itself, outside the harness's 1-60 (below)."""
     problems = []
@@ -83,6 +76,10 @@ def pytest_collection_finish(session):
             problems.append(f"domain {domain} is used by {sorted(owners)}")
         if not 61 <= domain <= 101:
             problems.append(f"domain {domain} ({sorted(owners)}) lies outside 61-101")
+    fixed = {o for d, owners in fixed_domains().items() if d != SHARED_DOMAIN for o in owners}
+    cases = {f"{item.path.name}::{item.originalname}" for item in session.items if hasattr(item, "callspec")}
+    for owner in sorted(cases & fixed):
+        problems.append(f"{owner} is parametrized: its cases take the ros_domain fixture (they can run at once)")
     if problems:
         raise pytest.UsageError("fixed ROS domains must be one test's each: " + "; ".join(problems))
 
@@ -118,7 +115,7 @@ class RosHarness:
     def __init__(self, tmp_path: Path):
         import rclpy
 
-        self.domain_id = _FIRST + next(_domains) % _SLICE
+        self.domain_id = fresh_domain()
         self.env = dict(
             os.environ,
             ROS_DOMAIN_ID=str(self.domain_id),

@@ -7,6 +7,7 @@ import sys
 
 import pytest
 
+from conftest import fresh_domain
 from uav_common.node_runner import interrupted
 
 # A node whose first timer callback raises what the test passes in; close() proves the clean-up ran.
@@ -31,7 +32,7 @@ sys.exit(run(N))
 
 
 def run_node(raise_line: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, ROS_DOMAIN_ID="98", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain()), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     code = NODE.format(raise_line=raise_line)
     return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
 

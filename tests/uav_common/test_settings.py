@@ -80,8 +80,8 @@ def test_the_parameter_reference_and_params_files_are_up_to_date():
         ("uav_policy", "policy_node", "ensemble_rule:=min", "'ensemble_rule' was removed"),
     ],
 )
-def test_nodes_refuse_retired_and_misspelt_parameters_naming_them(pkg, exe, param, says, tmp_path):
-    env = {**__import__("os").environ, "ROS_DOMAIN_ID": "97", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+def test_nodes_refuse_retired_and_misspelt_parameters_naming_them(pkg, exe, param, says, tmp_path, ros_domain):
+    env = {**__import__("os").environ, "ROS_DOMAIN_ID": ros_domain, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     args = [str(executable(pkg, exe)), "--ros-args", "-p", param, "-p", f"run_dir:={tmp_path}"]
     if exe != "trainer_node":
         args = args[:-2]

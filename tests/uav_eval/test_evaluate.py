@@ -168,7 +168,7 @@ PACKAGED_FILES = {"sam": 1, "cnn": 1}  # how many networks each packaged policy 
 
 
 @pytest.mark.parametrize("model", ["sam", "cnn"])
-def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model, monkeypatch):
+def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model, monkeypatch, ros_domain):
     from uav_sim.sensor import preset_for_camera
 
     shipped = sorted((ROOT / "src" / "uav_policy" / "weights" / model).glob("*.safetensors"))
@@ -180,7 +180,7 @@ def test_shipped_weights_load_and_fly_200_steps_in_basic_without_a_crash(model, 
     # behind that sensor preset (its field of view, recorded in the files).
     assert {preset_for_camera(wio.read_file_camera(p)) for p in shipped} == {"realsense_d435"}
     assert {wio.read_file_window(p) for p in shipped} == {None}
-    monkeypatch.setenv("ROS_DOMAIN_ID", "76")
+    monkeypatch.setenv("ROS_DOMAIN_ID", ros_domain)
     r = evaluate_once(FlightSpec(model, "", "basic", 200))  # "" = what policy_node uses by default: the packaged files
     assert r.steps == 200 and r.crashes == 0, r
 
@@ -586,7 +586,7 @@ def test_same_run_tells_identical_runs_weights_and_rows_from_different_ones(tmp_
     ],
 )
 def test_ros_evaluation_equals_the_in_process_measurement(
-    tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes, safety, shield, monkeypatch
+    tmp_path, jitter, hfov, trained_hfov, readout, size, sam_sizes, safety, shield, monkeypatch, ros_domain
 ):
     """Same simulator, stack, network and decision path (uav_policy.pilot, the shield and safety layer included): flying through
     the ROS nodes changes nothing (and the random start heading, extra sim parameters, the weights' SAM readout, input
@@ -599,7 +599,7 @@ def test_ros_evaluation_equals_the_in_process_measurement(
     cfg = NetConfig(sam_readout=readout, height=size, width=size, **sam_sizes)
     window = 0.5 if trained_hfov is not None else None  # recorded with the camera: flown by both paths unasked
     wio.save_file(build_network(cfg, seed=4), cfg, w, camera_hfov_deg=trained_hfov, reward_window_fraction=window)
-    monkeypatch.setenv("ROS_DOMAIN_ID", "79")
+    monkeypatch.setenv("ROS_DOMAIN_ID", ros_domain)
     sim_args = (f"hfov_deg:={hfov}",) if hfov is not None else ()
     kw = dict(seed=3, start_yaw_jitter_deg=jitter, safety=safety, shield=shield)
     world = "complex" if shield else "basic"  # the shield overrides this network there (34-50 times in 100 steps)

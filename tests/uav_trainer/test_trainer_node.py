@@ -331,7 +331,7 @@ def test_short_training_over_ros_beats_the_random_baseline(tmp_path, monkeypatch
 
 
 @pytest.mark.parametrize("recipe", ["rl", "shipped", "map"])
-def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, recipe):
+def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains(tmp_path, capsys, recipe, ros_domain):
     """train through the three nodes and inprocess with the same recipe file and seed: the same episodes, and
     bit-identical weights in all ten files (the snapshots and the final). So the ROS main job and the in-process
     trainer train one recipe, read from one file. The default recipe with its teacher (sim_node's planner labelling every
@@ -353,8 +353,7 @@ def test_the_main_job_learning_in_lockstep_over_ros_trains_what_inprocess_trains
     extra = [x for k, v in learn.items() for x in ("--trainer-arg", f"{k}:={v}")] + ["--validation-steps", "0"]
     mapped = ["teacher:=map", "local_map:=true"] if teacher_map else []
     extra += ["--recipe", recipe] + [x for a in mapped for x in ("--trainer-arg", a)]
-    domain = "88" if teacher_map else str(80 + (recipe != "rl"))
-    r, logs = run_train(ros_dir, domain, "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
+    r, logs = run_train(ros_dir, ros_domain, "--steps", str(steps), "--seed", str(seed), *extra, timeout_s=240)
     assert f"recipes/{recipe}.yaml" in r.stdout and "learning in lockstep with acting" in logs["trainer"]
     assert "does not wait for releases" not in logs["trainer"] and "had not released" not in logs["trainer"]
     # `python -m uav_trainer.inprocess` as README gives it: its documented defaults, the same recipe and seed.
