@@ -48,10 +48,8 @@ PUSH_WEIGHTS_SERVICE = "policy_node/push_weights"
 
 # Lockstep needs every message: reliable, with room for bursts.
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
-# What every step and decision says in small messages (sim_node's step outcome and odometry; the policy's commands,
-# actions, Q-values, attention maps): its writers keep 1000, so a reader that falls seconds behind on a busy machine (a
-# recorder, evaluate's monitor) loses none. At 100 a recorder lost a few a minute beside the main job, and evaluate's
-# monitor up to 78 steps of a 100-step flight beside the main job and a second test worker.
+# What every decision says (commands, actions, Q-values, attention maps: small messages): kept 1000 deep, so a recorder
+# that falls seconds behind on a busy machine loses none (100 lost a few a minute beside the main job).
 DECISION_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=1000)
 # For consumers that must not lose anything even when they lag (the trainer): the reader's DDS
 # history holds the backlog (64x64 frames: ~16 KiB each).

@@ -80,8 +80,8 @@ class SimNode(Node):
         q = contract.STREAM_QOS
         self.pub_depth = self.create_publisher(Image, contract.DEPTH_TOPIC, q)
         self.pub_info = self.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, q)
-        self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, contract.DECISION_QOS)
-        self.pub_outcome = self.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, contract.DECISION_QOS)
+        self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, q)
+        self.pub_outcome = self.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, q)
         self.pub_teacher = self.create_publisher(TeacherLabel, contract.TEACHER_TOPIC, q) if self.teacher else None
         self.pub_clock = self.create_publisher(Clock, "/clock", q) if st.publish_clock else None
         self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
