@@ -471,11 +471,10 @@ def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pus
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 
     client = ros.node.create_client(SetParameters, "/policy_node/set_parameters")
-    assert client.wait_for_service(timeout_sec=10)
     value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9)
-    fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
-    assert ros.spin_until(fut.done, 20)
-    res = fut.result().results[0]
+    answer = ros.call(client, SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
+    assert answer is not None
+    res = answer.results[0]
     assert not res.successful and "is set by the trainer's pushes" in res.reason, res.reason
     assert get_parameter(ros, "epsilon") == 0.25
 
@@ -483,11 +482,9 @@ def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pus
 def get_parameter(ros, name: str):
     from rcl_interfaces.srv import GetParameters
 
-    client = ros.node.create_client(GetParameters, "/policy_node/get_parameters")
-    assert client.wait_for_service(timeout_sec=10)
-    fut = client.call_async(GetParameters.Request(names=[name]))
-    assert ros.spin_until(fut.done, 20)
-    return fut.result().values[0].double_value
+    answer = ros.call(ros.node.create_client(GetParameters, "/policy_node/get_parameters"), GetParameters.Request(names=[name]))
+    assert answer is not None
+    return answer.values[0].double_value
 
 
 def test_an_unreleased_frame_is_answered_after_the_timeout_with_a_warning(ros):
@@ -509,13 +506,13 @@ def test_a_flying_policy_takes_no_pushes_and_no_parameter_changes(ros):
     assert "/policy_node/get_parameters" in services and contract.PUSH_WEIGHTS_SERVICE not in services
     assert "/" + contract.PUSH_WEIGHTS_SERVICE not in services, sorted(services)
     value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.0)
-    fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
-    assert ros.spin_until(fut.done, 20)
-    res = fut.result().results[0]
+    answer = ros.call(client, SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
+    assert answer is not None
+    res = answer.results[0]
     assert not res.successful and "fixed at start-up while flying" in res.reason, res.reason
-    fut = client.call_async(SetParameters.Request(parameters=[Parameter(name="step_duration_s", value=value)]))
-    assert ros.spin_until(fut.done, 20)
-    res = fut.result().results[0]
+    answer = ros.call(client, SetParameters.Request(parameters=[Parameter(name="step_duration_s", value=value)]))
+    assert answer is not None
+    res = answer.results[0]
     assert not res.successful and "read-only" in res.reason, res.reason
     r = run_to_exit("uav_policy", "policy_node", "-p", "wait_for_trainer:=true")
     assert r.returncode == 2 and "needs accept_pushes:=true" in r.stderr, r.stderr
