@@ -473,7 +473,6 @@ def test_waiting_for_the_trainer_answers_a_frame_only_once_released_with_the_pus
     client = ros.node.create_client(SetParameters, "/policy_node/set_parameters")
     value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.9)
     answer = ros.call(client, SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
-    assert answer is not None
     res = answer.results[0]
     assert not res.successful and "is set by the trainer's pushes" in res.reason, res.reason
     assert get_parameter(ros, "epsilon") == 0.25
@@ -483,7 +482,6 @@ def get_parameter(ros, name: str):
     from rcl_interfaces.srv import GetParameters
 
     answer = ros.call(ros.node.create_client(GetParameters, "/policy_node/get_parameters"), GetParameters.Request(names=[name]))
-    assert answer is not None
     return answer.values[0].double_value
 
 
@@ -507,11 +505,9 @@ def test_a_flying_policy_takes_no_pushes_and_no_parameter_changes(ros):
     assert "/" + contract.PUSH_WEIGHTS_SERVICE not in services, sorted(services)
     value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.0)
     answer = ros.call(client, SetParameters.Request(parameters=[Parameter(name="epsilon", value=value)]))
-    assert answer is not None
     res = answer.results[0]
     assert not res.successful and "fixed at start-up while flying" in res.reason, res.reason
     answer = ros.call(client, SetParameters.Request(parameters=[Parameter(name="step_duration_s", value=value)]))
-    assert answer is not None
     res = answer.results[0]
     assert not res.successful and "read-only" in res.reason, res.reason
     r = run_to_exit("uav_policy", "policy_node", "-p", "wait_for_trainer:=true")
