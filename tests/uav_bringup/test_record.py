@@ -201,6 +201,17 @@ def test_at_the_end_a_launcher_waits_until_the_recorder_holds_all_the_policy_pub
     reports = RecorderReports(node)
     assert reports.wait_until_idle(Executor([policy, short, policy, whole, policy, whole]), timeout_s=5.0)
     assert reports.missing() == {}, "written or counted lost: every one accounted for"
+    # A paused simulator's final counts, of the topics the recorder takes (not the clock): sent before the recorder
+    # heard it counts as accounted for; what is neither written nor counted is missing.
+    sim = {"published /uav2/odom": 30, "published /clock": 30}
+    running = report("uav_sim", sim | {"paused": "false"})
+    recorded = {"publishers /uav2/odom": 1, "/uav2/odom": 28, "before_recording /uav2/odom": 1}
+    rec = report("uav_bringup/record", {"/uav2/action": 20, "/uav2/cmd_vel": 20} | recorded)
+    node = Node()
+    reports = RecorderReports(node)
+    assert reports.wait_until_idle(Executor([running, policy, rec, policy, rec]), timeout_s=5.0), "not paused: not asked"
+    assert not reports.wait_until_idle(Executor([report("uav_sim", sim | {"paused": "true"}), policy, rec]), timeout_s=0.3)
+    assert reports.missing() == {"/uav2/odom": 1}
 
 
 def test_a_flooded_recorder_counts_every_message_it_lost_exactly(ros, tmp_path):
@@ -242,7 +253,15 @@ def test_a_flooded_recorder_counts_every_message_it_lost_exactly(ros, tmp_path):
                 last, quiet_since = rec.counts["/flood"], time.monotonic()
         written, lost = rec.counts["/flood"], rec.lost.get("/flood", 0)
         assert lost > 0 and written + lost == sent, (written, lost)
-        assert rec.accounting.topics["/flood"].before >= 5  # the early ones, and any sent while the two matched
+        before = rec.accounting.topics["/flood"].before
+        assert before >= 5  # the early ones, and any sent while the two matched
+        said = []
+        rec.pub_diag.publish = said.append  # what it says on /diagnostics: fly's RecorderReports reads these
+        rec.publish_diagnostics()
+        values = {kv.key: kv.value for kv in said[0].status[0].values}
+        assert (values["/flood"], values["lost /flood"], values["before_recording /flood"]) == tuple(
+            str(n) for n in (written, lost, before)
+        )
     finally:
         rec.close()
         spin.shutdown()

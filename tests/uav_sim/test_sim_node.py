@@ -239,6 +239,42 @@ def test_commands_lost_in_a_flood_are_counted(ros):
     assert int(said[-1]["commands_lost"]) > 0 and int(said[-1]["commands_ignored"]) == 0
 
 
+def test_pause_holds_the_vehicle_and_reports_every_message_it_sent(ros):
+    """~/pause: no step and nothing published while paused, and /diagnostics says so at once, with per topic the
+    messages sent (a recorder's launcher waits for all of them); resumed, a lockstep frame is said again."""
+    from std_srvs.srv import SetBool
+
+    rec, said = Recorder(ros), []
+    ros.node.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: said.extend({kv.key: kv.value for kv in s.values} for s in m.status if s.name == "uav_sim"),
+        10,
+    )
+    # No frame said again (republish) and the first one only once we listen: every message sent is counted below.
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0", "-p", "wait_for_subscribers:=1")
+    assert rec.ready(ros), "no depth frame from sim_node"
+    for k in range(3):
+        rec.cmd.publish(twist(vx=1.0))
+        assert ros.spin_until(lambda k=k: len(rec.distinct_frames()) == k + 2, 10), f"step {k + 1} missing"
+    pause = ros.node.create_client(SetBool, "/sim_node/pause")
+    assert ros.call(pause, SetBool.Request(data=True)).message == "paused after 3 steps"
+    rec.cmd.publish(twist(vx=1.0))  # ignored, and counted so
+    assert ros.spin_until(lambda: said and said[-1]["paused"] == "true" and said[-1]["commands_ignored"] == "1", 10)
+    ros.spin_for(1.0)
+    final = said[-1]
+    assert len(rec.distinct_frames()) == 4, "a paused simulator stepped"
+    for key, topic in (("depth", "/depth/image_raw"), ("info", "/depth/camera_info"), ("odom", "/odom")):
+        assert final[f"published {topic}"] == str(len(rec.by_topic[key])) == "4", (key, final)
+    assert final["published /step_outcome"] == str(len(rec.by_topic["outcome"])) == "4", final
+    assert final["published /clock"] == str(len(rec.by_topic["clock"])) == "4", final
+    assert ros.call(pause, SetBool.Request(data=False)).message == "running after 3 steps"
+    assert ros.spin_until(lambda: len(rec.by_topic["depth"]) == 5, 10), "resumed, the frame is said again"
+    assert len(rec.distinct_frames()) == 4
+    rec.cmd.publish(twist(vx=1.0))
+    assert ros.spin_until(lambda: len(rec.distinct_frames()) == 5, 10), "resumed, a command steps again"
+
+
 def test_realtime_watchdog_stops_the_vehicle(ros):
     rec = Recorder(ros)
     proc = ros.start(

@@ -71,6 +71,11 @@ class Accounting:
     def lost(self) -> dict[str, int]:
         return {t: c.lost for t, c in self.topics.items() if c.lost}
 
+    @property
+    def before(self) -> dict[str, int]:
+        """{topic: messages its publishers sent before their first one reached the recorder}, where any were."""
+        return {t: c.before for t, c in self.topics.items() if c.before}
+
     def metadata(self) -> dict[str, str]:
         """For the bag's metadata (custom_data): per topic written, lost and before-recording counts."""
         out = {}

@@ -19,14 +19,15 @@ from pathlib import Path
 
 from uav_common.launching import Processes, params_args, stop_signals
 
-# The simulator first (nothing new is said), the recorder last: the bag holds the final messages.
+# The simulator first (nothing new is said), the recorder last: the bag holds the final messages. With a recorder the
+# simulator is paused before (RecorderWatch.pause_sim), so that its last messages reach the bag too.
 STOP_ORDER = ["sim", "policy", "mavlink", "record", "live_view"]
 
 
 class RecorderWatch:
     """fly's own node (its own context: Ctrl-C stays fly's), listening to the recorder's reports: the simulator starts
-    once the recorder hears policy_node, so that the first step is on record too, and at the end the policy stops
-    only once the recorder has written everything said before the simulator stopped."""
+    once the recorder hears policy_node, so that the first step is on record too, and at the end the simulator is
+    paused and the nodes stop only once the recorder has written everything they said."""
 
     def __init__(self, namespace: str):
         import rclpy
@@ -50,6 +51,29 @@ class RecorderWatch:
         except (RuntimeError, TimeoutError) as e:
             print(f"{e}; stopping the others", file=sys.stderr)
             return False
+
+    def pause_sim(self, timeout_s: float = 10.0) -> bool:
+        """Pause sim_node (its ~/pause); False (and says why) if it does not answer within `timeout_s`. Asked again
+        every 2 s: an answer sent before the simulator's response writer matched our reader is lost."""
+        from std_srvs.srv import SetBool
+
+        client = self.node.create_client(SetBool, "sim_node/pause")
+        try:
+            end = time.monotonic() + timeout_s
+            while time.monotonic() < end:
+                if client.wait_for_service(timeout_sec=min(2.0, max(end - time.monotonic(), 0.01))):
+                    future = client.call_async(SetBool.Request(data=True))
+                    self.executor.spin_until_future_complete(future, timeout_sec=min(2.0, max(end - time.monotonic(), 0.01)))
+                    if future.done() and future.result() is not None and future.result().success:
+                        return True
+            print(
+                f"sim_node did not answer its pause within {timeout_s:g} s: stopping it; its last messages may be "
+                "missing from the bag",
+                file=sys.stderr,
+            )
+            return False
+        finally:
+            self.node.destroy_client(client)
 
     def drained(self, timeout_s: float = 20.0) -> None:
         if not self.reports.wait_until_idle(self.executor, timeout_s):
@@ -171,7 +195,9 @@ def flight(a, procs: Processes, params: Path | None, stopped, watch: RecorderWat
             code = 1
             break
         time.sleep(0.2)
-    codes = {"sim": procs.stop("sim")} if "sim" in procs.procs else {}
+    sim = procs.procs.get("sim")
+    paused = watch is not None and sim is not None and sim.poll() is None and watch.pause_sim()
+    codes = {"sim": procs.stop("sim")} if sim is not None and not paused else {}
     if watch is not None:
         watch.drained()
     codes.update({name: procs.stop(name) for name in STOP_ORDER if name in procs.procs and name not in codes})

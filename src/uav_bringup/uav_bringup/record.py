@@ -38,6 +38,7 @@ PROGRESS_S = 5.0
 # once the recorder has matched these publishers and the policy has matched the recorder's subscriptions
 # (discovery matches each side at its own time: `RecorderReports.wait_for_policy`).
 POLICY_TOPICS = (contract.ACTION_TOPIC, contract.CMD_VEL_TOPIC, contract.Q_VALUES_TOPIC)
+BEFORE_KEY = "before_recording "
 
 
 def open_bag(path: Path):
@@ -124,11 +125,13 @@ class Recorder(Node):
             print(f"record {self.out}: {self.summary()}{wait}", flush=True)
 
     def publish_diagnostics(self) -> None:
-        """Messages written per topic (by name) and in all, lost per topic (`lost TOPIC`; WARN while any are), and
-        the publishers matched per topic (`publishers TOPIC`: a launcher can wait for them before the flight starts)."""
+        """Messages written per topic (by name) and in all, lost per topic (`lost TOPIC`; WARN while any are), sent
+        before the recorder heard their publisher (`before_recording TOPIC`, where any were), and the publishers matched
+        per topic (`publishers TOPIC`: a launcher can wait for them before the flight starts)."""
         values = {"bag": str(self.out), "messages": sum(self.counts.values()), "megabytes": f"{self.bytes / 1e6:.2f}"}
         values.update(self.counts)
         values.update({f"{contract.LOST_KEY}{t}": n for t, n in self.lost.items()})
+        values.update({f"{BEFORE_KEY}{t}": n for t, n in self.accounting.before.items()})
         values.update({f"publishers {t}": n for t, n in self.tap.publishers().items()})
         level, text = ("WARN", "recording; messages lost") if self.lost else ("OK", "recording")
         self.pub_diag.publish(contract.diagnostics(self, "uav_bringup/record", level, text, values))
@@ -151,9 +154,10 @@ def counts(status, prefix: str) -> dict[str, int]:
 
 class RecorderReports:
     """What the recorder says on /diagnostics, kept up to date through `node`: `heard` {topic: publishers matched},
-    `written` {topic: messages written}, `lost` {topic: messages lost to it}, and `reports`, how many reports came;
-    and what policy_node says: `heard_by_policy` {topic: subscriptions its publishers matched}, `published`
-    {topic: messages it sent} of the decision's record, and `policy_reports`."""
+    `written` {topic: messages written}, `lost` {topic: messages lost to it}, `before` {topic: messages sent before it
+    heard their publisher}, and `reports`, how many reports came; what policy_node says: `heard_by_policy` {topic:
+    subscriptions its publishers matched}, `published` {topic: messages it sent} of the decision's record, and
+    `policy_reports`; and what sim_node says: `sim_published` {topic: messages it sent} and `sim_paused`."""
 
     def __init__(self, node):
         self.node = node
@@ -161,8 +165,11 @@ class RecorderReports:
         self.heard_by_policy: dict[str, int] = {}
         self.published: dict[str, int] = {}
         self.policy_reports = 0
+        self.sim_published: dict[str, int] = {}
+        self.sim_paused = False
         self.written: dict[str, int] = {}
         self.lost: dict[str, int] = {}
+        self.before: dict[str, int] = {}
         self.reports = 0
         node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, self._on, 10)
 
@@ -172,11 +179,15 @@ class RecorderReports:
                 self.heard.update(counts(st, "publishers "))
                 self.written.update({kv.key: int(kv.value) for kv in st.values if kv.key.startswith("/")})
                 self.lost.update(counts(st, contract.LOST_KEY))
+                self.before.update(counts(st, BEFORE_KEY))
                 self.reports += 1
             elif st.name == "uav_policy":
                 self.heard_by_policy.update(counts(st, "subscribers "))
                 self.published.update(counts(st, "published "))
                 self.policy_reports += 1
+            elif st.name == "uav_sim":
+                self.sim_published.update(counts(st, "published "))
+                self.sim_paused = any(kv.key == "paused" and kv.value == "true" for kv in st.values)
 
     def ready(self, topics) -> bool:
         """The recorder and policy_node have matched each other on every one of `topics` (resolved names)."""
@@ -204,26 +215,30 @@ class RecorderReports:
         return True
 
     def missing(self) -> dict[str, int]:
-        """{topic: messages policy_node published that the recorder has neither written nor counted lost}, where any."""
-        short = {t: n - self.written.get(t, 0) - self.lost.get(t, 0) for t, n in self.published.items()}
+        """{topic: messages policy_node published (and a paused sim_node, of the topics the recorder takes) that the
+        recorder has neither written nor counted (lost, or sent before it heard their publisher)}, where any."""
+        sim = {t: n for t, n in self.sim_published.items() if self.sim_paused and t in self.heard}
+        got = lambda t: self.written.get(t, 0) + self.lost.get(t, 0) + self.before.get(t, 0)  # noqa: E731
+        short = {t: n - got(t) for t, n in (self.published | sim).items()}
         return {t: n for t, n in short.items() if n > 0}
 
     def wait_until_idle(self, executor, timeout_s: float) -> bool:
-        """Spin `executor` until the recorder holds all policy_node said: two policy reports in a row count the same
-        messages published (it answers nothing more), the recorder has written (or counted lost) every one of them,
-        and two of its reports in a row count the same messages written (/diagnostics aside: the nodes report on).
-        Call it once the simulator has stopped, before any other node exits: a reliable message still on its way
-        (one resent after a loss, say) is lost with its publisher, and at the end of a stream no later message shows
-        the gap. False if not so within `timeout_s` (`missing()` then says what the bag lacks)."""
+        """Spin `executor` until the recorder holds all policy_node said (and sim_node's, once it reports it is
+        paused): two policy reports in a row count the same messages published (it answers nothing more), the
+        recorder has written (or counted lost) every one of them, and two of its reports in a row count the same
+        messages written (/diagnostics aside: the nodes report on). Call it once the simulator is paused (or has
+        stopped), before any other node exits: a reliable message still on its way (one resent after a loss, say) is
+        lost with its publisher, and at the end of a stream no later message shows the gap. False if not so within
+        `timeout_s` (`missing()` then says what the bag lacks)."""
         end = time.monotonic() + timeout_s
         counts = lambda: {t: n for t, n in self.written.items() if t != contract.DIAGNOSTICS_TOPIC}  # noqa: E731
         seen = (self.reports, counts())
-        said = (self.policy_reports, dict(self.published))
+        said = (self.policy_reports, None)  # two reports after this call: the last frame has a second to be answered
         idle = settled = False
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
             if self.policy_reports != said[0]:
-                settled = said[0] > 0 and self.published == said[1]
+                settled = self.published == said[1]
                 said = (self.policy_reports, dict(self.published))
             if self.reports != seen[0]:
                 idle = seen[0] > 0 and counts() == seen[1]

@@ -4,7 +4,8 @@ Publishes depth/image_raw (32FC1), depth/camera_info, odom, step_outcome (uav_in
 (the room and obstacles, latched), trajectory (this episode's path), /clock (unless publish_clock:=false:
 several simulators in one graph would each say their own time), /diagnostics and, with a teacher
 (teacher:=stack|all|map), teacher_label (uav_interfaces/TeacherLabel): the planner's action, scores and reason per
-frame; consumes cmd_vel.
+frame; consumes cmd_vel. Services: ~/reset (std_srvs/Trigger: a new episode at the start pose) and ~/pause
+(std_srvs/SetBool: true holds the vehicle where it is, no step and nothing published until false).
 Frames carry the node's namespace (`/uav1`: `uav1/odom`, `uav1/base_link`). In
 `lockstep` mode one cmd_vel advances one step; in `realtime` mode the simulator steps at a fixed
 rate with the latest command and a watchdog.
@@ -12,36 +13,27 @@ rate with the latest command and a watchdog.
 
 from __future__ import annotations
 
-import collections
 import math
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
-from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image
-from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
+from std_srvs.srv import SetBool, Trigger
 
 from uav_common import contract
 from uav_common.kinematics import HOVER, BodyTwist, twist_error
 from uav_common.node_runner import run
 from uav_common.ros_params import ParameterError
 from uav_common.settings import declare_settings
-from uav_interfaces.msg import StepOutcome, TeacherLabel
 
-from .markers import path_msg, path_pose, world_markers
 from .messages import camera_info_msg, odometry_msg, teacher_label_msg
 from .planner import PlannerConfig, SimPlanner
 from .reward import window_fov_rad
+from .sim_outputs import SimOutputs
 from .sim_settings import REMOVED, SimNodeSettings, describe
 from .simulator import Simulator, StepResult, reward_floor_problem
 from .world import WorldError
-
-TRAJECTORY_POSES = 2000  # the longest path kept for the trajectory topic
-TRAJECTORY_PERIOD_S = 0.2  # the trajectory goes out at most this often (wall time), and at episode ends
 
 
 class SimNode(Node):
@@ -77,25 +69,16 @@ class SimNode(Node):
         if floor:  # crash counts stay meaningful (evaluation); training on this reward does not
             self.get_logger().warning(floor)
 
+        self.out = SimOutputs(self, self.teacher is not None, st.publish_clock, self.odom_frame)
         q = contract.STREAM_QOS
-        self.pub_depth = self.create_publisher(Image, contract.DEPTH_TOPIC, q)
-        self.pub_info = self.create_publisher(CameraInfo, contract.CAMERA_INFO_TOPIC, q)
-        self.pub_odom = self.create_publisher(Odometry, contract.ODOM_TOPIC, q)
-        self.pub_outcome = self.create_publisher(StepOutcome, contract.OUTCOME_TOPIC, q)
-        self.pub_teacher = self.create_publisher(TeacherLabel, contract.TEACHER_TOPIC, q) if self.teacher else None
-        self.pub_clock = self.create_publisher(Clock, "/clock", q) if st.publish_clock else None
-        self.pub_diag = self.create_publisher(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, 10)
-        self.pub_markers = self.create_publisher(MarkerArray, contract.WORLD_MARKERS_TOPIC, contract.LATCHED_QOS)
-        self.pub_path = self.create_publisher(Path, contract.TRAJECTORY_TOPIC, 10)
-        self.marked_world = None
-        self.path = collections.deque(maxlen=TRAJECTORY_POSES)
-        self.path_wall = -math.inf
         # Commands lost on the way (a publisher's history overwritten under a flood, a gap) are counted from the
         # publisher's sequence numbers, not silent.
         self.create_subscription(Twist, contract.CMD_VEL_TOPIC, self.on_cmd_vel_with_info, q)
         self.cmd_topic = self.resolve_topic_name(contract.CMD_VEL_TOPIC)
         self.cmd_publishers, self.last_cmd_seq = 0, None
         self.create_service(Trigger, "~/reset", self.on_reset)
+        self.create_service(SetBool, "~/pause", self.on_pause)
+        self.paused = False
 
         self.rejected = 0
         self.commands_lost = 0  # gaps in the publisher's sequence numbers (one publisher on cmd_vel)
@@ -144,6 +127,9 @@ class SimNode(Node):
             return
         self.last_cmd_wall = time.monotonic()
         if self.mode == "lockstep":
+            if self.paused:
+                self.commands_ignored += 1
+                return
             if self.budget_flown():
                 self.commands_ignored += 1
                 self.get_logger().info(f"step budget of {self.step_budget} steps flown: holding position", once=True)
@@ -171,6 +157,8 @@ class SimNode(Node):
         self.on_cmd_vel(msg)
 
     def on_realtime_tick(self) -> None:
+        if self.paused:
+            return
         if time.monotonic() - self.last_cmd_wall > self.watchdog_s:
             if not self.watchdog_active:
                 self.get_logger().warning(f"no cmd_vel for {self.watchdog_s} s: watchdog stops the vehicle (hover)")
@@ -179,8 +167,10 @@ class SimNode(Node):
         self.advance(self.cmd)
 
     def on_lockstep_idle(self) -> None:
+        if self.paused:
+            return
         if not self.gate_open:
-            listening = min(self.pub_depth.get_subscription_count(), self.pub_outcome.get_subscription_count())
+            listening = min(self.out.depth.get_subscription_count(), self.out.outcome.get_subscription_count())
             # Open one tick after the count is reached: a subscriber's other topics (the trainer's
             # action subscription) are matched a moment after its first.
             self.gate_ticks = self.gate_ticks + 1 if listening >= self.wait_for_subscribers else 0
@@ -195,10 +185,26 @@ class SimNode(Node):
 
     def on_reset(self, _req, resp):
         self.current, self.from_reset = self.sim.reset(), True
-        if self.gate_open:  # else the frame goes out when the gate opens (an answer now would be ignored)
+        if self.gate_open and not self.paused:  # else the frame goes out when the gate opens or the pause ends
             self.publish(self.current)
         resp.success = True
         resp.message = f"episode {self.sim.episode} started at the start pose of '{self.sim.world.name}'"
+        return resp
+
+    def on_pause(self, req, resp):
+        """Pause (data true): no step and nothing published from now on, and /diagnostics says so with the final
+        `published TOPIC` counts at once (a recorder's launcher waits for the bag to hold them all); resume (false):
+        a lockstep simulator says its frame again, to be answered."""
+        was, self.paused = self.paused, bool(req.data)
+        if self.paused and not was:
+            self.get_logger().info(f"paused after {self.sim.total_steps} steps")
+        elif was and not self.paused:
+            self.get_logger().info("resumed")
+            if self.mode == "lockstep" and self.gate_open:
+                self.publish(self.current)
+        self.publish_diagnostics()
+        resp.success = True
+        resp.message = f"{'paused' if self.paused else 'running'} after {self.sim.total_steps} steps"
         return resp
 
     def advance(self, cmd: BodyTwist) -> None:
@@ -220,13 +226,14 @@ class SimNode(Node):
 
     # -- output ------------------------------------------------------------------------
     def publish(self, r: StepResult) -> None:
-        stamp = contract.stamp_from_seconds(r.sim_time_s)
-        if self.pub_clock is not None:
-            self.pub_clock.publish(Clock(clock=stamp))
-        cfg = self.cfg
+        stamp, out, cfg = contract.stamp_from_seconds(r.sim_time_s), self.out, self.cfg
+        if out.clock is not None:
+            out.send(out.clock, Clock(clock=stamp))
         if self.teacher is not None and not self.budget_flown():  # the teacher's answer and reason before the frame
-            self.pub_teacher.publish(teacher_label_msg(self.teacher.label(), self.teacher.reason_mask(), stamp, self.frame_id))
-        self.pub_outcome.publish(
+            out.send(out.teacher, teacher_label_msg(self.teacher.label(), self.teacher.reason_mask(), stamp, self.frame_id))
+        window_rad = window_fov_rad(cfg.image_width, cfg.hfov_deg, cfg.reward_window_fraction)
+        out.send(
+            out.outcome,
             contract.make_outcome(
                 r.beta_m,
                 r.collided,
@@ -234,38 +241,22 @@ class SimNode(Node):
                 self.frame_id,
                 cfg.min_range_m,
                 cfg.max_range_m,
-                window_fov_rad(cfg.image_width, cfg.hfov_deg, cfg.reward_window_fraction),
+                window_rad,
                 truncated=r.truncated,
                 reset=self.from_reset,
-            )
+            ),
         )
         # The outcome, the camera and the frame first (a frame is mapped through the CameraInfo before it): a
         # lockstep step waits for them; the rest goes out meanwhile. Once the step budget is flown no frame goes
         # out: there is nothing more to answer (and so nothing decided or measured beyond the budget).
         if not self.budget_flown():
             k = self.sim.camera.intrinsics.k_matrix()
-            self.pub_info.publish(camera_info_msg(stamp, self.frame_id, cfg.image_width, cfg.image_height, k))
-            self.pub_depth.publish(contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
+            out.send(out.info, camera_info_msg(stamp, self.frame_id, cfg.image_width, cfg.image_height, k))
+            out.send(out.depth, contract.depth_to_image(r.depth_m, stamp, self.frame_id, self.depth_encoding))
         self.last_publish_wall = time.monotonic()
-        self.pub_odom.publish(odometry_msg(r.pose, self.executed, stamp, self.odom_frame, self.base_frame))
-        if self.sim.world is not self.marked_world:  # the first frame, or a new layout this episode
-            self.marked_world = self.sim.world
-            self.pub_markers.publish(world_markers(self.sim.world, self.odom_frame, stamp))
-        self.publish_path(r, stamp)
-
-    def publish_path(self, r: StepResult, stamp) -> None:
-        """The path flown in this episode; sent only to listeners, at most every TRAJECTORY_PERIOD_S and
-        with the complete path at each episode's end."""
-        new_episode = r.collided or r.truncated
-        listening = self.pub_path.get_subscription_count() > 0
-        now = time.monotonic()
-        if listening and (new_episode or now - self.path_wall >= TRAJECTORY_PERIOD_S) and self.path:
-            self.pub_path.publish(path_msg(self.odom_frame, stamp, self.path))
-            self.path_wall = now
-        if new_episode:
-            self.path.clear()
-        p = r.pose
-        self.path.append(path_pose(self.odom_frame, stamp, p.x_m, p.y_m, p.z_m, p.yaw_rad))
+        out.send(out.odom, odometry_msg(r.pose, self.executed, stamp, self.odom_frame, self.base_frame))
+        out.world(self.sim.world, stamp)
+        out.path_step(r.pose, r.collided or r.truncated, stamp)
 
     def publish_diagnostics(self) -> None:
         self.cmd_publishers = self.count_publishers(self.cmd_topic)
@@ -283,9 +274,11 @@ class SimNode(Node):
             "commands_ignored": self.commands_ignored,
             "cmd_vel_publishers": self.cmd_publishers,
             "steps_per_s": f"{rate:.1f}",
-        }
+            "paused": str(self.paused).lower(),
+        } | self.out.published()
         level, message = ("WARN", "watchdog: hovering") if self.watchdog_active else ("OK", "running")
-        self.pub_diag.publish(contract.diagnostics(self, "uav_sim", level, message, vals))
+        message = "paused" if self.paused else message
+        self.out.diag.publish(contract.diagnostics(self, "uav_sim", level, message, vals))
 
     def close(self) -> None:
         self.sim.close()
