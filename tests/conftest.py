@@ -65,6 +65,16 @@ def fixed_domains(root: Path = ROOT / "tests") -> dict[int, set[str]]:
     return out
 
 
+def pytest_configure(config):
+    """One torch intra-op thread in each test process, as the nodes and `train` have (torch_threads): two workers share
+    the 2 cores, and torch's threads wait for each other at every operation, so a second thread held off its core (by
+    the other worker, or the main job beside the suite) stalls the first (an in-process training test took 123 s
+    beside `train`, against 14 s alone)."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
 def pytest_collection_finish(session):
     """Each test that starts nodes on a fixed domain has it to itself, outside the harness's 1-60 (below)."""
     problems = []
