@@ -661,13 +661,13 @@ def test_a_depth_camera_alone_is_flown_behind_the_shield_and_the_safety_layer(ro
         odom.header.stamp, odom.pose.pose.position.z, odom.pose.pose.orientation.w = stamp, 1.0, 1.0
         pub_odom.publish(odom)
 
-    def stream(depth_m: float, answers: int, odometry: bool = True) -> set[int]:
+    def stream(depth_m: float, answers: int, odometry: bool = True, counts=lambda c: True) -> set[int]:
         """Frames of a wall at depth_m at 15 Hz (with the vehicle's odometry, hovering at the origin) until `answers`
-        of them are answered (best effort loses some, more on a loaded machine); their stamps."""
+        of them are answered so that `counts` (best effort loses some, more on a loaded machine); their stamps."""
         frame = np.full((480, 848), depth_m, np.float32)
         stamps = set()
         deadline = time.monotonic() + 30
-        while len(answering(stamps)) < answers and time.monotonic() < deadline:
+        while len([c for c in answering(stamps) if counts(c)]) < answers and time.monotonic() < deadline:
             stamp = clock.now().to_msg()
             info.header.stamp = stamp
             if odometry:
@@ -691,9 +691,15 @@ def test_a_depth_camera_alone_is_flown_behind_the_shield_and_the_safety_layer(ro
         publish_odometry(clock.now().to_msg())
         ros.spin_for(0.1)
     assert heard(), [values(d) for d in diag[-1:]]
-    far = stream(6.0, 5)
-    assert len(answering(far)) >= 5, ros.log_of(proc)[-3000:]
-    assert all(c.twist.linear.x > 0 for c in answering(far)), "the packaged actions all fly forward"
+    far = stream(6.0, 5, counts=lambda c: c.twist.linear.x > 0)
+    assert len([c for c in answering(far) if c.twist.linear.x > 0]) >= 5, ros.log_of(proc)[-3000:]
+    # The packaged actions all fly forward, but where the shield had no fresh odometry: a frame can overtake its own
+    # odometry (another topic) and is then judged with the one before, which a stall of this test's loop (a loaded
+    # machine) can leave older than odom_timeout_s. The node counts each such frame: no other answer may stop.
+    held = [c for c in answering(far) if c.twist.linear.x <= 0]
+    covering = lambda: diag and int(values(diag[-1])["frames_answered"]) >= len(answering(far))  # noqa: E731
+    assert ros.spin_until(covering, 5), [sorted(values(d).items()) for d in diag[-1:]]
+    assert len(held) <= int(values(diag[-1])["shield_frames_without_odometry"]), sorted(values(diag[-1]).items())
     near = stream(0.4, 5)
     assert len(answering(near)) >= 5, ros.log_of(proc)[-3000:]
     assert all(c.twist.linear.x == 0.0 for c in answering(near)), [c.twist.linear.x for c in answering(near)]
