@@ -167,17 +167,14 @@ class RosHarness:
         return predicate()
 
     def call(self, client, request, timeout_s: float = 20.0):
-        """The response to an idempotent service request (the test fails after `timeout_s`). wait_for_service sees the server's
-        request reader only: a response sent before the server's writer has matched our response reader is lost
-        (seen on a loaded machine), so the request goes again every 2 s until one is answered."""
-        end = time.monotonic() + timeout_s
-        if client.wait_for_service(timeout_sec=timeout_s):
-            while time.monotonic() < end:
-                fut = client.call_async(request)
-                if self.spin_until(fut.done, min(2.0, max(0.0, end - time.monotonic()))):
-                    return fut.result()
-                client.remove_pending_request(fut)
-        pytest.fail(f"{client.srv_name}: no answer within {timeout_s:g} s")
+        """The response to an idempotent service request, asked again until answered; the test fails after
+        `timeout_s`."""
+        from uav_common.node_runner import call_until_answered
+
+        response = call_until_answered(self.executor, client, request, timeout_s)
+        if response is None:
+            pytest.fail(f"{client.srv_name}: no answer within {timeout_s:g} s")
+        return response
 
     def spin_for(self, seconds: float) -> None:
         end = time.monotonic() + seconds

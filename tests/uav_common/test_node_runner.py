@@ -1,18 +1,21 @@
 """node_runner.run: Ctrl-C that lands inside rclpy's C++ code still ends a node cleanly (exit 0),
-while a real error in a callback still ends it with a traceback (exit 1)."""
+while a real error in a callback still ends it with a traceback (exit 1); call_until_answered asks again when an
+answer is lost."""
 
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
 from conftest import fresh_domain
-from uav_common.node_runner import interrupted
+from uav_common.node_runner import call_until_answered, interrupted
 
 # A node whose first timer callback raises what the test passes in; close() proves the clean-up ran.
 NODE = """
 import sys
+import time
 from rclpy.node import Node
 from uav_common.node_runner import run
 
@@ -87,3 +90,47 @@ def test_interrupted_survives_a_cycle():
     a, b = ValueError("a"), ValueError("b")
     a.__context__, b.__context__ = b, a
     assert interrupted(a) is False
+
+
+class LossyClient:
+    """A service client whose first `lose` answers never arrive (a response sent before the server's writer matched
+    our reader); `withdrawn` holds the requests given up on."""
+
+    def __init__(self, lose: int):
+        from rclpy.task import Future
+
+        self.future_type, self.lose, self.asked, self.withdrawn = Future, lose, 0, []
+
+    def wait_for_service(self, timeout_sec):
+        return True
+
+    def call_async(self, request):
+        future = self.future_type()
+        self.asked += 1
+        if self.asked > self.lose:
+            future.set_result(f"answer to {request}")
+        return future
+
+    def remove_pending_request(self, future):
+        self.withdrawn.append(future)
+
+
+class IdleExecutor:
+    def spin_until_future_complete(self, future, timeout_sec):
+        if not future.done():
+            time.sleep(timeout_sec)
+
+
+def test_a_lost_answer_is_asked_for_again_and_the_unanswered_request_withdrawn():
+    client = LossyClient(lose=2)
+    assert call_until_answered(IdleExecutor(), client, "pause", timeout_s=5.0, ask_every_s=0.05) == "answer to pause"
+    assert client.asked == 3
+    assert len(client.withdrawn) == 2 and not any(f.done() for f in client.withdrawn)
+
+
+def test_no_answer_within_the_timeout_is_none():
+    client = LossyClient(lose=10**6)
+    start = time.monotonic()
+    assert call_until_answered(IdleExecutor(), client, "pause", timeout_s=0.3, ask_every_s=0.05) is None
+    assert 0.3 <= time.monotonic() - start < 2.0
+    assert client.asked >= 3 and len(client.withdrawn) == client.asked

@@ -53,27 +53,24 @@ class RecorderWatch:
             return False
 
     def pause_sim(self, timeout_s: float = 10.0) -> bool:
-        """Pause sim_node (its ~/pause); False (and says why) if it does not answer within `timeout_s`. Asked again
-        every 2 s: an answer sent before the simulator's response writer matched our reader is lost."""
+        """Pause sim_node (its ~/pause); False (and says why) if it does not answer within `timeout_s`."""
         from std_srvs.srv import SetBool
+
+        from uav_common.node_runner import call_until_answered
 
         client = self.node.create_client(SetBool, "sim_node/pause")
         try:
-            end = time.monotonic() + timeout_s
-            while time.monotonic() < end:
-                if client.wait_for_service(timeout_sec=min(2.0, max(end - time.monotonic(), 0.01))):
-                    future = client.call_async(SetBool.Request(data=True))
-                    self.executor.spin_until_future_complete(future, timeout_sec=min(2.0, max(end - time.monotonic(), 0.01)))
-                    if future.done() and future.result() is not None and future.result().success:
-                        return True
-            print(
-                f"sim_node did not answer its pause within {timeout_s:g} s: stopping it; its last messages may be "
-                "missing from the bag",
-                file=sys.stderr,
-            )
-            return False
+            answer = call_until_answered(self.executor, client, SetBool.Request(data=True), timeout_s)
         finally:
             self.node.destroy_client(client)
+        if answer is not None and answer.success:
+            return True
+        print(
+            f"sim_node did not answer its pause within {timeout_s:g} s: stopping it; its last messages may be "
+            "missing from the bag",
+            file=sys.stderr,
+        )
+        return False
 
     def drained(self, timeout_s: float = 20.0) -> None:
         if not self.reports.wait_until_idle(self.executor, timeout_s):

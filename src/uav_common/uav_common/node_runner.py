@@ -71,6 +71,22 @@ def in_thread(executor, fn) -> Future:
     return fut
 
 
+def call_until_answered(executor, client, request, timeout_s: float, ask_every_s: float = 2.0):
+    """The response to an idempotent service request, or None if none comes within `timeout_s`. wait_for_service sees
+    the server's request reader only: a response sent before the server's response writer has matched our reader is
+    lost (seen on a loaded machine), so the request goes again every `ask_every_s`, the unanswered one withdrawn."""
+    end = time.monotonic() + timeout_s
+    while (left := end - time.monotonic()) > 0:
+        if not client.wait_for_service(timeout_sec=min(ask_every_s, left)):
+            continue
+        future = client.call_async(request)
+        executor.spin_until_future_complete(future, timeout_sec=max(0.01, min(ask_every_s, end - time.monotonic())))
+        if future.done():
+            return future.result()
+        client.remove_pending_request(future)
+    return None
+
+
 def shutting_down(within_s: float = 1.0, context=None) -> bool:
     """Whether the context is shut down, or goes down within `within_s`. rclpy shuts it down on Ctrl-C from its
     own signal thread, while the KeyboardInterrupt lands in the main thread: an error that Ctrl-C caused there
