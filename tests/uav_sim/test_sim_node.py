@@ -33,9 +33,12 @@ class Recorder:
         self.cmd = n.create_publisher(Twist, contract.CMD_VEL_TOPIC, q)
 
     def ready(self, ros, timeout_s: float = 20.0) -> bool:
-        """The first frame is in and sim_node listens to our cmd_vel: a command sent before the
-        sim's subscription matched our publisher would be lost, and a lockstep sim would wait."""
-        return ros.spin_until(lambda: self.by_topic["depth"] and self.cmd.get_subscription_count() > 0, timeout_s)
+        """The first frame is in on every topic and sim_node listens to our cmd_vel. A message sent before the
+        writer matched the reader is lost, and topics are matched one by one: a frame taken on one topic proves
+        nothing about another (beside the main job odometry matched after the first step and missed its frame). A
+        lockstep sim says its frame again until it is answered, so each topic's message comes."""
+        every = lambda: all(self.by_topic.values()) and self.cmd.get_subscription_count() > 0  # noqa: E731
+        return ros.spin_until(every, timeout_s)
 
     def stamps(self, key):
         if key == "clock":
@@ -251,25 +254,39 @@ def test_pause_holds_the_vehicle_and_reports_every_message_it_sent(ros):
         lambda m: said.extend({kv.key: kv.value for kv in s.values} for s in m.status if s.name == "uav_sim"),
         10,
     )
-    # No frame said again (republish) and the first one only once we listen: every message sent is counted below.
-    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=60.0", "-p", "wait_for_subscribers:=1")
-    assert rec.ready(ros), "no depth frame from sim_node"
+    topics = {"depth": "/depth/image_raw", "info": "/depth/camera_info", "odom": "/odom", "outcome": "/step_outcome"}
+    topics["clock"] = "/clock"
+    ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
+    assert rec.ready(ros), "no frame from sim_node on every topic"  # each topic matched: nothing later is lost
+    pause = ros.node.create_client(SetBool, "/sim_node/pause")
+
+    def paused_counts(steps: int) -> dict:
+        """Paused: what sim_node reports it sent and what reached us, per topic (a message sent before its topic
+        matched, the first frame's, is in the first only: differences are compared)."""
+        n = len(said)  # the report of this pause: sim_node says it before it answers
+        assert ros.call(pause, SetBool.Request(data=True)).message == f"paused after {steps} steps"
+        assert ros.spin_until(lambda: len(said) > n and said[-1]["paused"] == "true", 10)
+        ros.spin_for(1.0)  # what was on its way has arrived (reliable, matched)
+        assert len(rec.distinct_frames()) == steps + 1, "a paused simulator stepped"
+        return {k: (int(said[-1][f"published {t}"]), len(rec.by_topic[k])) for k, t in topics.items()}
+
+    before = paused_counts(0)
+    assert ros.call(pause, SetBool.Request(data=False)).message == "running after 0 steps"
     for k in range(3):
         rec.cmd.publish(twist(vx=1.0))
         assert ros.spin_until(lambda k=k: len(rec.distinct_frames()) == k + 2, 10), f"step {k + 1} missing"
-    pause = ros.node.create_client(SetBool, "/sim_node/pause")
-    assert ros.call(pause, SetBool.Request(data=True)).message == "paused after 3 steps"
+    after = paused_counts(3)
     rec.cmd.publish(twist(vx=1.0))  # ignored, and counted so
-    assert ros.spin_until(lambda: said and said[-1]["paused"] == "true" and said[-1]["commands_ignored"] == "1", 10)
+    assert ros.spin_until(lambda: said[-1]["commands_ignored"] == "1", 10), said[-1]
     ros.spin_for(1.0)
-    final = said[-1]
     assert len(rec.distinct_frames()) == 4, "a paused simulator stepped"
-    for key, topic in (("depth", "/depth/image_raw"), ("info", "/depth/camera_info"), ("odom", "/odom")):
-        assert final[f"published {topic}"] == str(len(rec.by_topic[key])) == "4", (key, final)
-    assert final["published /step_outcome"] == str(len(rec.by_topic["outcome"])) == "4", final
-    assert final["published /clock"] == str(len(rec.by_topic["clock"])) == "4", final
+    for k in topics:  # every message sent between the pauses reached us: the frame said on resuming, the 3 steps'
+        sent, received = after[k][0] - before[k][0], after[k][1] - before[k][1]  # (and any said again while idle)
+        assert sent == received >= 4, (k, before[k], after[k])
+        assert int(said[-1][f"published {topics[k]}"]) == after[k][0], "a paused simulator published"
+    n = len(rec.by_topic["depth"])
     assert ros.call(pause, SetBool.Request(data=False)).message == "running after 3 steps"
-    assert ros.spin_until(lambda: len(rec.by_topic["depth"]) == 5, 10), "resumed, the frame is said again"
+    assert ros.spin_until(lambda: len(rec.by_topic["depth"]) > n, 10), "resumed, the frame is said again"
     assert len(rec.distinct_frames()) == 4
     rec.cmd.publish(twist(vx=1.0))
     assert ros.spin_until(lambda: len(rec.distinct_frames()) == 5, 10), "resumed, a command steps again"
