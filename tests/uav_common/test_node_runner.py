@@ -15,7 +15,6 @@ from uav_common.node_runner import call_until_answered, interrupted
 # A node whose first timer callback raises what the test passes in; close() proves the clean-up ran.
 NODE = """
 import sys
-import time
 from rclpy.node import Node
 from uav_common.node_runner import run
 

@@ -254,8 +254,13 @@ def test_pause_holds_the_vehicle_and_reports_every_message_it_sent(ros):
         lambda m: said.extend({kv.key: kv.value for kv in s.values} for s in m.status if s.name == "uav_sim"),
         10,
     )
-    topics = {"depth": "/depth/image_raw", "info": "/depth/camera_info", "odom": "/odom", "outcome": "/step_outcome"}
-    topics["clock"] = "/clock"
+    topics = {
+        "depth": "/depth/image_raw",
+        "info": "/depth/camera_info",
+        "odom": "/odom",
+        "outcome": "/step_outcome",
+        "clock": "/clock",
+    }
     ros.start("uav_sim", "sim_node", "-p", "lockstep_republish_s:=0.3")
     assert rec.ready(ros), "no frame from sim_node on every topic"  # each topic matched: nothing later is lost
     pause = ros.node.create_client(SetBool, "/sim_node/pause")
