@@ -203,7 +203,12 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
     policies = [actor(0)]
     assert ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 50, 120), ros.log_of(trainer)[-2000:]
     policies.append(actor(1))  # an actor started later is taken up
-    ok = ros.spin_until(lambda: int(t().get("env_steps", 0)) >= 2000 and int(t().get("steps /actor1", 0)) >= 300, 300)
+
+    def fed_and_ghost_told() -> bool:  # both actors stored steps; the ghost's actor_timeout_s has run out
+        s = t()
+        return int(s.get("env_steps", 0)) >= 1000 and int(s.get("steps /actor1", 0)) >= 200 and s.get("actors_silent") == "1"
+
+    ok = ros.spin_until(fed_and_ghost_told, 300)
     assert ok, ros.log_of(trainer)[-2000:]
     for policy in policies:  # both lockstep loops halt
         ros.stop(policy)
@@ -216,7 +221,7 @@ def test_two_namespaced_actors_feed_one_trainer_pairing_each_exactly_and_strange
     status = t()
     sims = [sim_of(i) for i in (0, 1)]
     for i, sim in enumerate(sims):
-        assert int(status[f"steps /actor{i}"]) == int(sim["steps"]) >= 300, (status, sim)
+        assert int(status[f"steps /actor{i}"]) == int(sim["steps"]) >= 200, (status, sim)
     assert int(status["env_steps"]) == sum(int(sim["steps"]) for sim in sims)
     for key in PAIRING_COUNTS:
         assert status[key] == "0", f"{key}={status[key]}"

@@ -29,7 +29,6 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from .settings import setting
 
@@ -297,6 +296,8 @@ class LocalMap:
         if free.all():
             self._field = ()
             return None
+        from scipy import ndimage  # here, not at the top: it takes 0.2 s to import and most nodes never call this
+
         edt, (ni, nj) = ndimage.distance_transform_edt(free, return_indices=True)
         dist = np.maximum(edt * res - res / 2, 0.0)  # to the cell's edge, not its centre
         nearest = _keys(ni + ix0, nj + iy0)
