@@ -2,7 +2,8 @@
 # The suite beside the main job, as users run the two README commands together: N times (default 3), a clean clone
 # of this repository's HEAD runs `CI=true bash .ci/run` while `train --model sam` (from this checkout's install) trains
 # beside it on a ROS domain the tests never take. Prints each run's verdict and main-suite time; exit 1 if any failed or
-# its main suite took over 12 minutes (720 s, the suite's budget).
+# its main suite took over 12 minutes (720 s, the suite's budget). Each run's logs (ci.out, train.out, the nodes') stay
+# in its scratch folder; its clone is removed.
 #   bash scripts/check_under_load.sh [N]
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -16,6 +17,14 @@ fi
 failed=0
 for i in $(seq 1 "$runs"); do
   work=$(mktemp -d)
+  # A run installs a virtual environment in its clone (about 2.6 GB) and trains beside it: refuse to start one that
+  # would fill the disk halfway (pip's "No space left on device" reads like a failed suite).
+  free_gb=$(( $(df --output=avail -k "$work" | tail -n 1) / 1048576 ))
+  if [ "$free_gb" -lt 4 ]; then
+    echo "check_under_load: only $free_gb GB free in $(dirname "$work"); a run needs 4 GB (each run removes its own clone)" >&2
+    rm -rf "$work"
+    exit 2
+  fi
   git clone -q "$repo" "$work/main" && ln -s "$shared" "$work/shared"
   # The main job on a domain of its own (the tests take 1-101), its run folders and logs in the scratch folder, trained
   # again from the start each time it ends (30 000 steps can end mid-suite), until the suite is done.
@@ -41,6 +50,7 @@ for i in $(seq 1 "$runs"); do
   if [ "$code" -ne 0 ]; then verdict="FAILED (code $code)"; failed=1
   elif [ "${secs:-0}" -gt 720 ]; then verdict="green but OVER the 720 s budget"; failed=1
   else verdict=green; fi
-  echo "run $i/$runs: $verdict; $suite; $beside ${steps:-no step logged} ($work)"
+  rm -rf "$work/main" "$work"/train_run*  # the clone and its checkpoints; the logs stay
+  echo "run $i/$runs: $verdict; $suite; $beside ${steps:-no step logged} (logs: $work)"
 done
 exit $failed
